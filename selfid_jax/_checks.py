@@ -1,0 +1,46 @@
+"""Eager argument checks shared by the public API.
+
+Shapes and dtypes are static under ``jit``/``vmap``, so these checks run at
+trace time too and raise before any compute starts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def check_array(name: str, x, shape: Sequence[int | None], *, floating: bool = True) -> None:
+    """Raise ``ValueError`` unless ``x`` has ``shape`` (``None`` matches any size)."""
+    try:
+        got = tuple(np.shape(x))
+    except Exception as err:  # pragma: no cover - exotic inputs
+        raise ValueError(f"{name}: expected an array of shape {tuple(shape)}, got {type(x).__name__}") from err
+    want = tuple(shape)
+    if len(got) != len(want) or any(w is not None and w != g for w, g in zip(want, got)):
+        shown = tuple("*" if w is None else w for w in want)
+        raise ValueError(f"{name}: expected shape {shown}, got {got}")
+    if floating:
+        dtype = jnp.result_type(x)
+        if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
+            raise ValueError(f"{name}: expected a real floating-point array, got dtype {dtype}")
+
+
+def check_positive_int(name: str, value) -> int:
+    """Return ``value`` as int, raising ``ValueError`` unless it is a positive Python integer."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+    return int(value)
+
+
+def is_traced(x) -> bool:
+    """True if ``x`` is a JAX tracer (we are inside jit/vmap/grad)."""
+    return isinstance(x, jax.core.Tracer)
+
+
+def float_dtype():
+    """The default floating dtype (float64 when x64 is on, else float32)."""
+    return jnp.zeros(()).dtype

@@ -1,0 +1,204 @@
+"""The self-ID inverse-Jacobian estimator as pure functions over a pytree state.
+
+Shapes: ``n`` actuators, ``m`` task dimensions. The inverse Jacobian ``Jinv`` is
+``(n, m)`` and maps a desired task twist to actuator motion: ``dtheta = Jinv @ V``.
+
+One self-ID sample is a pair ``(dtheta (n,), V (m,))``: the random actuation and
+the pose change it produced. :func:`update` folds a sample into the
+:class:`EstimatorState`; :func:`signed_inverse_jacobian` (Eq. 6-10),
+:func:`magnitude_inverse_jacobian` (Eq. 11-12) and :func:`initial_guess`
+(Eq. 13) read estimates out of it; :func:`refine` (Eq. 14) fine-tunes an
+initial guess on the buffered samples; :func:`record` and :func:`converged`
+implement the convergence test of Sec. IV-D.
+
+Every function is pure and has no Python control flow on values: all of them
+jit, vmap and (where meaningful) differentiate.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from selfid_jax._checks import check_array, check_positive_int, float_dtype
+
+
+class EstimatorState(NamedTuple):
+    """Fixed-shape state of one estimator (a pytree; batch it with ``vmap``)."""
+
+    sign_pos: jax.Array  # (n, m) float: accumulated weight of s_ij = +1 (Eq. 9)
+    sign_neg: jax.Array  # (n, m) float: accumulated weight of s_ij = -1 (Eq. 9)
+    mag_sum: jax.Array  # (n, m) float: sum of |dtheta_i / V_j| over samples with |V_j| > v_tol (Eq. 11)
+    mag_count: jax.Array  # (n, m) float: number of samples in mag_sum per element
+    dtheta_buf: jax.Array  # (capacity, n) float: ring buffer of accepted actuations
+    v_buf: jax.Array  # (capacity, m) float: ring buffer of accepted pose changes
+    count: jax.Array  # () int32: accepted samples so far (the buffer holds min(count, capacity))
+    rejected: jax.Array  # () int32: samples rejected as non-finite or all-zero
+    v_tol: jax.Array  # () float: |V_j| at or below this does not enter the magnitude mean
+    estimate: jax.Array  # (n, m) float: last estimate passed to `record` (J_t; zeros before any)
+    last_deltas: jax.Array  # (2,) float: ||J_t - J_{t-1}||_F of the last two records (inf before)
+    iteration: jax.Array  # () int32: number of estimates recorded
+    converged_at: jax.Array  # () int32: iteration at which `record` first saw convergence, -1 if never
+
+
+def init(n: int, m: int, *, capacity: int = 64, v_tol: float = 1e-9, dtype=None) -> EstimatorState:
+    """Empty estimator for ``n`` actuators and ``m`` task dimensions.
+
+    Args:
+      n, m: static sizes.
+      capacity: static number of most recent samples kept for refinement (Eq. 14).
+      v_tol: pose-change magnitude (task units) below which a component is not
+        used for the magnitude ratio of Eq. 11; may be a traced scalar.
+      dtype: float dtype of the state (default: JAX's default float).
+    """
+    n = check_positive_int("n", n)
+    m = check_positive_int("m", m)
+    capacity = check_positive_int("capacity", capacity)
+    dtype = float_dtype() if dtype is None else dtype
+    zeros = jnp.zeros((n, m), dtype)
+    return EstimatorState(
+        sign_pos=zeros,
+        sign_neg=zeros,
+        mag_sum=zeros,
+        mag_count=zeros,
+        dtheta_buf=jnp.zeros((capacity, n), dtype),
+        v_buf=jnp.zeros((capacity, m), dtype),
+        count=jnp.zeros((), jnp.int32),
+        rejected=jnp.zeros((), jnp.int32),
+        v_tol=jnp.asarray(v_tol, dtype),
+        estimate=zeros,
+        last_deltas=jnp.full((2,), jnp.inf, dtype),
+        iteration=jnp.zeros((), jnp.int32),
+        converged_at=jnp.full((), -1, jnp.int32),
+    )
+
+
+def sizes(state: EstimatorState) -> tuple[int, int, int]:
+    """Static ``(n, m, capacity)`` of a (possibly batched) state."""
+    capacity, n = state.dtheta_buf.shape[-2:]
+    return n, state.v_buf.shape[-1], capacity
+
+
+def is_valid_sample(dtheta: jax.Array, V: jax.Array) -> jax.Array:
+    """True iff the sample is finite and neither ``dtheta`` nor ``V`` is all zero. Shapes ``(n,)``, ``(m,)``."""
+    finite = jnp.all(jnp.isfinite(dtheta)) & jnp.all(jnp.isfinite(V))
+    return finite & jnp.any(dtheta != 0) & jnp.any(V != 0)
+
+
+def sample_contribution(dtheta: jax.Array, V: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Sign weights of one sample: ``(s (n, m) in {-1, 0, 1}, w (n, m) >= 0)`` (Eq. 6-9).
+
+    ``s_ij = sign(dtheta_i) sign(V_j)`` (Eq. 6) and ``w_ij = w_theta_i w_V_j``
+    with ``w_theta_i = |dtheta_i| / sum|dtheta|`` (Eq. 7) and
+    ``w_V_j = |V_j| / sum|V|`` (Eq. 8). Eq. 9 adds ``w_ij`` to the bucket of sign
+    ``s_ij``. Zero sums give zero weights (no NaN).
+    """
+    s = jnp.sign(dtheta)[:, None] * jnp.sign(V)[None, :]
+    a_t, a_v = jnp.abs(dtheta), jnp.abs(V)
+    sum_t, sum_v = jnp.sum(a_t), jnp.sum(a_v)
+    w_t = a_t / jnp.where(sum_t > 0, sum_t, 1.0)
+    w_v = a_v / jnp.where(sum_v > 0, sum_v, 1.0)
+    return s, w_t[:, None] * w_v[None, :]
+
+
+def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
+    """Fold one self-ID sample ``(dtheta (n,) [actuator units], V (m,) [task units])`` into the state.
+
+    Accumulates the sign weights (Eq. 6-9) and the magnitude ratios
+    ``|dtheta_i / V_j|`` where ``|V_j| > v_tol`` (Eq. 11), and appends the pair
+    to the ring buffer. A sample with a non-finite entry, or with all-zero
+    ``dtheta`` or ``V``, is rejected: only ``rejected`` changes.
+    """
+    n, m, capacity = sizes(state)
+    check_array("dtheta", dtheta, (n,))
+    check_array("V", V, (m,))
+    dtype = state.sign_pos.dtype
+    dtheta = jnp.asarray(dtheta, dtype)
+    V = jnp.asarray(V, dtype)
+    ok = is_valid_sample(dtheta, V)
+    # Zero out rejected samples first so no inf/NaN reaches any arithmetic (or its gradient).
+    dtheta = jnp.where(ok, dtheta, 0.0)
+    V = jnp.where(ok, V, 0.0)
+
+    s, w = sample_contribution(dtheta, V)
+    big = jnp.abs(V) > state.v_tol  # (m,)
+    safe_v = jnp.where(big, V, 1.0)
+    ratio = jnp.abs(dtheta[:, None] / safe_v[None, :])  # Eq. 11
+    use = jnp.broadcast_to(big[None, :], (n, m))
+
+    slot = state.count % capacity
+    new = state._replace(
+        sign_pos=state.sign_pos + jnp.where(s > 0, w, 0.0),
+        sign_neg=state.sign_neg + jnp.where(s < 0, w, 0.0),
+        mag_sum=state.mag_sum + jnp.where(use, ratio, 0.0),
+        mag_count=state.mag_count + use.astype(dtype),
+        dtheta_buf=state.dtheta_buf.at[slot].set(dtheta),
+        v_buf=state.v_buf.at[slot].set(V),
+        count=state.count + 1,
+    )
+    rejected = state._replace(rejected=state.rejected + 1)
+    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, rejected)
+
+
+def signed_inverse_jacobian(state: EstimatorState) -> jax.Array:
+    """Signed inverse Jacobian ``(n, m)`` in {-1, +1}: the heavier sign bucket, ties -> +1 (Eq. 10)."""
+    return jnp.where(state.sign_pos >= state.sign_neg, 1.0, -1.0).astype(state.sign_pos.dtype)
+
+
+def magnitude_inverse_jacobian(state: EstimatorState) -> jax.Array:
+    """Magnitude inverse Jacobian ``(n, m)``: mean of ``|dtheta_i / V_j|`` (Eq. 12), 0 where no valid sample."""
+    cnt = state.mag_count
+    return jnp.where(cnt > 0, state.mag_sum / jnp.where(cnt > 0, cnt, 1.0), 0.0)
+
+
+def initial_guess(state: EstimatorState) -> jax.Array:
+    """Initial inverse-Jacobian guess ``(n, m)``: signed * magnitude, elementwise (Eq. 13)."""
+    return signed_inverse_jacobian(state) * magnitude_inverse_jacobian(state)
+
+
+def buffer_mask(state: EstimatorState) -> jax.Array:
+    """``(capacity,)`` bool: which ring-buffer rows hold samples."""
+    capacity = state.dtheta_buf.shape[-2]
+    return jnp.arange(capacity) < jnp.minimum(state.count, capacity)
+
+
+def samples(state: EstimatorState) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Buffered samples ``(dtheta (K, n), V (K, m), mask (K,))`` with ``K = capacity``; unused rows are zero."""
+    return state.dtheta_buf, state.v_buf, buffer_mask(state)
+
+
+def objective(state: EstimatorState, J: jax.Array) -> jax.Array:
+    """Eq. 14 objective ``sum_k ||dtheta_k - J V_k||^2`` over the buffered samples (scalar)."""
+    theta, V, mask = samples(state)
+    r = theta - V @ J.T
+    return jnp.sum(jnp.where(mask[:, None], r, 0.0) ** 2)
+
+
+def record(state: EstimatorState, J: jax.Array, eps) -> EstimatorState:
+    """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
+
+    Stores ``||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1 line 1) and,
+    the first time the last two changes are both ``<= eps``, the iteration
+    number in ``converged_at`` (1-based count of recorded estimates).
+    """
+    n, m, _ = sizes(state)
+    check_array("J", J, (n, m))
+    J = jnp.asarray(J, state.estimate.dtype)
+    delta = jnp.sqrt(jnp.sum((J - state.estimate) ** 2))
+    iteration = state.iteration + 1
+    deltas = jnp.stack([state.last_deltas[1], delta])
+    now = jnp.all(deltas <= eps)
+    first = now & (state.converged_at < 0)
+    return state._replace(
+        estimate=J,
+        last_deltas=deltas,
+        iteration=iteration,
+        converged_at=jnp.where(first, iteration, state.converged_at),
+    )
+
+
+def converged(state: EstimatorState, eps) -> jax.Array:
+    """True iff the last two recorded changes ``||J_t - J_{t-1}||_F`` are both ``<= eps`` (Sec. IV-D)."""
+    return jnp.all(state.last_deltas <= eps)

@@ -1,0 +1,171 @@
+"""Estimator (Eq. 6-13), convergence test (Sec. IV-D) and bad-input handling."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import selfid_jax as sj
+from selfid_jax import estimator as E
+
+
+def numpy_reference(dthetas, Vs, v_tol):
+    """Straight numpy reading of Eq. 6-13 over a list of valid samples."""
+    n, m = dthetas.shape[1], Vs.shape[1]
+    pos, neg = np.zeros((n, m)), np.zeros((n, m))
+    msum, mcnt = np.zeros((n, m)), np.zeros((n, m))
+    for d, v in zip(dthetas, Vs):
+        for i in range(n):
+            for j in range(m):
+                s = np.sign(d[i]) * np.sign(v[j])  # Eq. 6
+                w = abs(d[i]) / np.abs(d).sum() * abs(v[j]) / np.abs(v).sum()  # Eq. 7-8
+                if s > 0:
+                    pos[i, j] += w  # Eq. 9
+                elif s < 0:
+                    neg[i, j] += w
+                if abs(v[j]) > v_tol:
+                    msum[i, j] += abs(d[i] / v[j])  # Eq. 11
+                    mcnt[i, j] += 1
+    signed = np.where(pos >= neg, 1.0, -1.0)  # Eq. 10
+    mag = np.where(mcnt > 0, msum / np.maximum(mcnt, 1), 0.0)  # Eq. 12
+    return signed, mag, signed * mag  # Eq. 13
+
+
+def fold(state, dthetas, Vs):
+    for d, v in zip(dthetas, Vs):
+        state = E.update(state, d, v)
+    return state
+
+
+def test_matches_numpy_reference():
+    rng = np.random.default_rng(0)
+    n, m, K = 4, 3, 25
+    d = rng.uniform(-0.05, 0.05, (K, n))
+    V = d @ rng.normal(size=(n, m)) + 1e-3 * rng.normal(size=(K, m))
+    V[3, 1] = 1e-12  # below v_tol: skipped by the magnitude mean only
+    d[5, 2] = 0.0  # a zero actuation adds no sign weight
+    state = fold(E.init(n, m, capacity=8, v_tol=1e-9), d, V)
+    signed, mag, guess = numpy_reference(d, V, 1e-9)
+    np.testing.assert_array_equal(sj.signed_inverse_jacobian(state), signed)
+    np.testing.assert_allclose(sj.magnitude_inverse_jacobian(state), mag, rtol=1e-12)
+    np.testing.assert_allclose(sj.initial_guess(state), guess, rtol=1e-12)
+    assert int(state.count) == K and int(state.rejected) == 0
+    # ring buffer keeps the last `capacity` samples
+    buf_rows = {tuple(np.round(r, 12)) for r in np.asarray(state.dtheta_buf)}
+    assert buf_rows == {tuple(np.round(r, 12)) for r in d[-8:]}
+
+
+def test_ties_and_empty_state():
+    state = E.init(2, 3)
+    np.testing.assert_array_equal(sj.signed_inverse_jacobian(state), np.ones((2, 3)))
+    np.testing.assert_array_equal(sj.magnitude_inverse_jacobian(state), np.zeros((2, 3)))
+    J0 = jnp.arange(6.0).reshape(2, 3)
+    for method in ("closed_form", "optax", "slsqp"):
+        np.testing.assert_array_equal(sj.refine(state, J0, method=method), J0)
+
+
+def random_orthogonal(rng, n, min_abs=0.15):
+    while True:
+        q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        if np.abs(q).min() > min_abs:
+            return q
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_sign_recovery_on_sign_unambiguous_system(n):
+    # For an orthogonal J, sign(J^-1) = sign(J^T): every element has a clear sign.
+    rng = np.random.default_rng(n)
+    Q = random_orthogonal(rng, n)
+    d = rng.uniform(-0.05, 0.05, (400, n))
+    state = fold(E.init(n, n, capacity=4), d, d @ Q.T)
+    np.testing.assert_array_equal(sj.signed_inverse_jacobian(state), np.sign(np.linalg.inv(Q)))
+
+
+def test_rejects_bad_samples_without_nan():
+    state = E.init(3, 2, capacity=4)
+    good_d, good_v = jnp.array([0.01, -0.02, 0.03]), jnp.array([0.1, -0.2])
+    state = E.update(state, good_d, good_v)
+    bad = [
+        (jnp.array([jnp.nan, 0.0, 0.1]), good_v),
+        (good_d, jnp.array([jnp.inf, 0.1])),
+        (jnp.zeros(3), good_v),
+        (good_d, jnp.zeros(2)),
+        (good_d, jnp.array([-jnp.inf, jnp.nan])),
+    ]
+    jit_update = jax.jit(E.update)
+    for d, v in bad:
+        before = state
+        state = jit_update(state, d, v)
+        chex.assert_trees_all_equal(before._replace(rejected=state.rejected), state)
+    assert int(state.rejected) == len(bad) and int(state.count) == 1
+    # last_deltas is +inf until the first `record`; everything else must be finite
+    for leaf in jax.tree.leaves(state._replace(last_deltas=jnp.zeros(2))):
+        assert np.all(np.isfinite(leaf))
+    for x in (sj.initial_guess(state), sj.refine(state, sj.initial_guess(state), method="optax")):
+        assert np.all(np.isfinite(x))
+
+
+def test_wrong_shapes_raise_value_error():
+    state = E.init(3, 2)
+    with pytest.raises(ValueError, match=r"dtheta: expected shape \(3,\), got \(2,\)"):
+        E.update(state, jnp.zeros(2), jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"V: expected shape \(2,\), got \(2, 1\)"):
+        E.update(state, jnp.zeros(3), jnp.zeros((2, 1)))
+    with pytest.raises(ValueError, match=r"J0: expected shape \(3, 2\), got \(2, 3\)"):
+        sj.refine(state, jnp.zeros((2, 3)))
+    with pytest.raises(ValueError, match="dtype"):
+        E.update(state, jnp.zeros(3, bool), jnp.zeros(2))
+    with pytest.raises(ValueError, match="capacity"):
+        E.init(3, 2, capacity=0)
+    with pytest.raises(ValueError, match="method"):
+        sj.refine(state, jnp.zeros((3, 2)), method="adam")
+
+
+def test_convergence_test_needs_two_consecutive_small_changes():
+    eps = 0.1
+    state = E.init(1, 1)
+    sequence = [1.0, 1.05, 2.0, 2.05, 2.1, 2.12]  # deltas: 1, .05, .95, .05, .05, .02
+    expect = [False, False, False, False, True, True]
+    for t, (j, want) in enumerate(zip(sequence, expect), start=1):
+        state = E.record(state, jnp.array([[j]]), eps)
+        assert bool(sj.converged(state, eps)) == want, t
+    assert int(state.converged_at) == 5 and int(state.iteration) == 6
+    np.testing.assert_allclose(state.last_deltas, [0.05, 0.02], atol=1e-12)
+
+
+class JitVmapTest(chex.TestCase):
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_update_and_estimates_jit_equals_eager(self):
+        rng = np.random.default_rng(3)
+        d, V = rng.normal(size=(6, 3)), rng.normal(size=(6, 2))
+        ref = fold(E.init(3, 2, capacity=4), d, V)
+        upd = self.variant(E.update)
+        state = E.init(3, 2, capacity=4)
+        for a, b in zip(d, V):
+            state = upd(state, a, b)
+        chex.assert_trees_all_close(state, ref, rtol=1e-12)
+        chex.assert_trees_all_close(self.variant(sj.initial_guess)(state), sj.initial_guess(ref), rtol=1e-12)
+
+    def test_vmap_equals_loop(self):
+        rng = np.random.default_rng(4)
+        B, K, n, m = 3, 5, 3, 2
+        d, V = rng.normal(size=(B, K, n)), rng.normal(size=(B, K, m))
+        states = jax.vmap(lambda _: E.init(n, m, capacity=4))(jnp.arange(B))
+        vupd = jax.jit(jax.vmap(E.update))
+        for k in range(K):
+            states = vupd(states, d[:, k], V[:, k])
+        guesses = jax.vmap(sj.initial_guess)(states)
+        for b in range(B):
+            np.testing.assert_allclose(guesses[b], sj.initial_guess(fold(E.init(n, m, capacity=4), d[b], V[b])))
+
+    def test_v_tol_is_traced_no_retrace(self):
+        @jax.jit
+        @chex.assert_max_traces(n=1)
+        def magnitude(v_tol, d, V):
+            return sj.magnitude_inverse_jacobian(E.update(E.init(2, 2, v_tol=v_tol), d, V))
+
+        d, V = jnp.array([0.1, 0.2]), jnp.array([1e-4, 1.0])
+        out = [magnitude(tol, d, V) for tol in (1e-6, 1e-3, 1e-2)]
+        np.testing.assert_allclose(out[0][:, 0], [1000.0, 2000.0])
+        np.testing.assert_allclose(out[1][:, 0], [0.0, 0.0])

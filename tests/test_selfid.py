@@ -1,0 +1,87 @@
+"""Algorithm 1 under lax.scan: recovery, convergence bookkeeping, jit/vmap, no retracing."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import selfid_jax as sj
+from selfid_jax._xla import merged_xla_flags
+
+J_TRUE = jnp.array([[1.0, 0.5, 0.0], [-0.3, 2.0, 0.4], [0.2, -0.1, 1.5]])
+OBSERVE = sj.stateless(lambda key, d: J_TRUE @ d)
+
+
+def noisy(sigma):
+    return sj.stateless(lambda key, d: J_TRUE @ d + sigma * jax.random.normal(key, (3,)))
+
+
+@jax.jit
+@chex.assert_max_traces(n=1)
+def identify_batch(keys, m_a, eps):
+    run = lambda k, a, e: sj.self_identify(OBSERVE, k, a, e, n_act=3, task_dim=3, iters=12)
+    return jax.vmap(run)(keys, m_a, eps)
+
+
+def test_recovers_linear_system_and_converges():
+    res = sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-6, n_act=3, task_dim=3, iters=12)
+    np.testing.assert_allclose(res.estimate, jnp.linalg.inv(J_TRUE), rtol=1e-6, atol=1e-8)
+    # exact from the 3rd sample on: deltas at 4 and 5 are ~0, so convergence is declared at 5
+    assert int(res.converged_at) == 5
+    # Algorithm 1 stops there: later estimates repeat the converged one
+    np.testing.assert_allclose(res.estimates[-1], res.estimates[4])
+    assert res.estimates.shape == (12, 3, 3) and res.dtheta.shape == (12, 3) and res.V.shape == (12, 3)
+    assert np.all(np.abs(res.dtheta) <= 0.05)
+
+
+def test_vmap_over_keys_m_a_and_eps_equals_loop_without_retracing():
+    keys = jax.random.split(jax.random.key(1), 4)
+    m_a = jnp.array([0.01, 0.02, 0.05, 0.1])
+    eps = jnp.array([1e-6, 1e-3, 1e-6, 1e-3])
+    batched = identify_batch(keys, m_a, eps)
+    identify_batch(keys, m_a * 2, eps * 3)  # new sweep values, same compiled function
+    for b in range(4):
+        single = sj.self_identify(OBSERVE, keys[b], m_a[b], eps[b], n_act=3, task_dim=3, iters=12)
+        np.testing.assert_allclose(batched.estimate[b], single.estimate, rtol=1e-9, atol=1e-12)
+        assert int(batched.converged_at[b]) == int(single.converged_at)
+        assert np.all(np.abs(batched.dtheta[b]) <= m_a[b])
+
+
+def test_noise_and_optax_refinement_stay_finite_and_close():
+    res = jax.jit(
+        lambda k: sj.self_identify(noisy(1e-4), k, 0.05, 1e-3, n_act=3, task_dim=3, iters=40, method="optax",
+                                   stop_at_convergence=False)
+    )(jax.random.key(2))
+    assert np.all(np.isfinite(res.estimates))
+    err = np.abs(np.asarray(res.estimate) - np.linalg.inv(J_TRUE)).max()
+    assert err < 0.05
+
+
+def test_environment_state_is_threaded_through():
+    # observe integrates actuations: env = theta, V = (J @ theta_new) - (J @ theta_old)
+    def observe(theta, key, d):
+        return theta + d, J_TRUE @ (theta + d) - J_TRUE @ theta
+
+    res = sj.self_identify(observe, jax.random.key(3), 0.05, 0.0, n_act=3, task_dim=3, iters=6,
+                           env=jnp.zeros(3), stop_at_convergence=False)
+    np.testing.assert_allclose(res.env, res.dtheta.sum(0), atol=1e-12)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="iters"):
+        sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-3, n_act=3, task_dim=3, iters=0)
+    with pytest.raises(ValueError, match="slsqp"):
+        sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-3, n_act=3, task_dim=3, iters=2, method="slsqp")
+    with pytest.raises(ValueError, match=r"V: expected shape \(2,\)"):
+        sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-3, n_act=3, task_dim=2, iters=2)
+
+
+def test_xla_flags_merge_keeps_user_settings():
+    flags = merged_xla_flags("--xla_cpu_use_fusion_emitters=true --foo=1")
+    assert "--xla_cpu_use_fusion_emitters=true" in flags and "--xla_cpu_use_fusion_emitters=false" not in flags
+    assert "--xla_cpu_enable_concurrency_optimized_scheduler=false" in flags and "--foo=1" in flags
+    assert merged_xla_flags(None).split() == [
+        "--xla_cpu_use_fusion_emitters=false",
+        "--xla_cpu_enable_concurrency_optimized_scheduler=false",
+    ]
