@@ -13,7 +13,8 @@ run the same command again to resume; ``--fresh`` starts over.
 
 Bad input (missing file, invalid config, run directory of another config) is
 reported on stderr with exit code 2 and no traceback; an interrupted sweep
-exits with 130 (Ctrl-C) or 143 (SIGTERM).
+exits with 130 (Ctrl-C) or 143 (SIGTERM). A first SIGTERM lets the chunk in
+flight finish and be saved; ``kill -9`` loses at most that chunk.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ class _UsageError(Exception):
 
 
 class _Terminated(Exception):
-    """SIGTERM, turned into an exception so the sweep stops between Python bytecodes."""
+    """A second SIGTERM: stop now, between Python bytecodes."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -63,19 +64,32 @@ def _parser() -> argparse.ArgumentParser:
 
 
 @contextlib.contextmanager
-def _sigterm_raises() -> Iterator[None]:
+def _graceful_sigterm() -> Iterator[list[int]]:
+    """First SIGTERM: let the sweep save the chunk in flight and stop; second: stop at once.
+
+    Raising straight from the handler could land inside a JAX host callback,
+    where the exception is wrapped into an XLA runtime error.
+    """
+    from selfid_jax.sweep import clear_stop, request_stop
+
+    received: list[int] = []
+    clear_stop()
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield received
         return
 
     def handler(signum, frame):  # noqa: ARG001
-        raise _Terminated()
+        received.append(signum)
+        if len(received) > 1:
+            raise _Terminated()
+        request_stop()
 
     previous = signal.signal(signal.SIGTERM, handler)
     try:
-        yield
+        yield received
     finally:
         signal.signal(signal.SIGTERM, previous)
+        clear_stop()
 
 
 def _experiment(name: str):
@@ -108,16 +122,17 @@ def _sweep(args: argparse.Namespace) -> int:
     exp = _experiment(cfg.experiment)
     run_dir = args.out if args.out is not None else Path("runs") / args.config.stem
     create_run_dir(run_dir, cfg, args.config, overrides=args.overrides, fresh=args.fresh)
+    received: list[int] = []
     try:
-        with _sigterm_raises():
+        with _graceful_sigterm() as received:
             exp.runner(cfg, run_dir, args.fresh, args.progress)
-    except (KeyboardInterrupt, _Terminated) as err:
+    except (KeyboardInterrupt, _Terminated):
         print(
             f"{_PROG}: interrupted; finished chunks are kept in {run_dir}. "
             "Run the same command again to resume (add --fresh to start over).",
             file=sys.stderr,
         )
-        return 143 if isinstance(err, _Terminated) else 130
+        return 143 if received else 130
     figures = _draw(exp, run_dir)
     print(f"results: {run_dir}")
     for f in figures:

@@ -415,6 +415,8 @@ def place(offsets, start_task_vector):
     if start.shape[-1] != dim:
         raise ValueError(f"start_task_vector must have last dimension {dim} (offsets' dim), got shape {start.shape}")
     start = jnp.expand_dims(start, -2)
+    shape = jnp.broadcast_shapes(offsets.shape, start.shape)
+    offsets, start = jnp.broadcast_to(offsets, shape), jnp.broadcast_to(start, shape)
     if dim == 6:
         return jnp.concatenate([offsets[..., :3] + start[..., :3], offsets[..., 3:]], axis=-1)
     return offsets + start
