@@ -11,6 +11,11 @@ config's ``experiment:`` name (``experiments/<name>.py`` registers itself with
 saved results, exactly as ``plot`` would. Interrupt it (Ctrl-C or ``kill``) and
 run the same command again to resume; ``--fresh`` starts over.
 
+Several hosts: run the same ``sweep`` command on every host with
+``--distributed`` (SLURM/Open MPI/Kubernetes auto-detection) or with
+``--coordinator HOST:PORT --num-processes P --process-id I``; see
+``selfid_jax.sweep`` for how the batch is sharded and who writes what.
+
 Bad input (missing file, invalid config, run directory of another config) is
 reported on stderr with exit code 2 and no traceback; an interrupted sweep
 exits with 130 (Ctrl-C) or 143 (SIGTERM). A first SIGTERM lets the chunk in
@@ -54,6 +59,15 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=None, help="run directory (default: runs/<config stem>)")
     s.add_argument("--fresh", action="store_true", help="discard earlier results in the run directory")
     s.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    g = s.add_argument_group(
+        "several hosts (jax.distributed)",
+        "run the same command on every host; only process 0 writes the run directory",
+    )
+    g.add_argument("--distributed", action="store_true",
+                   help="call jax.distributed.initialize() (auto-detects SLURM, Open MPI, Kubernetes)")
+    g.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 (implies --distributed)")
+    g.add_argument("--num-processes", type=int, metavar="P", help="number of processes (implies --distributed)")
+    g.add_argument("--process-id", type=int, metavar="I", help="this process, 0..P-1 (implies --distributed)")
 
     pl = sub.add_parser("plot", help="redraw every figure of a run from its saved results")
     pl.add_argument("run_dir", type=Path)
@@ -114,6 +128,19 @@ def _draw(exp, run_dir: Path) -> list[Path]:
     return [Path(p) for p in exp.plotter(df, summary, run_dir / FIGURES_DIR)]
 
 
+def _init_distributed(args: argparse.Namespace) -> None:
+    manual = (args.coordinator, args.num_processes, args.process_id)
+    if not args.distributed and all(v is None for v in manual):
+        return
+    import jax
+
+    # CPU hosts need a cross-process collectives backend; GPU/TPU ignore this flag
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(
+        coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
+    )
+
+
 def _sweep(args: argparse.Namespace) -> int:
     from selfid_jax.config import load_config
     from selfid_jax.results import create_run_dir
@@ -121,6 +148,7 @@ def _sweep(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.overrides)
     exp = _experiment(cfg.experiment)
     run_dir = args.out if args.out is not None else Path("runs") / args.config.stem
+    _init_distributed(args)  # after validation, before any JAX computation
     create_run_dir(run_dir, cfg, args.config, overrides=args.overrides, fresh=args.fresh)
     received: list[int] = []
     try:
@@ -133,6 +161,10 @@ def _sweep(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 143 if received else 130
+    import jax
+
+    if jax.process_index() != 0:
+        return 0
     figures = _draw(exp, run_dir)
     print(f"results: {run_dir}")
     for f in figures:

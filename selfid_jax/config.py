@@ -1,0 +1,429 @@
+"""Experiment configs: YAML -> dotted overrides -> validated, frozen pydantic model.
+
+A config file names its experiment at the top level (``experiment: valid_region``);
+that name picks the pydantic model from a registry
+(:func:`register_experiment_config`). Every model forbids unknown keys, checks
+types strictly (``3`` is not a string, ``2.0`` is not an integer) and is frozen.
+Any problem raises :class:`ConfigError` whose message names the file, the dotted
+key, the problem, the offending value and what is allowed, before any compute.
+
+Overrides use one syntax everywhere: ``a.b=value`` (CLI ``--set a.b=value``);
+the value is parsed as a YAML scalar or flow list (``--set systems=[ur5e]``).
+
+Config objects never reach traced code: an experiment turns one into static
+values and numeric parameter arrays before ``jit`` (STYLE.md rule 6).
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+import types
+import typing
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import annotated_types
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+
+__all__ = [
+    "BaseConfig",
+    "ConfigError",
+    "ControllerConfig",
+    "EpsLimits",
+    "PathConfig",
+    "ValidRegionConfig",
+    "apply_overrides",
+    "dump_config",
+    "flatten_dict",
+    "get_experiment_config",
+    "load_config",
+    "parse_override",
+    "register_experiment_config",
+    "registered_experiment_configs",
+    "yaml_load",
+]
+
+
+class ConfigError(ValueError):
+    """A config file, override or run directory that cannot be used; the message says why."""
+
+
+# --------------------------------------------------------------------------- YAML
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads ``1e-3`` / ``1E6`` as floats (YAML 1.2), not strings."""
+
+
+_FLOAT_RE = re.compile(
+    r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""",
+    re.X,
+)
+_Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_RE, list("-+0123456789."))
+
+
+def yaml_load(text: str) -> Any:
+    """Parse YAML text safely, reading exponent floats such as ``1e-3`` as floats."""
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 - _Loader is a SafeLoader
+
+
+# --------------------------------------------------------------------------- models
+
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+class BaseConfig(BaseModel):
+    """Fields every experiment config has."""
+
+    model_config = _STRICT
+
+    experiment: str
+    seed: int = 0
+    chunk_size: int = Field(256, gt=0, description="rollouts per compiled chunk")
+    name: str | None = None
+
+
+class EpsLimits(BaseModel):
+    """A linspace grid of inverse-Jacobian error scalings ``eps_limit`` (dimensionless)."""
+
+    model_config = _STRICT
+
+    start: float = Field(ge=0)
+    stop: float = Field(description="greater than start")
+    num: int = Field(ge=2, description="number of grid points")
+
+    @field_validator("stop")
+    @classmethod
+    def _stop_after_start(cls, stop: float, info: ValidationInfo) -> float:
+        start = info.data.get("start")
+        if start is not None and not stop > start:
+            raise ValueError(f"must be greater than start ({start})")
+        return stop
+
+    def values(self) -> np.ndarray:
+        """The grid, shape ``(num,)``, float64."""
+        return np.linspace(self.start, self.stop, self.num)
+
+
+class ControllerConfig(BaseModel):
+    """Inverse-Jacobian path-following protocol (state it beside every bound)."""
+
+    model_config = _STRICT
+
+    max_step: float = Field(gt=0, description="largest POM step per control step [m]")
+    tol: float = Field(gt=0, description="waypoint reached when closer than this [m]")
+    steps: int = Field(ge=1, description="control-step budget per rollout")
+    gain: float = Field(1.0, gt=0, description="fraction of the correction applied per step")
+
+
+class PathConfig(BaseModel):
+    """Reference path traced by the point of manipulation."""
+
+    model_config = _STRICT
+
+    kind: Literal["star"] = "star"
+    size: float = Field(gt=0, description="path extent [m]")
+
+
+class ValidRegionConfig(BaseConfig):
+    """Valid inverse-Jacobian region study (paper Sec. III-C, Fig. 2).
+
+    Every rollout scales the true inverse Jacobian elementwise by ``m_eps`` with
+    entries drawn from ``uniform(1, eps_limit)`` and follows the path; the grid is
+    ``systems x eps_limits x n_configs x n_trials`` rollouts.
+    """
+
+    experiment: Literal["valid_region"] = "valid_region"
+    systems: Annotated[list[Literal["two_link", "ur5e"]], Field(min_length=1)]
+    eps_limits: EpsLimits
+    n_configs: int = Field(ge=1)
+    n_trials: int = Field(ge=1)
+    controller: ControllerConfig
+    path: PathConfig
+    completion_threshold: float = Field(0.95, gt=0, le=1)
+
+    @field_validator("systems")
+    @classmethod
+    def _unique(cls, systems: list[str]) -> list[str]:
+        dup = sorted({s for s in systems if systems.count(s) > 1})
+        if dup:
+            raise ValueError(f"systems must be unique, repeated: {', '.join(dup)}")
+        return systems
+
+
+# --------------------------------------------------------------------------- registry
+
+_REGISTRY: dict[str, type[BaseConfig]] = {}
+
+
+def register_experiment_config(name: str, model: type[BaseConfig]) -> None:
+    """Make ``experiment: <name>`` in a YAML file validate against ``model``."""
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        raise TypeError(f"model for {name!r} must be a pydantic BaseModel subclass, got {model!r}")
+    _REGISTRY[name] = model
+
+
+def registered_experiment_configs() -> dict[str, type[BaseConfig]]:
+    """A copy of the name -> config model registry."""
+    return dict(_REGISTRY)
+
+
+def _import_experiment_module(name: str) -> None:
+    """Import ``experiments.<name>`` so it can register itself; absent module is fine."""
+    if not name.isidentifier():
+        return
+    module = f"experiments.{name}"
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError as err:
+        if err.name not in (module, "experiments"):
+            raise
+
+
+def get_experiment_config(name: str) -> type[BaseConfig] | None:
+    """The config model registered for ``name`` (importing ``experiments.<name>`` if needed)."""
+    if name not in _REGISTRY:
+        _import_experiment_module(name)
+    return _REGISTRY.get(name)
+
+
+register_experiment_config("valid_region", ValidRegionConfig)
+
+
+# --------------------------------------------------------------------------- overrides
+
+def parse_override(text: str) -> tuple[tuple[str, ...], Any]:
+    """``"a.b=1e-3"`` -> ``(("a", "b"), 0.001)``; the value is parsed as YAML."""
+    key, sep, raw = text.partition("=")
+    key = key.strip()
+    parts = tuple(key.split("."))
+    if not sep or not key or any(not p.strip() for p in parts):
+        raise ValueError(f"--set {text!r}: expected KEY=VALUE with a dotted KEY, e.g. controller.tol=0.001")
+    try:
+        value = yaml_load(raw) if raw.strip() else ""
+    except yaml.YAMLError as err:
+        raise ValueError(f"--set {text!r}: value is not valid YAML ({err})") from None
+    return tuple(p.strip() for p in parts), value
+
+
+def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
+    """Return a deep copy of ``data`` with each ``a.b=value`` override set.
+
+    Missing intermediate mappings are created (validation then reports the key
+    as unknown if the model has no such key).
+    """
+    out = _deepcopy(data)
+    for text in overrides:
+        parts, value = parse_override(text)
+        node = out
+        for i, part in enumerate(parts[:-1]):
+            nxt = node.get(part)
+            if nxt is None:
+                nxt = node[part] = {}
+            if not isinstance(nxt, dict):
+                dotted = ".".join(parts[: i + 1])
+                raise ValueError(f"--set {text!r}: key {dotted!r} holds {nxt!r}, not a mapping")
+            node = nxt
+        node[parts[-1]] = value
+    return out
+
+
+def _deepcopy(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _deepcopy(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_deepcopy(v) for v in x]
+    return x
+
+
+# --------------------------------------------------------------------------- loading
+
+def load_config(
+    path: str | Path,
+    overrides: Sequence[str] = (),
+    model: type[BaseConfig] | None = None,
+) -> BaseConfig:
+    """Read a YAML config, apply ``a.b=value`` overrides and validate it.
+
+    Args:
+      path: YAML file with a top-level ``experiment:`` key (unless ``model`` is given).
+      overrides: dotted ``key=value`` strings, applied in order.
+      model: validate against this model instead of the registered one.
+
+    Returns:
+      The frozen, validated config model instance.
+
+    Raises:
+      ConfigError: missing/unreadable file, bad YAML, bad override, unknown
+        experiment, unknown key, wrong type or out-of-range value. The message
+        names the file and the dotted key and says what is allowed.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found" if not path.exists() else f"{path}: not a file")
+    try:
+        data = yaml_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: invalid YAML: {err}") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping of keys, got {type(data).__name__}")
+    try:
+        data = apply_overrides(data, overrides)
+    except ValueError as err:
+        raise ConfigError(f"{path}: {err}") from None
+    set_keys = {".".join(parse_override(o)[0]): o for o in overrides}
+
+    if model is None:
+        name = data.get("experiment")
+        known = ", ".join(sorted(_REGISTRY)) or "(none registered)"
+        if name is None:
+            raise ConfigError(f"{path}: key 'experiment': required key is missing; allowed: one of {known}")
+        if not isinstance(name, str) or get_experiment_config(name) is None:
+            known = ", ".join(sorted(_REGISTRY)) or "(none registered)"
+            raise ConfigError(f"{path}: key 'experiment': unknown experiment {name!r}; allowed: one of {known}")
+        model = _REGISTRY[name]
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        lines = [_format_error(path, model, e, set_keys) for e in err.errors()]
+        raise ConfigError("\n".join(lines)) from None
+
+
+def dump_config(cfg: BaseModel) -> dict:
+    """The resolved config as plain YAML/JSON-ready data (every default filled in)."""
+    return cfg.model_dump(mode="json")
+
+
+def flatten_dict(d: Mapping, prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists stay values)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping) and v:
+            out.update(flatten_dict(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+# --------------------------------------------------------------------------- messages
+
+def _dotted(loc: Sequence[Any]) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
+
+
+def _unwrap(tp: Any) -> tuple[Any, list[Any]]:
+    """Strip ``Annotated`` and ``X | None``; return ``(type, metadata)``."""
+    meta: list[Any] = []
+    while True:
+        if typing.get_origin(tp) is Annotated:
+            tp, *extra = typing.get_args(tp)
+            for m in extra:
+                meta.extend(getattr(m, "metadata", []) or [m])
+            continue
+        if typing.get_origin(tp) in (typing.Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            if len(args) == 1:
+                tp = args[0]
+                continue
+        return tp, meta
+
+
+def _locate(model: type[BaseModel], loc: Sequence[Any]) -> tuple[type[BaseModel] | None, Any, list[Any], str | None]:
+    """Follow ``loc`` through ``model``: ``(parent model, annotation, metadata, description)``."""
+    parent: type[BaseModel] | None = None
+    tp: Any = model
+    meta: list[Any] = []
+    doc: str | None = None
+    for part in loc:
+        tp, _ = _unwrap(tp)
+        if isinstance(part, int):
+            if typing.get_origin(tp) in (list, tuple):
+                args = typing.get_args(tp)
+                tp, meta, doc, parent = (args[0] if args else Any), [], None, None
+                continue
+            return None, None, [], None
+        if isinstance(tp, type) and issubclass(tp, BaseModel) and part in tp.model_fields:
+            parent = tp
+            field = tp.model_fields[part]
+            tp, meta, doc = field.annotation, list(field.metadata), field.description
+            continue
+        return (tp if isinstance(tp, type) and issubclass(tp, BaseModel) else None), None, [], None
+    return parent, tp, meta, doc
+
+
+_TYPE_NAMES = {int: "integer", float: "number", str: "string", bool: "true/false"}
+
+
+def _describe(tp: Any, meta: list[Any], doc: str | None = None) -> str:
+    """Human description of what a field accepts, e.g. ``'integer >= 1'``."""
+    nullable = typing.get_origin(tp) in (typing.Union, types.UnionType) and type(None) in typing.get_args(tp)
+    tp, inner_meta = _unwrap(tp)
+    meta = list(meta) + inner_meta
+    origin = typing.get_origin(tp)
+    if origin is Literal:
+        desc = "one of " + ", ".join(repr(a) for a in typing.get_args(tp))
+    elif origin in (list, tuple):
+        args = typing.get_args(tp)
+        desc = "list of " + (f"({_describe(args[0], [])})" if args else "values")
+    elif isinstance(tp, type) and issubclass(tp, BaseModel):
+        desc = "mapping with keys " + ", ".join(tp.model_fields)
+    else:
+        desc = _TYPE_NAMES.get(tp, getattr(tp, "__name__", str(tp)))
+    bounds = []
+    for m in meta:
+        for attr, sym in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+            v = getattr(m, attr, None)
+            if v is not None and isinstance(m, annotated_types.BaseMetadata):
+                bounds.append(f"{sym} {v}")
+        if isinstance(m, annotated_types.MinLen) and m.min_length:
+            bounds.append(f"with at least {m.min_length} item{'s' if m.min_length > 1 else ''}")
+    if bounds:
+        desc += " " + " and ".join(bounds)
+    if doc:
+        desc += f" ({doc})"
+    if nullable:
+        desc += " or null"
+    return desc
+
+
+def _format_error(path: Path, model: type[BaseModel], err: Mapping[str, Any], set_keys: Mapping[str, str]) -> str:
+    loc = tuple(err["loc"])
+    key = _dotted(loc) or "(top level)"
+    kind = err["type"]
+    msg = str(err["msg"])
+    msg = msg.removeprefix("Value error, ")
+    msg = msg[:1].lower() + msg[1:]
+    parent, tp, meta, doc = _locate(model, loc)
+    if kind == "extra_forbidden":
+        allowed = ", ".join(parent.model_fields) if parent is not None else "?"
+        level = _dotted(loc[:-1])
+        where = f" at '{level}'" if level else ""
+        text = f"unknown key; allowed keys{where}: {allowed}"
+    elif kind == "missing":
+        text = "required key is missing"
+        if tp is not None:
+            text += f"; allowed: {_describe(tp, meta, doc)}"
+    else:
+        text = f"{msg} (got {err.get('input')!r})"
+        if tp is not None and kind != "literal_error":
+            text += f"; allowed: {_describe(tp, meta, doc)}"
+    source = ""
+    for dotted, override in set_keys.items():
+        if key == dotted or key.startswith((dotted + ".", dotted + "[")) or dotted.startswith(key + "."):
+            source = f" (from --set {override})"
+    return f"{path}: key '{key}': {text}{source}"

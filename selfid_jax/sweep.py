@@ -1,0 +1,522 @@
+"""Chunked, sharded, resumable execution of one batched computation over a grid.
+
+An experiment is a pure batched function ``compute_fn(params_chunk) -> outputs``
+plus an ``N``-row parameter table. :func:`run_chunked` cuts the table into
+chunks of ``chunk_size`` rows, runs every chunk through ONE compiled function
+whose batch axis is sharded over the devices, writes each finished chunk to
+``out_dir/chunks/chunk_00012.parquet`` atomically, and finally writes the tidy
+``out_dir/results.parquet`` (one row per batch element). Re-running the same
+call skips the chunk files that exist, so an interrupted sweep (Ctrl-C, kill,
+lost machine) resumes without recomputing, losing or duplicating rows.
+
+Experiments plug in with :func:`register_experiment` (see ``selfid_jax.cli``).
+
+Devices and chunk size
+    The compiled batch is ``chunk_size`` rounded up to a multiple of the number
+    of devices; the extra rows are padding (copies of a real row) that are
+    dropped. Chunk boundaries therefore depend only on ``chunk_size`` and
+    ``N``, never on the device count, so a sweep started on one device can be
+    resumed on two with the same results. Pick ``chunk_size`` a multiple of
+    the device count to waste nothing.
+
+Several hosts (``jax.distributed``)
+    Start the same command on every host (``selfid-jax sweep CONFIG
+    --distributed`` or ``--coordinator host0:1234 --num-processes P
+    --process-id i``), which calls
+    ``jax.distributed.initialize(coordinator_address="host0:1234",
+    num_processes=P, process_id=i)`` before any JAX computation (on GPU
+    clusters with SLURM/Open MPI the arguments may be omitted). Then
+    ``jax.devices()`` lists the devices of all hosts and :func:`run_chunked`
+    shards each chunk over all of them: every process builds the same
+    parameter table from the config, feeds the rows of its own devices, and
+    the outputs are gathered (replicated) to every process. Only process 0
+    writes files, so ``out_dir`` need only exist on host 0; process 0 also
+    decides which chunks are already done and broadcasts that, so resuming
+    works whether or not the directory is shared. Processes other than 0
+    return the table if they can read ``out_dir/results.parquet`` (shared
+    filesystem), else ``None``. On CPU, cross-process collectives need
+    ``jax.config.update("jax_cpu_collectives_implementation", "gloo")`` (the
+    CLI sets it). Checked on one machine with two CPU processes: the table
+    equals the single-process one, and a re-run resumes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib
+import json
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+from tqdm.auto import tqdm
+
+from selfid_jax.results import (
+    CHUNKS_DIR,
+    MANIFEST_FILE,
+    RESULTS_FILE,
+    RunDirError,
+    atomic_write_bytes,
+    write_json,
+)
+
+__all__ = [
+    "Experiment",
+    "SweepInterrupted",
+    "SweepResumeError",
+    "clear_stop",
+    "get_experiment",
+    "grid_table",
+    "params_hash",
+    "register_experiment",
+    "registered_experiments",
+    "request_stop",
+    "row_keys",
+    "run_chunked",
+]
+
+BATCH_AXIS = "batch"
+_MANIFEST_FORMAT = 1
+
+
+class SweepResumeError(RunDirError):
+    """``out_dir`` holds chunks of a different sweep; the message names what differs."""
+
+
+class SweepInterrupted(KeyboardInterrupt):
+    """:func:`run_chunked` stopped early after :func:`request_stop`; re-run to resume."""
+
+
+_STOP = threading.Event()
+
+
+def request_stop() -> None:
+    """Ask a running :func:`run_chunked` to stop after saving the chunk in flight.
+
+    Safe to call from a signal handler (the CLI does so on SIGTERM); the run
+    raises :class:`SweepInterrupted`. Call :func:`clear_stop` before the next run.
+    Ignored when several processes run one sweep (they must stay in lockstep).
+    """
+    _STOP.set()
+
+
+def clear_stop() -> None:
+    """Forget an earlier :func:`request_stop`."""
+    _STOP.clear()
+
+
+# --------------------------------------------------------------------------- registry
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """An experiment the CLI can run and plot.
+
+    Attributes:
+      name: the config's ``experiment:`` value.
+      runner: ``runner(cfg, out_dir, fresh, progress)``; computes the results
+        (normally via :func:`run_chunked`, which writes ``results.parquet``)
+        and writes ``summary.json`` (``results.write_summary``). The CLI has
+        already created ``out_dir`` with ``config.yaml``/``versions.json``.
+        Under ``jax.distributed`` every process runs it; ``run_chunked``
+        returns ``None`` on processes other than 0 unless ``out_dir`` is on a
+        shared filesystem, so write the summary only where
+        ``jax.process_index() == 0``.
+      plotter: ``plotter(df, summary, fig_dir) -> list[Path]``; draws every
+        figure from the saved results table and summary only. Called by
+        ``selfid-jax sweep`` after the runner and by ``selfid-jax plot``.
+    """
+
+    name: str
+    runner: Callable[..., Any]
+    plotter: Callable[[pd.DataFrame, dict, Path], Sequence[Path]] | None = None
+
+
+_EXPERIMENTS: dict[str, Experiment] = {}
+
+
+def register_experiment(
+    name: str,
+    runner: Callable[..., Any],
+    plotter: Callable[[pd.DataFrame, dict, Path], Sequence[Path]] | None = None,
+) -> Experiment:
+    """Register (or replace) the runner and plotter of experiment ``name``.
+
+    Call it at import time of ``experiments/<name>.py`` together with
+    ``config.register_experiment_config(name, Model)``; the CLI imports
+    ``experiments.<name>`` when a config names that experiment.
+    """
+    exp = Experiment(name, runner, plotter)
+    _EXPERIMENTS[name] = exp
+    return exp
+
+
+def registered_experiments() -> dict[str, Experiment]:
+    """A copy of the name -> :class:`Experiment` registry."""
+    return dict(_EXPERIMENTS)
+
+
+def get_experiment(name: str) -> Experiment | None:
+    """The registered experiment ``name``, importing ``experiments.<name>`` first if needed."""
+    if name not in _EXPERIMENTS and name.isidentifier():
+        module = f"experiments.{name}"
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as err:
+            if err.name not in (module, "experiments"):
+                raise
+    return _EXPERIMENTS.get(name)
+
+
+# --------------------------------------------------------------------------- grid helpers
+
+def grid_table(axes: Mapping[str, Sequence[Any]]) -> pd.DataFrame:
+    """Cartesian product of named axes, one row per combination, last axis fastest.
+
+    ``grid_table({"system": ["a", "b"], "trial": range(3)})`` has 6 rows with
+    columns ``system, trial``. Use it as the ``meta`` table of :func:`run_chunked`
+    and derive the parameter arrays from its columns.
+    """
+    if not axes:
+        raise ValueError("grid_table needs at least one axis")
+    index = pd.MultiIndex.from_product([list(v) for v in axes.values()], names=list(axes))
+    return index.to_frame(index=False)
+
+
+def row_keys(seed: int, rows: int | np.ndarray) -> np.ndarray:
+    """PRNG key data for each row, ``fold_in(key(seed), row)``: same numbers however rows are chunked.
+
+    Args:
+      seed: the config's seed.
+      rows: ``N`` (rows ``0..N-1``) or an array of global row indices, shape ``(N,)``.
+
+    Returns:
+      ``(N, k)`` uint32 key data (``k = 2`` for the default threefry PRNG); in
+      ``compute_fn`` turn a row back into a key with ``jax.random.wrap_key_data``.
+    """
+    idx = np.arange(rows) if np.ndim(rows) == 0 else np.asarray(rows)
+    if idx.size and (idx.min() < 0 or idx.max() >= 2**32):
+        raise ValueError("row indices must lie in [0, 2**32)")
+    base = jax.random.key(seed)
+    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(base, idx.astype(np.uint32))
+    return np.asarray(jax.random.key_data(keys))
+
+
+def params_hash(params: Mapping[str, np.ndarray], meta: pd.DataFrame | None = None) -> str:
+    """SHA-256 over the names, dtypes, shapes and bytes of ``params`` (and ``meta``'s values)."""
+    h = hashlib.sha256()
+    for name in sorted(params):
+        arr = np.ascontiguousarray(params[name])
+        h.update(f"{name}|{arr.dtype.str}|{arr.shape}|".encode())
+        h.update(arr.tobytes())
+    if meta is not None:
+        h.update(f"meta|{list(meta.columns)}|{[str(t) for t in meta.dtypes]}|".encode())
+        h.update(pd.util.hash_pandas_object(meta, index=False).to_numpy().tobytes())
+    return h.hexdigest()
+
+
+# --------------------------------------------------------------------------- files
+
+def _chunk_path(out_dir: Path, i: int, n_chunks: int) -> Path:
+    width = max(5, len(str(n_chunks - 1)))
+    return out_dir / CHUNKS_DIR / f"chunk_{i:0{width}d}.parquet"
+
+
+def _table_bytes(table: pa.Table) -> bytes:
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink)
+    return sink.getvalue().to_pybytes()
+
+
+def _write_chunk(path: Path, table: pa.Table) -> None:
+    """Atomically write one finished chunk (module-level so tests can interrupt here)."""
+    atomic_write_bytes(path, _table_bytes(table))
+
+
+def _output_column(arr: np.ndarray) -> pa.Array:
+    if arr.ndim == 1:
+        return pa.array(arr)
+    flat = arr.reshape(arr.shape[0], -1)
+    return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
+
+
+def _chunk_table(rows: np.ndarray, meta: pd.DataFrame | None, outputs: Mapping[str, np.ndarray]) -> pa.Table:
+    cols: dict[str, pa.Array] = {"row": pa.array(rows.astype(np.int64))}
+    if meta is not None:
+        mt = pa.Table.from_pandas(meta.iloc[rows[0] : rows[-1] + 1], preserve_index=False)
+        cols.update(zip(mt.column_names, mt.columns))
+    for name, arr in outputs.items():
+        cols[name] = _output_column(arr)
+    return pa.table(cols)
+
+
+# --------------------------------------------------------------------------- main loop
+
+def _canonical(name: str, v: Any, n_rows: int | None) -> np.ndarray:
+    arr = np.asarray(v)
+    if arr.ndim == 0:
+        raise ValueError(f"params[{name!r}] must have a leading row axis, got a scalar")
+    if n_rows is not None and arr.shape[0] != n_rows:
+        raise ValueError(f"params[{name!r}] has {arr.shape[0]} rows, expected {n_rows} (all params share axis 0)")
+    return np.ascontiguousarray(arr, dtype=jax.dtypes.canonicalize_dtype(arr.dtype))
+
+
+def _check_manifest(out_dir: Path, manifest: dict) -> None:
+    path = out_dir / MANIFEST_FILE
+    old = json.loads(path.read_text())
+    keys = ("format", "n_rows", "chunk_size", "n_chunks", "params_hash", "meta_hash")
+    diff = [f"{k} (was {old.get(k)!r}, now {manifest[k]!r})" for k in keys if old.get(k) != manifest[k]]
+    if diff:
+        raise SweepResumeError(
+            f"{path}: the chunks in {out_dir} belong to a different sweep; differing: "
+            + "; ".join(diff)
+            + ". Use --fresh (fresh=True) to discard them, or choose another output directory."
+        )
+
+
+def _prepare_dir(out_dir: Path, manifest: dict, fresh: bool) -> None:
+    """Writer side: clear on ``fresh``, verify or write the manifest, drop stale temp files."""
+    chunk_dir = out_dir / CHUNKS_DIR
+    if fresh:
+        for p in (out_dir / MANIFEST_FILE, out_dir / RESULTS_FILE):
+            p.unlink(missing_ok=True)
+        if chunk_dir.exists():
+            for p in [*chunk_dir.glob("chunk_*.parquet"), *chunk_dir.glob(".*.tmp")]:
+                p.unlink()
+    if (out_dir / MANIFEST_FILE).exists():
+        _check_manifest(out_dir, manifest)
+    elif chunk_dir.exists() and any(chunk_dir.glob("chunk_*.parquet")):
+        raise SweepResumeError(
+            f"{chunk_dir}: holds chunks but {out_dir / MANIFEST_FILE} is missing, so they cannot be "
+            "checked. Use --fresh (fresh=True) to discard them."
+        )
+    chunk_dir.mkdir(parents=True, exist_ok=True)
+    for p in chunk_dir.glob(".*.tmp"):  # left by a killed writer
+        p.unlink(missing_ok=True)
+    write_json(out_dir / MANIFEST_FILE, manifest)
+
+
+def _sync_done(done: np.ndarray, error: bool) -> tuple[np.ndarray, bool]:
+    """Process 0's view of finished chunks and errors, broadcast to every process."""
+    if jax.process_count() == 1:
+        return done, error
+    from jax.experimental import multihost_utils
+
+    msg = np.concatenate([[int(error)], done.astype(np.int32)]).astype(np.int32)
+    msg = np.asarray(multihost_utils.broadcast_one_to_all(msg))
+    return msg[1:].astype(bool), bool(msg[0])
+
+
+def run_chunked(
+    compute_fn: Callable[[dict[str, jax.Array]], Mapping[str, jax.Array]],
+    params: Mapping[str, np.ndarray],
+    *,
+    chunk_size: int,
+    out_dir: str | Path,
+    meta: pd.DataFrame | None = None,
+    fresh: bool = False,
+    progress: bool = True,
+    static_shapes: bool = True,
+    devices: Sequence[jax.Device] | None = None,
+    desc: str = "sweep",
+) -> pd.DataFrame:
+    """Run ``compute_fn`` over ``N`` parameter rows in resumable, sharded chunks.
+
+    Args:
+      compute_fn: pure JAX function ``params_chunk -> outputs``. It receives a
+        dict with the keys of ``params``, each array of shape
+        ``(B, *row_shape)`` (``B`` = the compiled batch, see module docstring),
+        and returns a dict of arrays with leading axis ``B``: shape ``(B,)``
+        becomes a scalar column, ``(B, *s)`` a list column of the flattened
+        ``s`` values. Rows must not interact (padding rows are copies).
+        It is compiled once (twice with ``static_shapes=False``).
+      params: ``name -> array`` with a shared leading axis of ``N`` rows
+        (numbers a sweep varies, PRNG key data from :func:`row_keys`, ...).
+        Dtypes are canonicalised (float64 -> float32 unless x64 is enabled).
+      chunk_size: rows per chunk (capped at ``N``); bounds device memory.
+      out_dir: run directory; chunks go to ``out_dir/chunks/``.
+      meta: optional ``N``-row table (e.g. :func:`grid_table`) whose columns
+        are copied into the results, row for row.
+      fresh: discard the chunks, manifest and results of ``out_dir`` first.
+      progress: show a tqdm bar over chunks with ETA (never when stderr is not a TTY).
+      static_shapes: pad the last chunk to the full batch (one compilation);
+        ``False`` runs it at its own size (a second compilation, less padding).
+      devices: devices to shard over (default ``jax.devices()``, all hosts).
+      desc: progress-bar label.
+
+    Returns:
+      The results table, ``N`` rows sorted by ``row`` (int64, 0..N-1), with the
+      ``meta`` columns then the output columns; also written to
+      ``out_dir/results.parquet``. ``df.attrs["sweep"]`` says which chunks were
+      computed now and which were found on disk.
+
+    Raises:
+      SweepResumeError: ``out_dir`` holds chunks of a different sweep
+        (different N, chunk size, params or meta) and ``fresh`` is False.
+    """
+    out_dir = Path(out_dir)
+    if not params:
+        raise ValueError("params is empty: need at least one N-row array")
+    if not (isinstance(chunk_size, (int, np.integer)) and chunk_size > 0):
+        raise ValueError(f"chunk_size must be a positive integer, got {chunk_size!r}")
+    first = next(iter(params.values()))
+    n_rows = int(np.shape(first)[0]) if np.ndim(first) else 0
+    params = {k: _canonical(k, v, n_rows) for k, v in params.items()}
+    if n_rows == 0:
+        raise ValueError("params have 0 rows")
+    if meta is not None:
+        if len(meta) != n_rows:
+            raise ValueError(f"meta has {len(meta)} rows, params have {n_rows}")
+        meta = meta.reset_index(drop=True)
+        if "row" in meta.columns:
+            raise ValueError("meta must not have a 'row' column (it is added)")
+
+    devices = list(devices) if devices is not None else jax.devices()
+    n_dev = len(devices)
+    rows_per_chunk = min(int(chunk_size), n_rows)
+    batch = -(-rows_per_chunk // n_dev) * n_dev
+    n_chunks = math.ceil(n_rows / rows_per_chunk)
+    manifest = {
+        "format": _MANIFEST_FORMAT,
+        "n_rows": n_rows,
+        "chunk_size": rows_per_chunk,
+        "n_chunks": n_chunks,
+        "params_hash": params_hash(params),
+        "meta_hash": params_hash({}, meta) if meta is not None else None,
+        "params": {k: {"dtype": v.dtype.str, "row_shape": list(v.shape[1:])} for k, v in params.items()},
+        "meta_columns": list(meta.columns) if meta is not None else [],
+    }
+
+    writer = jax.process_index() == 0
+    error: Exception | None = None
+    done = np.zeros(n_chunks, bool)
+    if writer:
+        try:
+            _prepare_dir(out_dir, manifest, fresh)
+            done = np.array([_chunk_path(out_dir, i, n_chunks).exists() for i in range(n_chunks)])
+        except Exception as err:  # broadcast before raising so other hosts do not hang
+            error = err
+    done, failed = _sync_done(done, error is not None)
+    if failed:
+        raise error if error is not None else SweepResumeError(f"{out_dir}: process 0 could not prepare the run")
+
+    todo = [i for i in range(n_chunks) if not done[i]]
+    skipped = [i for i in range(n_chunks) if done[i]]
+    if todo:
+        _compute_chunks(
+            compute_fn, params, meta, todo, out_dir=out_dir, n_rows=n_rows, n_chunks=n_chunks,
+            rows_per_chunk=rows_per_chunk, batch=batch, devices=devices, writer=writer,
+            static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped),
+        )
+
+    result = None
+    if writer:
+        result = _assemble(out_dir, n_rows, n_chunks, rows_per_chunk)
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices("selfid_jax.run_chunked.done")
+        if not writer and (out_dir / RESULTS_FILE).is_file():
+            result = pd.read_parquet(out_dir / RESULTS_FILE)
+    if result is not None:
+        result.attrs["sweep"] = {
+            "n_chunks": n_chunks, "computed": todo, "skipped": skipped,
+            "batch": batch, "n_devices": n_dev,
+        }
+    return result
+
+
+def _compute_chunks(
+    compute_fn, params, meta, todo, *, out_dir, n_rows, n_chunks, rows_per_chunk, batch,
+    devices, writer, static_shapes, progress, desc, n_done,
+) -> None:
+    mesh = Mesh(np.asarray(devices), (BATCH_AXIS,))
+    in_sharding = NamedSharding(mesh, P(BATCH_AXIS))
+    out_sharding = NamedSharding(mesh, P())  # replicated: every process can read all rows
+    jitted = jax.jit(compute_fn, in_shardings=(in_sharding,), out_shardings=out_sharding)
+    compiled: dict[int, Any] = {}
+
+    def executable(size: int):
+        if size not in compiled:
+            spec = {
+                k: jax.ShapeDtypeStruct((size, *v.shape[1:]), v.dtype, sharding=in_sharding)
+                for k, v in params.items()
+            }
+            exe = jitted.lower(spec).compile()
+            _check_outputs(exe.out_info, size)
+            compiled[size] = exe
+        return compiled[size]
+
+    def dispatch(i: int):
+        start = i * rows_per_chunk
+        rows = np.arange(start, min(start + rows_per_chunk, n_rows))
+        size = batch if static_shapes else -(-len(rows) // len(devices)) * len(devices)
+        idx = np.concatenate([rows, np.full(size - len(rows), rows[-1])])
+        args = {
+            k: jax.make_array_from_callback((size, *v.shape[1:]), in_sharding, lambda s, h=v[idx]: h[s])
+            for k, v in params.items()
+        }
+        return rows, executable(size)(args)
+
+    bar = tqdm(
+        total=n_chunks, initial=n_done, unit="chunk", desc=desc, dynamic_ncols=True,
+        disable=None if progress and writer else True,
+    )
+    t0, rows_done = time.perf_counter(), 0
+    with bar:
+        pending = None
+        single = jax.process_count() == 1  # several processes must dispatch in lockstep
+        for i in [*todo, None]:
+            stop = single and _STOP.is_set()
+            # dispatch is async: chunk i computes while chunk `pending` is written
+            nxt = (i, *dispatch(i)) if i is not None and not stop else None
+            if pending is not None:
+                j, rows, out = pending
+                host = {k: np.asarray(v)[: len(rows)] for k, v in out.items()}
+                if writer:
+                    _write_chunk(_chunk_path(out_dir, j, n_chunks), _chunk_table(rows, meta, host))
+                rows_done += len(rows)
+                bar.set_postfix(rows_per_s=f"{rows_done / max(time.perf_counter() - t0, 1e-9):.3g}", refresh=False)
+                bar.update(1)
+            pending = nxt
+            if stop:
+                raise SweepInterrupted(f"stop requested; finished chunks are in {out_dir / CHUNKS_DIR}")
+
+
+def _check_outputs(out_info: Any, size: int) -> None:
+    if not isinstance(out_info, Mapping) or not out_info:
+        raise TypeError(f"compute_fn must return a non-empty dict of arrays, got {type(out_info).__name__}")
+    for name, info in out_info.items():
+        shape = getattr(info, "shape", None)
+        if shape is None:
+            raise TypeError(f"compute_fn output {name!r} must be an array, not a nested {type(info).__name__}")
+        if len(shape) == 0 or shape[0] != size:
+            raise ValueError(f"compute_fn output {name!r} has shape {tuple(shape)}; need leading batch axis {size}")
+        if name == "row":
+            raise ValueError("compute_fn output must not be named 'row' (the row index column)")
+
+
+def _assemble(out_dir: Path, n_rows: int, n_chunks: int, rows_per_chunk: int) -> pd.DataFrame:
+    """Concatenate all chunk files, check every row appears once, write results.parquet."""
+    tables = []
+    for i in range(n_chunks):
+        path = _chunk_path(out_dir, i, n_chunks)
+        t = pq.read_table(path)
+        expect = np.arange(i * rows_per_chunk, min((i + 1) * rows_per_chunk, n_rows))
+        got = t.column("row").to_numpy()
+        if not np.array_equal(got, expect):
+            raise SweepResumeError(f"{path}: holds rows {got[:3]}... not {expect[:3]}...; use --fresh")
+        tables.append(t)
+    table = pa.concat_tables(tables, promote_options="default")
+    atomic_write_bytes(out_dir / RESULTS_FILE, _table_bytes(table))
+    return table.to_pandas()

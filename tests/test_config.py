@@ -1,0 +1,133 @@
+"""Config loading: validation errors name the file, the dotted key and what is allowed."""
+
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pydantic
+import pytest
+
+from selfid_jax.config import (
+    BaseConfig,
+    ConfigError,
+    ValidRegionConfig,
+    apply_overrides,
+    dump_config,
+    load_config,
+    parse_override,
+    register_experiment_config,
+)
+
+VALID = textwrap.dedent(
+    """\
+    experiment: valid_region
+    seed: 3
+    chunk_size: 64
+    systems: [two_link, ur5e]
+    eps_limits: {start: 0.0, stop: 3.0, num: 13}
+    n_configs: 10
+    n_trials: 10
+    controller: {max_step: 1e-2, tol: 1e-3, steps: 400}
+    path: {size: 0.5}
+    """
+)
+
+
+@pytest.fixture
+def cfg_file(tmp_path):
+    path = tmp_path / "vr.yaml"
+    path.write_text(VALID)
+    return path
+
+
+def _error(path, overrides=(), text=None) -> str:
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path, overrides)
+    return str(info.value)
+
+
+def test_valid_config_loads_with_defaults_and_exponent_floats(cfg_file):
+    cfg = load_config(cfg_file)
+    assert isinstance(cfg, ValidRegionConfig)
+    assert cfg.controller.tol == pytest.approx(1e-3) and isinstance(cfg.controller.tol, float)
+    assert cfg.controller.gain == 1.0 and cfg.path.kind == "star" and cfg.completion_threshold == 0.95
+    np.testing.assert_allclose(cfg.eps_limits.values(), np.linspace(0, 3, 13))
+    with pytest.raises(pydantic.ValidationError):
+        cfg.seed = 4  # frozen
+    dumped = dump_config(cfg)
+    assert dumped["controller"] == {"max_step": 0.01, "tol": 0.001, "steps": 400, "gain": 1.0}
+    assert ValidRegionConfig.model_validate(dumped) == cfg
+
+
+def test_unknown_key_lists_allowed_keys(cfg_file):
+    msg = _error(cfg_file, text=VALID + "foo: 1\n")
+    assert str(cfg_file) in msg and "key 'foo'" in msg and "unknown key" in msg
+    assert "n_trials" in msg and "controller" in msg
+    msg = _error(cfg_file, text=VALID.replace("steps: 400", "steps: 400, kp: 2"))
+    assert "key 'controller.kp'" in msg and "allowed keys at 'controller': max_step, tol, steps, gain" in msg
+
+
+def test_wrong_type_names_key_value_and_type(cfg_file):
+    msg = _error(cfg_file, text=VALID.replace("n_configs: 10", "n_configs: ten"))
+    assert str(cfg_file) in msg and "key 'n_configs'" in msg
+    assert "valid integer" in msg and "'ten'" in msg and "allowed: integer >= 1" in msg
+    msg = _error(cfg_file, text=VALID.replace("[two_link, ur5e]", "[two_link, panda]"))
+    assert "key 'systems[1]'" in msg and "'two_link' or 'ur5e'" in msg and "'panda'" in msg
+
+
+def test_out_of_range_value(cfg_file):
+    msg = _error(cfg_file, text=VALID.replace("max_step: 1e-2", "max_step: -1"))
+    assert f"{cfg_file}: key 'controller.max_step': input should be greater than 0 (got -1)" in msg
+    assert "allowed: number > 0" in msg
+    msg = _error(cfg_file, text=VALID.replace("stop: 3.0", "stop: 0.0"))
+    assert "key 'eps_limits.stop'" in msg and "greater than start" in msg
+    msg = _error(cfg_file, ["completion_threshold=1.5"])
+    assert "key 'completion_threshold'" in msg and "<= 1" in msg
+
+
+def test_several_errors_reported_together(cfg_file):
+    msg = _error(cfg_file, ["n_trials=0", "eps_limits.num=1"])
+    assert "key 'n_trials'" in msg and "key 'eps_limits.num'" in msg
+
+
+def test_overrides_apply_and_bad_overrides_error(cfg_file):
+    cfg = load_config(cfg_file, ["controller.gain=0.5", "systems=[ur5e]", "name=quick"])
+    assert cfg.controller.gain == 0.5 and cfg.systems == ["ur5e"] and cfg.name == "quick"
+    msg = _error(cfg_file, ["controller.kp=2"])
+    assert str(cfg_file) in msg and "key 'controller.kp'" in msg and "unknown key" in msg
+    assert "max_step, tol, steps, gain" in msg and "--set controller.kp=2" in msg
+    msg = _error(cfg_file, ["n_configs=many"])
+    assert "key 'n_configs'" in msg and "--set n_configs=many" in msg
+    msg = _error(cfg_file, ["controller"])
+    assert "KEY=VALUE" in msg
+    msg = _error(cfg_file, ["seed.x=1"])
+    assert "'seed'" in msg and "not a mapping" in msg
+
+
+def test_missing_file_and_unknown_experiment(tmp_path, cfg_file):
+    missing = tmp_path / "nope.yaml"
+    msg = _error(missing)
+    assert str(missing) in msg and "not found" in msg
+    msg = _error(cfg_file, ["experiment=no_such_experiment"])
+    assert "key 'experiment'" in msg and "no_such_experiment" in msg and "valid_region" in msg
+    msg = _error(cfg_file, text="seed: 1\n")
+    assert "key 'experiment'" in msg and "missing" in msg
+    msg = _error(cfg_file, text="experiment: [\n")
+    assert "invalid YAML" in msg
+
+
+def test_registered_model_and_parse_override(tmp_path):
+    class Tiny(BaseConfig):
+        experiment: str = "tiny_test"
+        scale: float = pydantic.Field(gt=0)
+
+    register_experiment_config("tiny_test", Tiny)
+    path = tmp_path / "tiny.yaml"
+    path.write_text("experiment: tiny_test\nscale: 2\n")
+    cfg = load_config(path, ["chunk_size=8"])
+    assert isinstance(cfg, Tiny) and cfg.scale == 2.0 and cfg.chunk_size == 8
+    assert parse_override("a.b=[1, 2.5e-3]") == (("a", "b"), [1, 0.0025])
+    assert apply_overrides({"a": {"c": 1}}, ["a.b=x"]) == {"a": {"c": 1, "b": "x"}}

@@ -1,0 +1,349 @@
+"""Chunked, sharded, resumable sweeps with a synthetic compute function; CLI end to end."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pydantic
+import pytest
+
+import selfid_jax.sweep as sweep
+from selfid_jax import cli
+from selfid_jax.config import BaseConfig, register_experiment_config
+from selfid_jax.plots import save_figure
+from selfid_jax.results import load_results, read_summary, write_summary
+from selfid_jax.sweep import SweepResumeError, grid_table, register_experiment, row_keys, run_chunked
+
+TESTS = Path(__file__).resolve().parent
+
+
+def synthetic_fn(p):
+    """Per row: a noisy 3-state nonlinear recursion, 6 steps (lax.scan), from the row's key."""
+
+    def row(a, key):
+        k = jax.random.wrap_key_data(key)
+        m = jax.random.normal(k, (3, 3))
+        def step(x, t):
+            x = jnp.tanh(a * (m @ x) + jnp.sin(t))
+            return x, x[0]
+        x_final, traj = jax.lax.scan(step, jnp.ones(3), jnp.arange(6.0))
+        return {"final": jnp.sum(x_final), "traj": traj, "negative": x_final[0] < 0}
+
+    return jax.vmap(row)(p["a"], p["key"])
+
+
+def make_inputs(seed: int = 0):
+    """23 rows: 2 systems x 3 gains x 4 trials, minus one row (so the last chunk is short)."""
+    meta = grid_table({"system": ["s1", "s2"], "a": [0.3, 0.8, 1.4], "trial": range(4)}).iloc[:23]
+    params = {"a": meta["a"].to_numpy(), "key": row_keys(seed, len(meta))}
+    return meta, params
+
+
+def reference(params) -> dict[str, np.ndarray]:
+    return {k: np.asarray(v) for k, v in jax.jit(synthetic_fn)(params).items()}
+
+
+def assert_matches_reference(df: pd.DataFrame, ref: dict[str, np.ndarray]) -> None:
+    assert df["row"].tolist() == list(range(len(ref["final"])))
+    np.testing.assert_allclose(df["final"].to_numpy(), ref["final"], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(np.stack(df["traj"].to_numpy()), ref["traj"], rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(df["negative"].to_numpy(), ref["negative"])
+
+
+@pytest.mark.parametrize("static_shapes, max_traces", [(True, 1), (False, 2)])
+def test_chunked_equals_unchunked_and_compiles_once(tmp_path, static_shapes, max_traces):
+    meta, params = make_inputs()
+    chex.clear_trace_counter()
+    fn = chex.assert_max_traces(synthetic_fn, n=max_traces)
+    df = run_chunked(fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False, static_shapes=static_shapes)
+    assert_matches_reference(df, reference(params))
+    assert list(df.columns) == ["row", "system", "a", "trial", "final", "negative", "traj"]
+    assert df[["system", "a", "trial"]].equals(meta.reset_index(drop=True))
+    assert df.attrs["sweep"]["computed"] == [0, 1, 2, 3, 4]
+    pd.testing.assert_frame_equal(load_results(tmp_path), df, check_like=False)
+    assert sorted(p.name for p in (tmp_path / "chunks").iterdir()) == [f"chunk_0000{i}.parquet" for i in range(5)]
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert (manifest["n_rows"], manifest["chunk_size"], manifest["n_chunks"]) == (23, 5, 5)
+
+
+def test_row_keys_depend_only_on_seed_and_row():
+    np.testing.assert_array_equal(row_keys(7, 10)[3:6], row_keys(7, np.arange(3, 6)))
+    assert not np.array_equal(row_keys(7, 4), row_keys(8, 4))
+
+
+def test_resume_after_interrupt(tmp_path, monkeypatch):
+    meta, params = make_inputs()
+    ref = reference(params)
+    real_write, writes = sweep._write_chunk, []
+
+    def interrupted_write(path, table):
+        if len(writes) == 2:
+            raise KeyboardInterrupt  # Ctrl-C while the 3rd chunk is being saved
+        writes.append(path.name)
+        real_write(path, table)
+
+    monkeypatch.setattr(sweep, "_write_chunk", interrupted_write)
+    with pytest.raises(KeyboardInterrupt):
+        run_chunked(synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False)
+    monkeypatch.setattr(sweep, "_write_chunk", real_write)
+    assert not (tmp_path / "results.parquet").exists()
+    assert len(load_results(tmp_path, partial=True)) == 10
+    stamps = {p.name: p.stat().st_mtime_ns for p in (tmp_path / "chunks").iterdir()}
+    assert sorted(stamps) == ["chunk_00000.parquet", "chunk_00001.parquet"]
+
+    df = run_chunked(synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False)
+    assert df.attrs["sweep"]["computed"] == [2, 3, 4] and df.attrs["sweep"]["skipped"] == [0, 1]
+    assert {n: (tmp_path / "chunks" / n).stat().st_mtime_ns for n in stamps} == stamps
+    assert not df["row"].duplicated().any()
+    assert_matches_reference(df, ref)
+
+    # lost chunk files and table: only those chunks are recomputed
+    (tmp_path / "chunks" / "chunk_00001.parquet").unlink()
+    (tmp_path / "chunks" / "chunk_00004.parquet").unlink()
+    (tmp_path / "results.parquet").unlink()
+    again = run_chunked(synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False)
+    assert again.attrs["sweep"]["computed"] == [1, 4]
+    again.attrs, df.attrs = {}, {}
+    pd.testing.assert_frame_equal(again, df)
+
+
+def test_manifest_mismatch_errors_unless_fresh(tmp_path):
+    meta, params = make_inputs()
+    run_chunked(synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False)
+    other = dict(params, a=params["a"] * 2)
+    with pytest.raises(SweepResumeError, match=r"params_hash"):
+        run_chunked(synthetic_fn, other, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False)
+    with pytest.raises(SweepResumeError, match=r"chunk_size \(was 5, now 6\)"):
+        run_chunked(synthetic_fn, params, chunk_size=6, out_dir=tmp_path, meta=meta, progress=False)
+    df = run_chunked(synthetic_fn, other, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False, fresh=True)
+    assert df.attrs["sweep"]["computed"] == [0, 1, 2, 3, 4]
+    assert_matches_reference(df, reference(other))
+
+
+def test_bad_inputs_raise():
+    meta, params = make_inputs()
+    with pytest.raises(ValueError, match="rows"):
+        run_chunked(synthetic_fn, dict(params, a=params["a"][:5]), chunk_size=5, out_dir="unused", progress=False)
+    with pytest.raises(ValueError, match="chunk_size"):
+        run_chunked(synthetic_fn, params, chunk_size=0, out_dir="unused", progress=False)
+
+
+TWO_DEVICE_SCRIPT = textwrap.dedent(
+    """
+    import sys
+    sys.path.insert(0, {tests!r})
+    import jax, pandas as pd
+    import selfid_jax.sweep as sweep
+    from test_sweep import make_inputs, synthetic_fn
+    assert len(jax.devices()) == 2, jax.devices()
+    out = {out!r}
+    meta, params = make_inputs()
+    one = sweep.run_chunked(synthetic_fn, params, chunk_size=5, out_dir=out + "/one", meta=meta,
+                            progress=False, devices=jax.devices()[:1])
+    two = sweep.run_chunked(synthetic_fn, params, chunk_size=5, out_dir=out + "/two", meta=meta, progress=False)
+    assert two.attrs["sweep"]["n_devices"] == 2 and two.attrs["sweep"]["batch"] == 6
+    # a run started on one device resumes on two
+    for i in (1, 3):
+        (sweep.Path(out) / "one" / "chunks" / f"chunk_0000{{i}}.parquet").unlink()
+    resumed = sweep.run_chunked(synthetic_fn, params, chunk_size=5, out_dir=out + "/one", meta=meta, progress=False)
+    assert resumed.attrs["sweep"]["computed"] == [1, 3]
+    for df in (one, two, resumed):
+        df.attrs = {{}}
+    pd.testing.assert_frame_equal(one, two, check_exact=True)
+    pd.testing.assert_frame_equal(one, resumed, check_exact=True)
+    one.to_parquet(out + "/one.parquet")
+    print("OK")
+    """
+)
+
+
+def _env(**extra) -> dict[str, str]:
+    env = dict(os.environ)
+    env["JAX_ENABLE_X64"] = "1" if jax.config.jax_enable_x64 else "0"
+    env.pop("XLA_FLAGS", None)
+    env.update(extra)
+    return env
+
+
+def test_two_devices_match_one_device(tmp_path):
+    script = TWO_DEVICE_SCRIPT.format(tests=str(TESTS), out=str(tmp_path))
+    res = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+        env=_env(XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"),
+    )
+    assert res.returncode == 0 and "OK" in res.stdout, res.stderr[-3000:]
+    _, params = make_inputs()
+    assert_matches_reference(pd.read_parquet(tmp_path / "one.parquet"), reference(params))
+
+
+KILL_SCRIPT = textwrap.dedent(
+    """
+    import sys, time
+    sys.path.insert(0, {tests!r})
+    import jax
+    import selfid_jax.sweep as sweep
+    from test_sweep import make_inputs, synthetic_fn
+
+    def slow_fn(p):
+        jax.debug.callback(lambda: time.sleep(0.4))
+        return synthetic_fn(p)
+
+    meta, params = make_inputs()
+    sweep.run_chunked(slow_fn, params, chunk_size=5, out_dir={out!r}, meta=meta, progress=False)
+    """
+)
+
+
+def test_resume_after_kill(tmp_path):
+    """SIGKILL mid-sweep leaves only whole chunk files; the re-run finishes the rest."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", KILL_SCRIPT.format(tests=str(TESTS), out=str(tmp_path))],
+        env=_env(JAX_PLATFORMS="cpu"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )
+    chunk_dir = tmp_path / "chunks"
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline and proc.poll() is None:
+        if chunk_dir.is_dir() and len(list(chunk_dir.glob("chunk_*.parquet"))) >= 2:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, proc.stderr.read().decode()[-3000:]
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    proc.stderr.close()
+    finished = sorted(int(p.stem.split("_")[1]) for p in chunk_dir.glob("chunk_*.parquet"))
+    assert 2 <= len(finished) < 5 and not (tmp_path / "results.parquet").exists()
+
+    meta, params = make_inputs()
+    df = run_chunked(synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False)
+    assert df.attrs["sweep"]["skipped"] == finished
+    assert sorted(df.attrs["sweep"]["computed"] + finished) == [0, 1, 2, 3, 4]
+    assert not list(chunk_dir.glob(".*.tmp"))
+    assert_matches_reference(df, reference(params))
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+class SyntheticConfig(BaseConfig):
+    experiment: str = "synthetic_cli_test"
+    gains: list[float] = pydantic.Field(min_length=1)
+    n_trials: int = pydantic.Field(ge=1)
+
+
+RUNS: list[dict] = []
+
+
+def synthetic_runner(cfg, out_dir, fresh, progress):
+    meta = grid_table({"a": cfg.gains, "trial": range(cfg.n_trials)})
+    params = {"a": meta["a"].to_numpy(), "key": row_keys(cfg.seed, len(meta))}
+    df = run_chunked(synthetic_fn, params, chunk_size=cfg.chunk_size, out_dir=out_dir, meta=meta,
+                     fresh=fresh, progress=progress)
+    RUNS.append(df.attrs["sweep"])
+    write_summary(out_dir, {"mean_final": df.groupby("a")["final"].mean().to_dict(), "nan": float("nan")})
+
+
+def synthetic_plotter(df, summary, fig_dir):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(3, 2))
+    ax = fig.subplots()
+    ax.plot(df["a"], df["final"], "o")
+    ax.set_title(f"{len(summary['mean_final'])} gains")
+    return save_figure(fig, fig_dir, "synthetic")
+
+
+register_experiment_config("synthetic_cli_test", SyntheticConfig)
+register_experiment("synthetic_cli_test", synthetic_runner, synthetic_plotter)
+
+
+def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
+    cfg = tmp_path / "synthetic.yaml"
+    cfg.write_text("experiment: synthetic_cli_test\nchunk_size: 4\ngains: [0.3, 0.9]\nn_trials: 5\n")
+    out = tmp_path / "run"
+    args = ["sweep", str(cfg), "--out", str(out), "--no-progress"]
+
+    # SIGTERM while chunk 0 is saved: the chunk in flight (1) is saved too, exit 143
+    real_write = sweep._write_chunk
+    calls = []
+
+    def terminated_write(path, table):
+        calls.append(path)
+        real_write(path, table)
+        if len(calls) == 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(sweep, "_write_chunk", terminated_write)
+    assert cli.main(args) == 143
+    assert "resume" in capsys.readouterr().err
+    assert sorted(p.name for p in (out / "chunks").iterdir()) == ["chunk_00000.parquet", "chunk_00001.parquet"]
+    assert signal.getsignal(signal.SIGTERM) is not None and not sweep._STOP.is_set()
+
+    # Ctrl-C while the last chunk is being saved: exit 130, nothing half-written
+    def interrupted_write(path, table):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sweep, "_write_chunk", interrupted_write)
+    assert cli.main(args) == 130
+    assert "resume" in capsys.readouterr().err
+    monkeypatch.setattr(sweep, "_write_chunk", real_write)
+
+    assert cli.main(args) == 0
+    assert RUNS[-1]["skipped"] == [0, 1] and RUNS[-1]["computed"] == [2]
+    for name in ("config.yaml", "versions.json", "manifest.json", "results.parquet", "summary.json",
+                 "figures/synthetic.png", "figures/synthetic.pdf"):
+        assert (out / name).is_file(), name
+    versions = json.loads((out / "versions.json").read_text())
+    assert {"selfid_jax", "jax", "jaxlib", "mujoco", "numpy", "python", "git_revision", "devices"} <= set(versions)
+    assert len(versions["resumed"]) == 2
+    assert len(pd.read_parquet(out / "results.parquet")) == 10
+    assert read_summary(out)["nan"] is None
+
+    assert cli.main(args) == 0 and RUNS[-1]["computed"] == []  # finished: nothing recomputed
+
+    # a different config must not mix into this run dir
+    assert cli.main([*args, "--set", "n_trials=6"]) == 2
+    err = capsys.readouterr().err
+    assert "n_trials (was 5, now 6)" in err and "--fresh" in err and "Traceback" not in err
+    assert cli.main([*args, "--set", "n_trials=6", "--fresh"]) == 0
+    assert RUNS[-1]["computed"] == [0, 1, 2] and len(load_results(out)) == 12
+
+    # plot redraws from saved results only
+    for f in (out / "figures").iterdir():
+        f.unlink()
+    monkeypatch.setattr(sweep, "run_chunked", None)  # any simulation would now fail
+    assert cli.main(["plot", str(out)]) == 0
+    assert (out / "figures" / "synthetic.png").stat().st_size > 0
+
+
+def test_cli_bad_input_exits_2(tmp_path, capsys):
+    missing = tmp_path / "missing.yaml"
+    assert cli.main(["sweep", str(missing)]) == 2
+    err = capsys.readouterr().err
+    assert str(missing) in err and "not found" in err and "Traceback" not in err
+
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("experiment: synthetic_cli_test\ngains: [0.3]\nn_trials: 0\ncolour: red\n")
+    assert cli.main(["sweep", str(cfg), "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert str(cfg) in err and "key 'n_trials'" in err and "key 'colour'" in err and "allowed" in err
+    assert not (tmp_path / "r").exists()  # validated before anything is created
+
+    assert cli.main(["plot", str(tmp_path / "no_run")]) == 2
+    assert "not found" in capsys.readouterr().err
+
+    register_experiment_config("config_only_test", SyntheticConfig)
+    cfg.write_text("experiment: config_only_test\ngains: [0.3]\nn_trials: 1\n")
+    assert cli.main(["sweep", str(cfg), "--out", str(tmp_path / "r")]) == 2
+    assert "no runner registered" in capsys.readouterr().err
