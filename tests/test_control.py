@@ -1,0 +1,145 @@
+"""Path following with inverse Jacobians, self-ID on simulated systems, metrics and failure handling."""
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import selfid_jax as sj
+from selfid_jax import control, paths, selfid
+from selfid_jax.systems import from_pose_fn, two_link, ur5e
+
+import numpy_reference as ref
+
+UR5E = ur5e(task_dim=3)
+STAR = paths.star(size=0.05, dim=3)
+CTRL = dict(steps=300, max_step=0.004, tol=0.001)
+
+
+@pytest.fixture(scope="module")
+def ur5e_configs():
+    return UR5E.sample_configs(jax.random.key(0), 9)
+
+
+@jax.jit
+def _ur5e_true(q0s):
+    return jax.vmap(lambda q: control.follow(UR5E, control.true_inverse(UR5E), STAR, q, **CTRL))(q0s)
+
+
+@jax.jit
+def _ur5e_selfid_then_follow(keys, q0s):
+    def one(key, q0):
+        r = selfid.run(UR5E, key, q0, iters=24, eps=0.5)
+        return r.converged_at, control.follow(UR5E, control.fixed(r.estimate), STAR, r.env, **CTRL)
+
+    return jax.vmap(one)(keys, q0s)
+
+
+def test_true_inverse_completes_star_on_ur5e(ur5e_configs):
+    res = _ur5e_true(ur5e_configs)
+    np.testing.assert_array_equal(res.completion, 1.0)
+    assert not np.any(res.failed)
+    assert np.all(res.mean_error < 1e-3)
+
+
+def test_controller_matches_numpy_loop_on_ur5e(ur5e_configs):
+    """The scan controller equals an independent numpy loop using DH kinematics."""
+    res = _ur5e_true(ur5e_configs)
+    for b in range(2):
+        q0 = np.asarray(ur5e_configs[b])
+        comp, mean_err, max_err, used, failed, _ = ref.follow(
+            ref.ur5e_position,
+            lambda q: ref.right_inverse(ref.ur5e_position_jacobian(q)),
+            np.asarray(STAR),
+            q0,
+            dq_max=np.asarray(UR5E.dq_max),
+            q_low=np.asarray(UR5E.q_low),
+            q_high=np.asarray(UR5E.q_high),
+            **CTRL,
+        )
+        assert comp == float(res.completion[b]) and used == int(res.steps_used[b]) and not failed
+        np.testing.assert_allclose(res.mean_error[b], mean_err, rtol=1e-6, atol=1e-12)
+        np.testing.assert_allclose(res.max_error[b], max_err, rtol=1e-6, atol=1e-12)
+
+
+def test_selfid_estimate_completes_star_on_ur5e(ur5e_configs):
+    keys = jax.random.split(jax.random.key(1), 9)
+    conv, res = _ur5e_selfid_then_follow(keys, ur5e_configs)
+    assert np.mean(np.asarray(res.completion) == 1.0) >= 0.9
+    assert not np.any(res.failed)
+    converged = np.asarray(conv)[np.asarray(conv) > 0]
+    print(f"UR5e self-ID: mean convergence iteration {converged.mean():.1f} ({len(converged)}/9 converged)")
+    assert len(converged) >= 8
+
+
+def test_steps_and_errors_match_closed_form_on_identity_system():
+    # p = (q1, q2): the true inverse is I, so each segment takes ceil(length / max_step) steps on the path.
+    sys2 = from_pose_fn(lambda params, q: jnp.stack([q[0], q[1], 0.0]), 2, task_dim=2, q_low=[-9, -9],
+                        q_high=[9, 9], dq_max=[1, 1], m_a=0.01)
+    path = jnp.array([[0.3, 0.0], [0.3, 0.23], [0.0, 0.0]])
+    res = control.follow(sys2, control.true_inverse(sys2), path, jnp.zeros(2), steps=200, max_step=0.007, tol=1e-9)
+    lengths = np.linalg.norm(np.diff(np.vstack([np.zeros(2), path]), axis=0), axis=1)
+    assert int(res.steps_used) == int(np.sum(np.ceil(lengths / 0.007)))
+    assert float(res.completion) == 1.0 and float(res.max_error) < 1e-12
+    # a skewed inverse Jacobian leaves the path; the numpy loop gives the same errors
+    skew = jnp.array([[1.0, 0.0], [0.8, 1.0]])
+    res = control.follow(sys2, control.fixed(skew), path, jnp.zeros(2), steps=200, max_step=0.007, tol=1e-3)
+    comp, mean_err, max_err, used, _, _ = ref.follow(
+        lambda q: np.array([q[0], q[1], 0.0]), lambda q: np.asarray(skew), np.asarray(path), np.zeros(2),
+        steps=200, max_step=0.007, tol=1e-3, dq_max=1.0, q_low=-9.0, q_high=9.0,
+    )
+    assert float(res.completion) == comp == 1.0 and int(res.steps_used) == used
+    np.testing.assert_allclose([res.mean_error, res.max_error], [mean_err, max_err], rtol=1e-9)
+    assert max_err > 1e-3
+
+
+def test_divergent_and_singular_cases_fail_with_finite_metrics():
+    arm = two_link()
+    q0 = jnp.array([0.4, 1.2])
+    path = paths.star(size=0.2, dim=2)
+    flipped = control.follow(arm, control.scaled_true_inverse(arm, -jnp.ones((2, 2))), path, q0, steps=300)
+    nan_jinv = control.follow(arm, lambda q: jnp.full((2, 2), jnp.nan), path, q0, steps=50)
+    singular = control.follow(arm, control.true_inverse(arm), path, jnp.array([0.4, 0.0]), steps=50)
+    for res in (flipped, nan_jinv, singular):
+        assert bool(res.failed)
+        for x in (res.completion, res.mean_error, res.max_error, res.waypoint_error, res.final_q):
+            assert np.all(np.isfinite(x))
+        assert float(res.completion) < 1.0
+
+
+def test_user_defined_three_link_arm_runs_through_selfid_and_control():
+    def fk(params, q):
+        a = jnp.cumsum(q)
+        return jnp.stack([jnp.sum(params * jnp.cos(a)), jnp.sum(params * jnp.sin(a)), 0.0])
+
+    arm3 = from_pose_fn(fk, 3, task_dim=2, params=jnp.array([0.5, 0.4, 0.3]), q_low=[-3, -3, -3],
+                        q_high=[3, 3, 3], dq_max=[0.1, 0.1, 0.1], m_a=0.02, sample_low=[-1, 0.3, 0.3],
+                        sample_high=[1, 1.5, 1.5])
+    q0 = arm3.sample_configs(jax.random.key(2), 1)[0]
+    r = selfid.run(arm3, jax.random.key(3), q0, iters=20, eps=0.05)
+    res = control.follow(arm3, control.fixed(r.estimate), paths.star(size=0.05, dim=2), r.env, steps=300)
+    assert float(res.completion) == 1.0 and not bool(res.failed)
+
+
+def test_selfid_run_noise_jit_vmap_and_no_retrace():
+    arm = two_link()
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def batch(keys, q0s, m_a, noise):
+        return jax.vmap(lambda k, q, a, s: selfid.run(arm, k, q, iters=10, eps=1e-3, m_a=a, pose_noise=s,
+                                                      rot_noise=s))(keys, q0s, m_a, noise)
+
+    keys = jax.random.split(jax.random.key(4), 3)
+    q0s = arm.sample_configs(jax.random.key(5), 3)
+    m_a = np.full(3, 0.02)
+    clean = batch(keys, q0s, m_a, np.zeros(3))
+    noisy = batch(keys, q0s, m_a, np.full(3, 1e-3))
+    assert np.all(np.isfinite(noisy.estimates))
+    assert not np.allclose(clean.V, noisy.V)
+    one = selfid.run(arm, keys[1], q0s[1], iters=10, eps=1e-3, m_a=0.02)
+    np.testing.assert_allclose(clean.estimate[1], one.estimate, rtol=1e-9)
+    # noise-free 2-link self-ID lands near the true inverse Jacobian where self-ID ended
+    truth = jax.vmap(arm.true_inverse_jacobian)(clean.env)
+    assert np.max(np.abs(clean.estimate - truth) / np.abs(truth).max(axis=(1, 2), keepdims=True)) < 0.1
