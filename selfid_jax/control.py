@@ -110,15 +110,14 @@ def follow(
     if diverge_dist is None:
         diverge_dist = 2.0 * jnp.max(jnp.sqrt(jnp.sum(path[:, :pos_dim] ** 2, axis=-1))) + 10.0 * tol
 
-    def errors(q, w):
-        """Position and full task errors towards waypoint ``w`` from ``q``."""
-        p, R = system.pose(q)
+    def errors(pose, w):
+        """Position and rotation errors from ``pose = (p, R)`` towards waypoint ``w``."""
+        p, R = pose
         wc = jnp.minimum(w, W - 1)
         e_p = targets[wc] - p[:pos_dim]
         if m == 6:
-            e_r = geometry.so3_log(target_R[wc] @ R.T)
-            return p, e_p, e_r
-        return p, e_p, jnp.zeros((0,), dtype)
+            return e_p, geometry.so3_log(target_R[wc] @ R.T)
+        return e_p, jnp.zeros((0,), dtype)
 
     def close_enough(e_p, e_r):
         ok = jnp.sqrt(jnp.sum(e_p**2)) <= tol
@@ -129,13 +128,15 @@ def follow(
     def step(carry, _):
         q, w, failed, err_sum, err_max, used, wp_err = carry
         active = (w < W) & ~failed
-        p, e_p, e_r = errors(q, w)
+        pose = system.pose(q)
+        p = pose[0]
+        e_p, e_r = errors(pose, w)
         dist = jnp.min(_segment_distance(p[:pos_dim], vertices[:-1], vertices[1:]))
         reached = active & close_enough(e_p, e_r)
         wp_err = jnp.where(reached, wp_err.at[jnp.minimum(w, W - 1)].set(jnp.sqrt(jnp.sum(e_p**2))), wp_err)
         w = w + reached.astype(w.dtype)
         active = active & (w < W)
-        _, e_p, e_r = errors(q, w)
+        e_p, e_r = errors(pose, w)
         V = _clip_norm(gain * e_p, max_step)
         if m == 6:
             V = jnp.concatenate([V, _clip_norm(gain * e_r, max_rot_step)])
@@ -161,9 +162,10 @@ def follow(
         jnp.full((W,), -1.0, dtype),
     )
     (q, w, failed, err_sum, err_max, used, wp_err), traj = jax.lax.scan(step, init, None, length=steps)
-    p_end, _ = system.pose(q)
+    pose_end = system.pose(q)
+    p_end = pose_end[0]
     # the last step may have reached a waypoint after its move: check once more
-    _, e_p, e_r = errors(q, w)
+    e_p, e_r = errors(pose_end, w)
     last = (w < W) & ~failed & close_enough(e_p, e_r)
     wp_err = jnp.where(last, wp_err.at[jnp.minimum(w, W - 1)].set(jnp.sqrt(jnp.sum(e_p**2))), wp_err)
     w = w + last.astype(w.dtype)
