@@ -31,6 +31,7 @@ from matplotlib.figure import Figure
 
 __all__ = [
     "VALID_REGION_COLUMNS",
+    "ablation_figures",
     "save_figure",
     "valid_region_bounds",
     "valid_region_figure",
@@ -203,3 +204,83 @@ def valid_region_figure(
             ax_c.legend(loc="lower left", fontsize=8)
     fig.suptitle(_protocol_text(summary), fontsize=8)
     return save_figure(fig, out_dir, name)
+
+
+def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str | Path) -> list[Path]:
+    """Paper Fig. 5 and the noise figure of the estimation ablation.
+
+    ``ablation``: mean path completion [%] vs self-ID iterations (log axis), one
+    curve per method, noise-free rows of the first ``m_a``; band = +-1 sd of the
+    per-configuration means. ``ablation_noise``: mean completion at each
+    iteration count per pose-noise level, one panel per method. ``ablation_m_a``
+    (only with several ``m_a``): the same per self-ID magnitude, noise-free.
+    Expected columns: ``method, iterations, config_id, pose_noise, m_a, completion``.
+
+    Returns:
+      the PNG and PDF paths of every figure written.
+    """
+    _require(df, ("method", "iterations", "config_id", "pose_noise", "m_a", "completion"))
+    methods = [str(m) for m in df["method"].drop_duplicates()]
+    m_a0 = sorted(df["m_a"].unique())[0]
+    clean = df[(df["pose_noise"] == df["pose_noise"].min()) & (df["m_a"] == m_a0)]
+    written: list[Path] = []
+
+    fig = Figure(figsize=(6.4, 4.2), layout="constrained")
+    ax = fig.subplots()
+    for i, method in enumerate(methods):
+        g = clean[clean["method"] == method]
+        per_cfg = g.groupby(["iterations", "config_id"])["completion"].mean().unstack() * 100.0
+        mean, sd = per_cfg.mean(axis=1), per_cfg.std(axis=1).fillna(0.0)
+        x = mean.index.to_numpy(float)
+        ax.fill_between(x, (mean - sd).clip(0, 100), (mean + sd).clip(0, 100), color=f"C{i}", alpha=0.15, lw=0)
+        ax.plot(x, mean, "o-", color=f"C{i}", ms=3, label=method)
+    ax.set_xscale("log")
+    ax.set_xlabel("self-ID iterations")
+    ax.set_ylabel("mean path completion [%]")
+    ax.set_ylim(-2, 102)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title(f"estimation methods, noise-free, m_a={m_a0:g} rad (band: +-1 sd over configurations)", fontsize=8)
+    written += save_figure(fig, out_dir, "ablation")
+
+    noises = sorted(df["pose_noise"].unique())
+    ncol = min(len(methods), 4)
+    nrow = -(-len(methods) // ncol)
+    fig = Figure(figsize=(3.2 * ncol, 2.8 * nrow), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False, sharex=True, sharey=True)).ravel()
+    sub = df[df["m_a"] == m_a0]
+    for ax, method in zip(axes, methods):
+        g = sub[sub["method"] == method]
+        for j, noise in enumerate(noises):
+            curve = g[g["pose_noise"] == noise].groupby("iterations")["completion"].mean() * 100.0
+            ax.plot(curve.index, curve.to_numpy(), "o-", ms=2, color=f"C{j}", label=f"{noise * 1e3:g} mm")
+        ax.set_title(method, fontsize=9)
+        ax.set_xscale("log")
+        ax.grid(alpha=0.3)
+    for ax in axes[len(methods):]:
+        ax.set_visible(False)
+    axes[0].legend(title="pose noise", fontsize=7, title_fontsize=7)
+    fig.supxlabel("self-ID iterations")
+    fig.supylabel("mean path completion [%]")
+    written += save_figure(fig, out_dir, "ablation_noise")
+
+    m_as = sorted(df["m_a"].unique())
+    if len(m_as) > 1:
+        fig = Figure(figsize=(3.2 * ncol, 2.8 * nrow), layout="constrained")
+        axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False, sharex=True, sharey=True)).ravel()
+        sub = df[df["pose_noise"] == df["pose_noise"].min()]
+        for ax, method in zip(axes, methods):
+            g = sub[sub["method"] == method]
+            for j, m_a in enumerate(m_as):
+                curve = g[g["m_a"] == m_a].groupby("iterations")["completion"].mean() * 100.0
+                ax.plot(curve.index, curve.to_numpy(), "o-", ms=2, color=f"C{j}", label=f"{m_a:g} rad")
+            ax.set_title(method, fontsize=9)
+            ax.set_xscale("log")
+            ax.grid(alpha=0.3)
+        for ax in axes[len(methods):]:
+            ax.set_visible(False)
+        axes[0].legend(title="m_a", fontsize=7, title_fontsize=7)
+        fig.supxlabel("self-ID iterations")
+        fig.supylabel("mean path completion [%]")
+        written += save_figure(fig, out_dir, "ablation_m_a")
+    return written
