@@ -232,8 +232,9 @@ def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str 
         per_cfg = g.groupby(["iterations", "config_id"])["completion"].mean().unstack() * 100.0
         mean, sd = per_cfg.mean(axis=1), per_cfg.std(axis=1).fillna(0.0)
         x = mean.index.to_numpy(float)
-        ax.fill_between(x, (mean - sd).clip(0, 100), (mean + sd).clip(0, 100), color=f"C{i}", alpha=0.15, lw=0)
-        ax.plot(x, mean, "o-", color=f"C{i}", ms=3, label=method)
+        color, style = f"C{i % 10}", ("-", "--", ":")[(i // 10) % 3]
+        ax.fill_between(x, (mean - sd).clip(0, 100), (mean + sd).clip(0, 100), color=color, alpha=0.12, lw=0)
+        ax.plot(x, mean, marker="o", ls=style, color=color, ms=3, label=method)
     ax.set_xscale("log")
     ax.set_xlabel("self-ID iterations")
     ax.set_ylabel("mean path completion [%]")
