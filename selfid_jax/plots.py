@@ -225,7 +225,7 @@ def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str 
     clean = df[(df["pose_noise"] == df["pose_noise"].min()) & (df["m_a"] == m_a0)]
     written: list[Path] = []
 
-    fig = Figure(figsize=(6.4, 4.2), layout="constrained")
+    fig = Figure(figsize=(8.4, 4.2), layout="constrained")
     ax = fig.subplots()
     for i, method in enumerate(methods):
         g = clean[clean["method"] == method]
@@ -240,7 +240,7 @@ def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str 
     ax.set_ylabel("mean path completion [%]")
     ax.set_ylim(-2, 102)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     ax.set_title(f"estimation methods, noise-free, m_a={m_a0:g} rad (band: +-1 sd over configurations)", fontsize=8)
     written += save_figure(fig, out_dir, "ablation")
 

@@ -251,6 +251,16 @@ jax.tree_util.register_dataclass(
 )
 
 
+def _mjx():
+    """``mujoco.mjx``, imported with its stdout notices about the optional Warp backend silenced."""
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        from mujoco import mjx
+    return mjx
+
+
 def _small_inverse(A):
     """Inverse of a ``(k, k)`` matrix, ``k <= 3``, by the adjugate over the determinant."""
     k = A.shape[0]
@@ -477,7 +487,7 @@ class MjxSitePose:
     site_id: int
 
     def __call__(self, model, q):
-        from mujoco import mjx
+        mjx = _mjx()
 
         d = mjx.make_data(model)
         d = d.replace(qpos=jnp.asarray(q, dtype=d.qpos.dtype))
@@ -651,7 +661,7 @@ def from_mjcf(
       A :class:`System` whose ``params`` is the ``mjx.Model``.
     """
     import mujoco
-    from mujoco import mjx
+    mjx = _mjx()
 
     mj, label = _load_mjmodel(path_or_xml)
     if not isinstance(site, str):
