@@ -244,44 +244,33 @@ def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str 
     ax.set_title(f"estimation methods, noise-free, m_a={m_a0:g} rad (band: +-1 sd over configurations)", fontsize=8)
     written += save_figure(fig, out_dir, "ablation")
 
-    noises = sorted(df["pose_noise"].unique())
+    sub = df[df["m_a"] == m_a0]
+    written += _per_method_panels(sub, methods, "pose_noise", lambda v: f"{v * 1e3:g} mm", "pose noise",
+                                  out_dir, "ablation_noise")
+    if df["m_a"].nunique() > 1:
+        sub = df[df["pose_noise"] == df["pose_noise"].min()]
+        written += _per_method_panels(sub, methods, "m_a", lambda v: f"{v:g} rad", "m_a", out_dir, "ablation_m_a")
+    return written
+
+
+def _per_method_panels(df, methods, by, label, legend_title, out_dir, name) -> list[Path]:
+    """One panel per method: mean completion [%] vs iterations, one curve per value of column ``by``."""
+    values = sorted(df[by].unique())
     ncol = min(len(methods), 4)
     nrow = -(-len(methods) // ncol)
     fig = Figure(figsize=(3.2 * ncol, 2.8 * nrow), layout="constrained")
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False, sharex=True, sharey=True)).ravel()
-    sub = df[df["m_a"] == m_a0]
     for ax, method in zip(axes, methods):
-        g = sub[sub["method"] == method]
-        for j, noise in enumerate(noises):
-            curve = g[g["pose_noise"] == noise].groupby("iterations")["completion"].mean() * 100.0
-            ax.plot(curve.index, curve.to_numpy(), "o-", ms=2, color=f"C{j}", label=f"{noise * 1e3:g} mm")
+        g = df[df["method"] == method]
+        for j, v in enumerate(values):
+            curve = g[g[by] == v].groupby("iterations")["completion"].mean() * 100.0
+            ax.plot(curve.index, curve.to_numpy(), "o-", ms=2, color=f"C{j % 10}", label=label(v))
         ax.set_title(method, fontsize=9)
         ax.set_xscale("log")
         ax.grid(alpha=0.3)
     for ax in axes[len(methods):]:
         ax.set_visible(False)
-    axes[0].legend(title="pose noise", fontsize=7, title_fontsize=7)
+    axes[0].legend(title=legend_title, fontsize=7, title_fontsize=7)
     fig.supxlabel("self-ID iterations")
     fig.supylabel("mean path completion [%]")
-    written += save_figure(fig, out_dir, "ablation_noise")
-
-    m_as = sorted(df["m_a"].unique())
-    if len(m_as) > 1:
-        fig = Figure(figsize=(3.2 * ncol, 2.8 * nrow), layout="constrained")
-        axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False, sharex=True, sharey=True)).ravel()
-        sub = df[df["pose_noise"] == df["pose_noise"].min()]
-        for ax, method in zip(axes, methods):
-            g = sub[sub["method"] == method]
-            for j, m_a in enumerate(m_as):
-                curve = g[g["m_a"] == m_a].groupby("iterations")["completion"].mean() * 100.0
-                ax.plot(curve.index, curve.to_numpy(), "o-", ms=2, color=f"C{j}", label=f"{m_a:g} rad")
-            ax.set_title(method, fontsize=9)
-            ax.set_xscale("log")
-            ax.grid(alpha=0.3)
-        for ax in axes[len(methods):]:
-            ax.set_visible(False)
-        axes[0].legend(title="m_a", fontsize=7, title_fontsize=7)
-        fig.supxlabel("self-ID iterations")
-        fig.supylabel("mean path completion [%]")
-        written += save_figure(fig, out_dir, "ablation_m_a")
-    return written
+    return save_figure(fig, out_dir, name)
