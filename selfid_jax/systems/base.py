@@ -262,18 +262,25 @@ def _mjx():
 
 
 def _small_inverse(A):
-    """Inverse of a ``(k, k)`` matrix, ``k <= 3``, by the adjugate over the determinant."""
+    """Inverse of a ``(k, k)`` matrix, ``k <= 3``, by the adjugate over the determinant.
+
+    NaN where ``A`` is numerically singular: ``|det A|`` at most ``1e3 eps``
+    times the product of its row norms (Hadamard's bound, so the test is
+    scale-free), as an exactly singular ``solve`` would give inf/NaN.
+    """
     k = A.shape[0]
     if k == 1:
-        return 1.0 / A
-    if k == 2:
+        adj, det = jnp.ones_like(A), A[0, 0]
+    elif k == 2:
         adj = jnp.stack([jnp.stack([A[1, 1], -A[0, 1]]), jnp.stack([-A[1, 0], A[0, 0]])])
-        return adj / (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0])
-    c0 = jnp.cross(A[1], A[2])
-    c1 = jnp.cross(A[2], A[0])
-    c2 = jnp.cross(A[0], A[1])
-    det = jnp.dot(A[0], c0)
-    return jnp.stack([c0, c1, c2], axis=1) / det
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+    else:
+        c0, c1, c2 = jnp.cross(A[1], A[2]), jnp.cross(A[2], A[0]), jnp.cross(A[0], A[1])
+        adj = jnp.stack([c0, c1, c2], axis=1)
+        det = jnp.dot(A[0], c0)
+    bound = jnp.prod(jnp.sqrt(jnp.sum(A * A, axis=1)))
+    singular = jnp.abs(det) <= 1e3 * jnp.finfo(A.dtype).eps * bound
+    return jnp.where(singular, jnp.nan, adj / jnp.where(singular, 1.0, det))
 
 
 # ----------------------------------------------------------------- pose maps
