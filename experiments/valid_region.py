@@ -164,8 +164,11 @@ def run(cfg: ValidRegionConfig, out_dir: Path, fresh: bool, progress: bool) -> N
     )
     write_summary(out_dir, summary)
     for system, entry in summary["systems"].items():
-        print(f"{system}: valid region {entry['lower']} - {entry['upper']} x the true inverse Jacobian "
-              f"({entry['n_rollouts']} rollouts)")
+        if entry["lower"] is None:
+            print(f"{system}: no valid region around 1 ({entry['n_rollouts']} rollouts)")
+        else:
+            print(f"{system}: valid region {entry['lower']:.3g}x - {entry['upper']:.3g}x the true inverse Jacobian "
+                  f"({entry['n_rollouts']} rollouts)")
 
 
 register_experiment("valid_region", run, plots.valid_region_figure)

@@ -200,11 +200,37 @@ def _demo(args: argparse.Namespace) -> int:
     return result if isinstance(result, int) else 0
 
 
+def _enable_compilation_cache() -> None:
+    """Keep compiled XLA programs on disk so a re-run (or a resumed sweep) skips compilation.
+
+    Directory: ``$SELFID_JAX_CACHE_DIR``, else ``~/.cache/selfid_jax/xla``; set
+    ``SELFID_JAX_CACHE_DIR=off`` to disable. A directory the user already gave
+    JAX (``JAX_COMPILATION_CACHE_DIR``) is left alone.
+    """
+    import os
+
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    where = os.environ.get("SELFID_JAX_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "selfid_jax", "xla"))
+    if where.lower() in ("off", "0", "none", ""):
+        return
+    try:
+        os.makedirs(where, exist_ok=True)
+    except OSError:
+        return  # read-only home: run without the cache
+    jax.config.update("jax_compilation_cache_dir", where)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``selfid-jax`` console script; returns the exit code."""
     from selfid_jax.config import ConfigError
 
     args = _parser().parse_args(argv)
+    if args.command in ("sweep", "demo"):
+        _enable_compilation_cache()
     command = {"sweep": _sweep, "plot": _plot, "demo": _demo}[args.command]
     try:
         return command(args)

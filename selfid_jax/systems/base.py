@@ -28,6 +28,7 @@ systems after enabling x64 where precision matters.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 from typing import Any, Callable
@@ -220,15 +221,10 @@ class System:
         Returns:
           ``(k, n_act)`` configurations (and the mask if ``return_valid``).
         """
-        low, high = self.sample_low, self.sample_high
-        dtype = jnp.result_type(low, float)
-        cand = jax.random.uniform(key, (k * oversample, self.n_act), dtype=dtype, minval=low, maxval=high)
-        sig = jax.vmap(self.sigma_min)(cand)
-        valid = sig > self.min_sigma
-        order = jnp.argsort(jnp.logical_not(valid), stable=True)[:k]
+        cand, valid = _sample_candidates(self, key, int(k), int(oversample))
         if return_valid:
-            return cand[order], valid[order]
-        return cand[order]
+            return cand, valid
+        return cand
 
     # ---------------------------------------------------------------- copies
     def with_task_dim(self, task_dim: int, *, min_sigma: float | None = None) -> "System":
@@ -249,6 +245,17 @@ jax.tree_util.register_dataclass(
     data_fields=["params", "q_low", "q_high", "dq_max", "m_a", "sample_low", "sample_high"],
     meta_fields=["name", "n_act", "task_dim", "pose_fn", "min_sigma", "has_rotation"],
 )
+
+
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _sample_candidates(system: "System", key, k: int, oversample: int):
+    """``(k, n)`` configurations of ``system``, valid (``sigma_min > min_sigma``) first, and the ``(k,)`` mask."""
+    low, high = system.sample_low, system.sample_high
+    dtype = jnp.result_type(low, float)
+    cand = jax.random.uniform(key, (k * oversample, system.n_act), dtype=dtype, minval=low, maxval=high)
+    valid = jax.vmap(system.sigma_min)(cand) > system.min_sigma
+    order = jnp.argsort(jnp.logical_not(valid), stable=True)[:k]
+    return cand[order], valid[order]
 
 
 def _mjx():
