@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from selfid_jax import geometry
 from selfid_jax._checks import check_array, check_positive_int
-from selfid_jax.systems.base import System
+from selfid_jax.systems.base import System, pseudo_inverse
 
 JinvFn = Callable[[jax.Array], jax.Array]
 """``jinv_fn(q (n,)) -> (n, m)``: the inverse Jacobian the controller uses at ``q``."""
@@ -44,14 +44,32 @@ def fixed(J) -> JinvFn:
     return lambda q: J
 
 
+class JacobianInverse(NamedTuple):
+    """An inverse-Jacobian function built from the system's Jacobian: ``scale * pinv(J(q))``.
+
+    Callable as a :data:`JinvFn`; :func:`follow` recognises it and computes the
+    pose and the Jacobian in one kinematics pass (``System.pose_and_jacobian``).
+    """
+
+    system: System
+    scale: jax.Array | float = 1.0  # () or (n, m), elementwise
+
+    def __call__(self, q):
+        return self.from_jacobian(self.system.jacobian(q))
+
+    def from_jacobian(self, J):
+        """``scale * pinv(J)`` for a Jacobian ``J (m, n)``."""
+        return self.scale * pseudo_inverse(J)
+
+
 def true_inverse(system: System) -> JinvFn:
     """The system's true inverse Jacobian at every step."""
-    return system.true_inverse_jacobian
+    return JacobianInverse(system)
 
 
 def scaled_true_inverse(system: System, m_eps) -> JinvFn:
     """``m_eps * true_inverse_jacobian(q)`` elementwise, ``m_eps (n, m)`` (the valid-region study, Sec. III-C)."""
-    return lambda q: m_eps * system.true_inverse_jacobian(q)
+    return JacobianInverse(system, m_eps)
 
 
 def _segment_distance(p, a, b):
@@ -128,7 +146,12 @@ def follow(
     def step(carry, _):
         q, w, failed, err_sum, err_max, used, wp_err = carry
         active = (w < W) & ~failed
-        pose = system.pose(q)
+        if isinstance(jinv_fn, JacobianInverse):
+            pose, jac = system.pose_and_jacobian(q)
+            J = jinv_fn.from_jacobian(jac)
+        else:
+            pose = system.pose(q)
+            J = jinv_fn(q)
         p = pose[0]
         e_p, e_r = errors(pose, w)
         dist = jnp.min(_segment_distance(p[:pos_dim], vertices[:-1], vertices[1:]))
@@ -140,7 +163,6 @@ def follow(
         V = _clip_norm(gain * e_p, max_step)
         if m == 6:
             V = jnp.concatenate([V, _clip_norm(gain * e_r, max_rot_step)])
-        J = jinv_fn(q)
         q_new = system.apply(q, J @ V)
         finite = jnp.all(jnp.isfinite(q_new)) & jnp.all(jnp.isfinite(J))
         diverged = dist > diverge_dist

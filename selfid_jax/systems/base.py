@@ -149,6 +149,20 @@ class System:
         ref = jax.lax.stop_gradient(self.pose(q))
         return jax.jacfwd(lambda q_: self.task_difference(self.pose(q_), ref))(q)
 
+    def pose_and_jacobian(self, q):
+        """``((p (3,), R (3, 3)), J (task_dim, n_act))`` at ``q``: one kinematics pass where the pose map allows.
+
+        Pose maps with ``pose_and_jacobian(params, q)`` (as :class:`ChainSitePose`)
+        give both from one walk of the kinematic tree; otherwise this is
+        ``(pose(q), jacobian(q))``.
+        """
+        fused = getattr(self.pose_fn, "pose_and_jacobian", None)
+        if fused is None:
+            return self.pose(q), self.jacobian(q)
+        q = jnp.asarray(q, dtype=jnp.result_type(q, float))
+        pose, J6 = fused(self.params, q)
+        return pose, (J6 if self.task_dim == 6 else J6[: self.task_dim])
+
     def true_inverse_jacobian(self, q):
         """Pseudo-inverse of :meth:`jacobian` at ``q`` (the estimator's target).
 
@@ -164,14 +178,7 @@ class System:
         Returns:
           ``(n_act, task_dim)`` inverse Jacobian, ``dtheta = Jinv @ V``.
         """
-        J = self.jacobian(q)
-        m, n = J.shape
-        if n == m:
-            return _small_inverse(J) if m <= 3 else jnp.linalg.solve(J, jnp.eye(m, dtype=J.dtype))
-        if n > m:
-            A = J @ J.T
-            return J.T @ (_small_inverse(A) if m <= 3 else jnp.linalg.solve(A, jnp.eye(m, dtype=J.dtype)))
-        return jnp.linalg.solve(J.T @ J, J.T)
+        return pseudo_inverse(self.jacobian(q))
 
     def singular_values(self, q):
         """Singular values of :meth:`jacobian` at ``q``, descending: ``(min(m, n),)``."""
@@ -266,6 +273,17 @@ def _mjx():
     with contextlib.redirect_stdout(io.StringIO()):
         from mujoco import mjx
     return mjx
+
+
+def pseudo_inverse(J):
+    """Pseudo-inverse ``(n, m)`` of a Jacobian ``J (m, n)`` (see :meth:`System.true_inverse_jacobian`)."""
+    m, n = J.shape
+    if n == m:
+        return _small_inverse(J) if m <= 3 else jnp.linalg.solve(J, jnp.eye(m, dtype=J.dtype))
+    if n > m:
+        A = J @ J.T
+        return J.T @ (_small_inverse(A) if m <= 3 else jnp.linalg.solve(A, jnp.eye(m, dtype=J.dtype)))
+    return jnp.linalg.solve(J.T @ J, J.T)
 
 
 def _small_inverse(A):
@@ -556,7 +574,11 @@ class ChainSitePose:
         the pose, so it costs about one forward-kinematics pass instead of the
         ``nq + 1`` of ``jax.jacfwd``.
         """
-        p, _, joints = self._walk(model, q)
+        return self.pose_and_jacobian(model, q)[1]
+
+    def pose_and_jacobian(self, model, q):
+        """``((p, R), J (6, nq))`` from one walk: the pose of :meth:`__call__` and :meth:`jacobian`."""
+        p, R, joints = self._walk(model, q)
         nq = jnp.shape(q)[-1]
         cols = [jnp.zeros(6, p.dtype)] * nq
         for adr, is_hinge, axis_w, anchor in joints:
@@ -564,7 +586,7 @@ class ChainSitePose:
                 cols[adr] = jnp.concatenate([jnp.cross(axis_w, p - anchor), axis_w])
             else:
                 cols[adr] = jnp.concatenate([axis_w, jnp.zeros(3, p.dtype)])
-        return jnp.stack(cols, axis=1)
+        return (p, R), jnp.stack(cols, axis=1)
 
     def _walk(self, model, q):
         """World pose of the site and, per joint, ``(qpos address, is_hinge, world axis, world anchor)``."""
