@@ -12,6 +12,7 @@ so every metric stays finite.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -208,24 +209,34 @@ def follow(
     )
 
 
-def feasible_starts(system: System, path, key, k: int, *, oversample: int = 4, **follow_kwargs):
+def feasible_starts(system: System, path, key, k: int, *, oversample: int = 4, steps: int, max_step=0.005,
+                    tol=0.002, gain=1.0):
     """``k`` start configurations ``(k, n)`` from which the true inverse Jacobian completes ``path``.
 
     Draws ``k * oversample`` configurations with ``system.sample_configs``
     (away from singularities), follows ``path`` from each with the true inverse
-    Jacobian (``follow_kwargs`` as for :func:`follow`) and keeps the first ``k``
-    that complete it without failing, so a study measures robustness to
+    Jacobian (controller arguments as for :func:`follow`) and keeps the first
+    ``k`` that complete it without failing, so a study measures robustness to
     inverse-Jacobian error rather than paths that leave the workspace or hit a
-    joint limit. Eager; raises ``ValueError`` if fewer than ``k`` qualify.
+    joint limit. Sampling and rollouts are one compiled call. Eager; raises
+    ``ValueError`` if fewer than ``k`` qualify.
     """
     k = check_positive_int("k", k)
-    cand, valid = system.sample_configs(key, k * oversample, return_valid=True)
-    res = jax.jit(jax.vmap(lambda q: follow(system, true_inverse(system), path, q, **follow_kwargs)))(cand)
-    ok = jnp.asarray(valid) & (res.completion >= 1.0) & ~res.failed
+    total = k * check_positive_int("oversample", oversample)
+    cand, ok = _feasible_candidates(system, jnp.asarray(path), key, total, check_positive_int("steps", steps),
+                                    max_step, tol, gain)
     idx = jnp.flatnonzero(ok)
     if idx.shape[0] < k:
         raise ValueError(
-            f"only {int(idx.shape[0])} of {k * oversample} sampled configurations of {system.name!r} complete "
+            f"only {int(idx.shape[0])} of {total} sampled configurations of {system.name!r} complete "
             f"the path with the true inverse Jacobian; need {k} (raise oversample, shrink the path or the box)"
         )
     return cand[idx[:k]]
+
+
+@functools.partial(jax.jit, static_argnames=("total", "steps"))
+def _feasible_candidates(system, path, key, total, steps, max_step, tol, gain):
+    cand, valid = system.sample_configs(key, total, return_valid=True)
+    res = jax.vmap(lambda q: follow(system, true_inverse(system), path, q, steps=steps, max_step=max_step, tol=tol,
+                                    gain=gain))(cand)
+    return cand, valid & (res.completion >= 1.0) & ~res.failed
