@@ -175,7 +175,7 @@ def registered_experiment_configs() -> dict[str, type[BaseConfig]]:
     return dict(_REGISTRY)
 
 
-def _import_experiment_module(name: str) -> None:
+def import_experiment_module(name: str) -> None:
     """Import ``experiments.<name>`` so it can register itself; absent module is fine."""
     if not name.isidentifier():
         return
@@ -190,7 +190,7 @@ def _import_experiment_module(name: str) -> None:
 def get_experiment_config(name: str) -> type[BaseConfig] | None:
     """The config model registered for ``name`` (importing ``experiments.<name>`` if needed)."""
     if name not in _REGISTRY:
-        _import_experiment_module(name)
+        import_experiment_module(name)
     return _REGISTRY.get(name)
 
 

@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib
 import json
 import math
 import threading
@@ -168,13 +167,10 @@ def registered_experiments() -> dict[str, Experiment]:
 
 def get_experiment(name: str) -> Experiment | None:
     """The registered experiment ``name``, importing ``experiments.<name>`` first if needed."""
-    if name not in _EXPERIMENTS and name.isidentifier():
-        module = f"experiments.{name}"
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as err:
-            if err.name not in (module, "experiments"):
-                raise
+    if name not in _EXPERIMENTS:
+        from selfid_jax.config import import_experiment_module
+
+        import_experiment_module(name)
     return _EXPERIMENTS.get(name)
 
 
