@@ -17,7 +17,6 @@ iteration at which the method's estimate met the Sec. IV-D test
 
 from __future__ import annotations
 
-import io
 import tempfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -30,7 +29,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax import baselines, control, paths, plots, selfid
 from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, register_experiment_config
-from selfid_jax.results import atomic_write_bytes, write_summary
+from selfid_jax.results import write_results, write_summary
 from selfid_jax.sweep import grid_table, register_experiment, row_keys, run_chunked
 from selfid_jax.systems import ur5e
 
@@ -200,10 +199,7 @@ def study(cfg: AblationConfig, out_dir: str | Path | None = None, *, fresh: bool
     if wide is None:
         return None
     df = to_long(wide, cfg)
-    if jax.process_index() == 0:
-        buf = io.BytesIO()
-        df.to_parquet(buf, index=False)
-        atomic_write_bytes(out_dir / "results.parquet", buf.getvalue())
+    write_results(out_dir, df)
     return df
 
 

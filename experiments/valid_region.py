@@ -31,7 +31,7 @@ import pandas as pd
 
 from selfid_jax import control, paths, plots
 from selfid_jax.config import ValidRegionConfig
-from selfid_jax.results import atomic_write_bytes, write_summary
+from selfid_jax.results import write_results, write_summary
 from selfid_jax.sweep import grid_table, register_experiment, row_keys, run_chunked
 from selfid_jax.systems import System, two_link, ur5e
 
@@ -140,12 +140,7 @@ def study(cfg: ValidRegionConfig, out_dir: str | Path | None = None, *, fresh: b
             return None
         tables.append(df.drop(columns=["row"]))
     df = pd.concat(tables, ignore_index=True)
-    if jax.process_index() == 0:
-        import io
-
-        buf = io.BytesIO()
-        df.to_parquet(buf, index=False)
-        atomic_write_bytes(out_dir / "results.parquet", buf.getvalue())
+    write_results(out_dir, df)
     return df
 
 

@@ -38,6 +38,7 @@ from selfid_jax.config import ConfigError, dump_config, flatten_dict, yaml_load
 
 __all__ = [
     "RESULTS_FILE",
+    "write_results",
     "SUMMARY_FILE",
     "RunDirError",
     "atomic_write_bytes",
@@ -282,6 +283,20 @@ def load_results(run_dir: str | Path, *, partial: bool = False) -> pd.DataFrame:
         return df.sort_values("row", kind="stable").reset_index(drop=True)
     hint = f" ({len(chunks)} finished chunks; the sweep is unfinished, re-run it to resume)" if chunks else ""
     raise FileNotFoundError(f"{path}: no results table{hint}")
+
+
+def write_results(run_dir: str | Path, df: pd.DataFrame) -> Path:
+    """Write the tidy results table ``run_dir/results.parquet`` atomically (process 0 only under jax.distributed)."""
+    import io
+
+    import jax
+
+    path = Path(run_dir) / RESULTS_FILE
+    if jax.process_index() == 0:
+        buf = io.BytesIO()
+        df.to_parquet(buf, index=False)
+        atomic_write_bytes(path, buf.getvalue())
+    return path
 
 
 def write_summary(run_dir: str | Path, summary: Mapping[str, Any]) -> Path:
