@@ -170,6 +170,12 @@ def get_method(name: str, **options) -> Method:
     return Method(name, tuple(sorted(static.items())), tuple(sorted(params.items())))
 
 
+def keep_finite_gain(state, J, P):
+    """``state`` with the filter update ``(J, P)`` if both are finite, else unchanged (RLS and Kalman)."""
+    good = jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(P))
+    return state._replace(J=jnp.where(good, J, state.J), P=jnp.where(good, P, state.P))
+
+
 def accept(ok, new, old):
     """``new`` with ``count + 1`` if the sample was valid, else ``old`` with ``rejected + 1``."""
     new = new._replace(count=old.count + 1, rejected=old.rejected)

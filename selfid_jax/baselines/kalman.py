@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import cho_factor, cho_solve
 
-from selfid_jax.baselines.base import Family
+from selfid_jax.baselines.base import Family, keep_finite_gain
 
 
 class KalmanState(NamedTuple):
@@ -89,8 +89,7 @@ def _init(n, m, key, capacity, dtype, static, params):
 def _update(state, dtheta, V, static):
     J, P = kalman_step(state.J, state.P, dtheta, V, state.params["q"], state.params["r"])
     # r = 0 with a singular innovation covariance would fail the Cholesky: keep the old state then.
-    good = jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(P))
-    return state._replace(J=jnp.where(good, J, state.J), P=jnp.where(good, P, state.P))
+    return keep_finite_gain(state, J, P)
 
 
 def _estimate(state, truth, static):

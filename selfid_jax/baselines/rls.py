@@ -34,7 +34,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from selfid_jax.baselines.base import Family
+from selfid_jax.baselines.base import Family, keep_finite_gain
 
 
 class RLSState(NamedTuple):
@@ -80,8 +80,7 @@ def _update(state, dtheta, V, static):
     P = jnp.where(state.count == 0, first_covariance(V, state.params["delta"], m, V.dtype), state.P)
     J, P = rls_step(state.J, P, dtheta, V, state.params["lam"])
     # lam outside (0, 1] or covariance wind-up past the float range: keep the old state.
-    good = jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(P))
-    return state._replace(J=jnp.where(good, J, state.J), P=jnp.where(good, P, state.P))
+    return keep_finite_gain(state, J, P)
 
 
 def _estimate(state, truth, static):
