@@ -21,7 +21,8 @@ import jax.numpy as jnp
 
 from selfid_jax import geometry
 from selfid_jax._checks import check_array, check_positive_int
-from selfid_jax.systems.base import System, pseudo_inverse
+from selfid_jax.linalg import pseudo_inverse
+from selfid_jax.systems.system import System
 
 JinvFn = Callable[[jax.Array], jax.Array]
 """``jinv_fn(q (n,)) -> (n, m)``: the inverse Jacobian the controller uses at ``q``."""

@@ -469,12 +469,12 @@ def test_vmap_over_mjx_model_field(ur6):
 
 
 def test_small_inverse_matches_numpy_and_flags_singular_matrices():
-    from selfid_jax.systems.base import _small_inverse
+    from selfid_jax.linalg import small_inverse
 
     rng = np.random.default_rng(3)
     for k in (1, 2, 3):
         A = rng.normal(size=(k, k))
-        np.testing.assert_allclose(_small_inverse(jnp.asarray(A)), np.linalg.inv(A), rtol=1e-10)
+        np.testing.assert_allclose(small_inverse(jnp.asarray(A)), np.linalg.inv(A), rtol=1e-10)
         S = A.copy()
         S[-1] = 2.0 * S[0] if k > 1 else 0.0  # rank-deficient
-        assert np.all(np.isnan(_small_inverse(jnp.asarray(S))))
+        assert np.all(np.isnan(small_inverse(jnp.asarray(S))))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax.systems.base import System, from_pose_fn
+from selfid_jax.systems.system import System, from_pose_fn
 
 __all__ = ["two_link", "two_link_pose"]
 

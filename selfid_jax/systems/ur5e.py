@@ -7,7 +7,8 @@ from importlib import resources
 
 import numpy as np
 
-from selfid_jax.systems.base import System, from_mjcf
+from selfid_jax.systems.mjcf import from_mjcf
+from selfid_jax.systems.system import System
 
 __all__ = ["ur5e", "UR5E_XML", "UR5E_HOME"]
 

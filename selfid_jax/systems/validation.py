@@ -1,0 +1,102 @@
+"""Eager input checks for building a :class:`~selfid_jax.systems.system.System`.
+
+Plain numpy on concrete values, run once when a system is built (never traced),
+so a bad argument raises a ``ValueError`` that names it instead of failing
+inside ``jit``. Units as in ``System``: rad or m per actuator.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["TASK_DIMS", "check_task_dim", "vector", "validate"]
+
+#: Supported task dimensions: planar xy, position, position + rotation vector.
+TASK_DIMS = (2, 3, 6)
+
+
+def check_task_dim(task_dim, has_rotation: bool = True) -> None:
+    """Eager check: ``task_dim`` is one of :data:`TASK_DIMS`, and not 6 for a position-only pose map."""
+    if isinstance(task_dim, bool) or not isinstance(task_dim, (int, np.integer)) or task_dim not in TASK_DIMS:
+        raise ValueError(f"task_dim must be one of {TASK_DIMS}, got {task_dim!r}")
+    if task_dim == 6 and not has_rotation:
+        raise ValueError("task_dim=6 needs an orientation, but the pose function returns a position only")
+
+
+def vector(name: str, value, n: int) -> np.ndarray:
+    """Eager check: ``value`` is a scalar or ``(n,)`` real array; returns ``(n,)`` float64 numpy."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name} must be a real scalar or array of shape ({n},), got {value!r}") from e
+    if arr.ndim == 0:
+        arr = np.full((n,), float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},) (n_act={n}) or be a scalar, got shape {arr.shape}")
+    if np.isnan(arr).any():
+        raise ValueError(f"{name} contains NaN: {arr}")
+    return arr
+
+
+def validate(
+    *, n_act, task_dim, has_rotation, q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma
+) -> dict[str, Any]:
+    """Eager check of a system's sizes and limits; returns them normalised.
+
+    Scalars are broadcast to ``(n_act,)`` float64 numpy arrays, the sampling
+    box defaults to the joint limits, and ``n_act``, ``task_dim``, ``m_a``
+    (0-d array) and ``min_sigma`` (float) come back as plain numbers. Raises a
+    ``ValueError`` naming the first bad argument.
+    """
+    if isinstance(n_act, bool) or not isinstance(n_act, (int, np.integer)) or n_act < 1:
+        raise ValueError(f"n_act must be a positive integer, got {n_act!r}")
+    n_act = int(n_act)
+    check_task_dim(task_dim, has_rotation)
+    q_low = vector("q_low", q_low, n_act)
+    q_high = vector("q_high", q_high, n_act)
+    if not np.all(q_low < q_high):
+        raise ValueError(f"q_low must be < q_high elementwise, got q_low={q_low}, q_high={q_high}")
+    dq_max = vector("dq_max", dq_max, n_act)
+    if not np.all((dq_max > 0) & np.isfinite(dq_max)):
+        raise ValueError(f"dq_max must be positive and finite, got {dq_max}")
+    m_a_arr = np.asarray(m_a, dtype=np.float64) if np.ndim(m_a) == 0 else None
+    if m_a_arr is None:
+        raise ValueError(f"m_a must be a scalar, got shape {np.shape(m_a)}")
+    if not (np.isfinite(m_a_arr) and m_a_arr > 0):
+        raise ValueError(f"m_a must be positive and finite, got {m_a!r}")
+    if sample_low is None:
+        sample_low = q_low
+    if sample_high is None:
+        sample_high = q_high
+    sample_low = vector("sample_low", sample_low, n_act)
+    sample_high = vector("sample_high", sample_high, n_act)
+    if not (np.all(np.isfinite(sample_low)) and np.all(np.isfinite(sample_high))):
+        raise ValueError(
+            "the sampling box must be finite (pass sample_low/sample_high when joint limits are infinite), "
+            f"got sample_low={sample_low}, sample_high={sample_high}"
+        )
+    if not np.all(sample_low < sample_high):
+        raise ValueError(
+            f"sample_low must be < sample_high elementwise, got sample_low={sample_low}, sample_high={sample_high}"
+        )
+    if np.any(sample_low < q_low) or np.any(sample_high > q_high):
+        raise ValueError(
+            f"the sampling box [{sample_low}, {sample_high}] must lie inside the joint limits [{q_low}, {q_high}]"
+        )
+    min_sigma = float(min_sigma)
+    if not (math.isfinite(min_sigma) and min_sigma >= 0):
+        raise ValueError(f"min_sigma must be finite and >= 0, got {min_sigma}")
+    return dict(
+        n_act=n_act,
+        task_dim=int(task_dim),
+        q_low=q_low,
+        q_high=q_high,
+        dq_max=dq_max,
+        m_a=m_a_arr,
+        sample_low=sample_low,
+        sample_high=sample_high,
+        min_sigma=min_sigma,
+    )
