@@ -50,8 +50,8 @@ def update_rates(cfg, batch=256, T=100, n=6, m=3):
     keys = jax.random.split(key, batch)
     rows = []
     for spec in cfg.methods:
-        method = baselines.get_method(spec.method, **spec.options)
-        fn = jax.jit(jax.vmap(lambda k, a, b: baselines.run_stream(method, k, a, b, truth)[-1]))
+        est = baselines.make(spec.method, **spec.options)
+        fn = jax.jit(jax.vmap(lambda k, a, b, est=est: baselines.run_stream(est, k, a, b, truth)[-1]))
         jax.block_until_ready(fn(keys, d, V))
         t0 = time.perf_counter()
         jax.block_until_ready(fn(keys, d, V))

@@ -70,8 +70,8 @@ def main():
 
     system = ur5e(task_dim=3)
     path = paths.star(size=0.05, dim=3)
-    fn = jax.jit(jax.vmap(lambda q: control.follow(system, control.true_inverse(system), path, q, steps=STEPS,
-                                                   **CTRL).completion))
+    fn = jax.jit(jax.vmap(lambda q: control.follow(system, control.true_inverse(system), path, q,
+                                                   control.ControllerParams(**CTRL), steps=STEPS).completion))
     rows = []
     for batch in args.batches:
         q0s = system.sample_configs(jax.random.key(batch), batch)

@@ -1,6 +1,6 @@
 """Wall time of the valid-region maps: the paper-protocol UR5e map and its ``_full`` variant.
 
-For each config, runs ``experiments.valid_region.study`` twice into fresh
+For each config, runs the ``valid_region`` experiment (``selfid_jax.experiment.run``) twice into fresh
 directories with JAX's persistent compilation cache on: the first run compiles
 (cold), the second loads the compiled function from the cache (warm). Prints
 the cold wall time (including compile), the warm one, their difference (the
@@ -20,7 +20,7 @@ from pathlib import Path
 import selfid_jax  # noqa: F401
 import jax
 
-from experiments.valid_region import study
+from selfid_jax import experiment
 from selfid_jax.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def timed_study(cfg, out):
     t0 = time.perf_counter()
-    df = study(cfg, out, fresh=True)
+    df, _ = experiment.run(experiment.get("valid_region"), cfg, out, fresh=True)
     return df, time.perf_counter() - t0
 
 

@@ -42,8 +42,9 @@ if sys.argv[3] == "ur5e":
     from selfid_jax import control, paths
     arm = sj.ur5e(task_dim=3)
     star = paths.star(size=0.05)
-    fn = jax.jit(jax.vmap(lambda q: control.follow(arm, control.true_inverse(arm), star, q, steps=iters,
-                                                   max_step=0.0025, tol=0.0005).completion))
+    fn = jax.jit(jax.vmap(lambda q: control.follow(arm, control.true_inverse(arm), star, q,
+                                                   control.ControllerParams(max_step=0.0025, tol=0.0005),
+                                                   steps=iters).completion))
     keys = arm.sample_configs(jax.random.key(0), batch)
 elif sys.argv[3] == "mjx":
     arm = sj.ur5e(task_dim=3, fk="mjx")

@@ -17,9 +17,7 @@ iteration at which the method's estimate met the Sec. IV-D test
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -27,13 +25,11 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from selfid_jax import baselines, control, paths, plots, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, register_experiment_config
-from selfid_jax.results import write_results, write_summary
-from selfid_jax.sweep import grid_table, register_experiment, row_keys, run_chunked
-from selfid_jax.systems import ur5e
-
-_STRICT = dict(extra="forbid", frozen=True, strict=True)
+from selfid_jax import baselines, control, estimator, paths, plots, selfid
+from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, unique
+from selfid_jax.experiment import Experiment, Part, controller_rows
+from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax.systems import System, ur5e
 
 
 class MethodSpec(BaseModel):
@@ -43,7 +39,9 @@ class MethodSpec(BaseModel):
 
     name: str = Field(min_length=1, description="label of the curve")
     method: Literal[baselines.METHOD_NAMES] = Field(description="one of " + ", ".join(baselines.METHOD_NAMES))
-    options: dict[str, float | int | str | bool] = Field(default_factory=dict)
+    options: dict[str, float | int | str | bool] = Field(
+        default_factory=dict, description="keyword options of the method's factory in selfid_jax.baselines"
+    )
 
 
 class AblationConfig(BaseConfig):
@@ -59,7 +57,7 @@ class AblationConfig(BaseConfig):
     rot_noise: Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=1)]
     m_a: Annotated[list[Annotated[float, Field(gt=0, le=0.1)]], Field(min_length=1)]
     eps: float = Field(gt=0, description="Sec. IV-D convergence threshold on ||J_t - J_{t-1}||_F")
-    controller: ControllerConfig
+    controller: ControllerConfig = ControllerConfig()
     path: PathConfig
     completion_threshold: float = Field(0.95, gt=0, le=1)
 
@@ -73,12 +71,9 @@ class AblationConfig(BaseConfig):
     @field_validator("methods")
     @classmethod
     def _unique_names(cls, methods: list[MethodSpec]) -> list[MethodSpec]:
-        names = [m.name for m in methods]
-        dup = sorted({n for n in names if names.count(n) > 1})
-        if dup:
-            raise ValueError(f"method names must be unique, repeated: {', '.join(dup)}")
+        unique([m.name for m in methods], "method names")
         for spec in methods:
-            baselines.get_method(spec.method, **spec.options)  # unknown options raise here, before compute
+            baselines.make(spec.method, **spec.options)  # unknown or bad options raise here, before compute
         return methods
 
     @model_validator(mode="after")
@@ -91,53 +86,65 @@ class AblationConfig(BaseConfig):
         return self
 
 
-register_experiment_config("ablation", AblationConfig)
+class Static(NamedTuple):
+    """Shared by every row: the arm, the path, the estimators and the static sizes."""
+
+    system: System
+    path: jax.Array  # (W, 3) star waypoint offsets [m]
+    steps: int  # control-step budget
+    iters: int  # self-ID iterations per stream (the largest checkpoint)
+    checkpoints: tuple[int, ...]  # 0-based sample indices at which each estimate is followed
+    methods: tuple[baselines.Estimator, ...]  # one per curve, in config order
 
 
-def convergence_iteration(estimates, eps):
-    """First iteration (1-based) where ``||J_t - J_{t-1}||_F <= eps`` twice in a row, -1 if none. ``(T, n, m)``."""
-    prev = jnp.concatenate([jnp.zeros_like(estimates[:1]), estimates[:-1]], axis=0)
-    small = jnp.sqrt(jnp.sum((estimates - prev) ** 2, axis=(1, 2))) <= eps
-    both = small & jnp.concatenate([jnp.zeros((1,), bool), small[:-1]])
-    return jnp.where(jnp.any(both), jnp.argmax(both) + 1, -1).astype(jnp.int32)
+class Params(NamedTuple):
+    """One self-ID stream's traced inputs (batch axis first when batched)."""
+
+    key: jax.Array  # (2,) uint32 PRNG key data
+    q0: jax.Array  # (n,) start configuration [rad]
+    pose_noise: jax.Array  # () tracker position noise sd [m]
+    rot_noise: jax.Array  # () tracker rotation noise sd [rad]
+    m_a: jax.Array  # () self-ID magnitude [rad]
+    eps: jax.Array  # () Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]
+    controller: control.ControllerParams  # () each
 
 
-def make_compute(cfg: AblationConfig, system):
-    """Batched function: params ``{key, q0 (B, n), pose_noise, rot_noise, m_a (B,)}`` -> per-method metrics."""
-    path = paths.star(size=cfg.path.size, dim=system.task_dim)
-    ctrl = dict(steps=cfg.controller.steps, max_step=cfg.controller.max_step, tol=cfg.controller.tol,
-                gain=cfg.controller.gain)
-    T = max(cfg.iterations)
-    checkpoints = jnp.asarray(cfg.iterations) - 1
-    methods = [(spec.name, baselines.get_method(spec.method, **spec.options)) for spec in cfg.methods]
+class Outputs(NamedTuple):
+    """Per stream: M methods x C checkpoints."""
 
-    def one(key_data, q0, pose_noise, rot_noise, m_a):
-        k_sid, k_est = jax.random.split(jax.random.wrap_key_data(key_data))
-        sid = selfid.run(system, k_sid, q0, iters=T, eps=cfg.eps, m_a=m_a, pose_noise=pose_noise,
-                         rot_noise=rot_noise, stop_at_convergence=False)
-        truth = system.true_inverse_jacobian(q0)
-        out = {}
-        for name, method in methods:
-            est = baselines.run_stream(method, k_est, sid.dtheta, sid.V, truth)
-            if method.name == "true":
-                res = control.follow(system, control.true_inverse(system), path, q0, **ctrl)
-                res = jax.tree.map(lambda x: jnp.broadcast_to(x, checkpoints.shape + jnp.shape(x)), res)
-            else:
-                res = jax.vmap(lambda J: control.follow(system, control.fixed(J), path, q0, **ctrl))(est[checkpoints])
-            out[f"{name}/completion"] = res.completion
-            out[f"{name}/mean_error"] = res.mean_error
-            out[f"{name}/failed"] = res.failed
-            out[f"{name}/converged_at"] = convergence_iteration(est, cfg.eps)
-        return out
-
-    def compute(p):
-        return jax.vmap(one)(p["key"], p["q0"], p["pose_noise"], p["rot_noise"], p["m_a"])
-
-    return compute
+    completion: jax.Array  # (M, C) fraction of the star completed
+    mean_error: jax.Array  # (M, C) mean distance to the path [m]
+    failed: jax.Array  # (M, C) bool
+    converged_at: jax.Array  # (M,) int32 first iteration meeting Sec. IV-D, -1 if none
 
 
-def grid(cfg: AblationConfig, system) -> tuple[pd.DataFrame, dict[str, np.ndarray]]:
-    """Meta table and parameter arrays: configs x trials x noise levels x m_a."""
+def compute(static: Static, p: Params) -> Outputs:
+    """One self-ID stream fed to every method; each method's estimate at every checkpoint followed along the star."""
+    system = static.system
+    checkpoints = jnp.asarray(static.checkpoints)
+    k_sid, k_est = jax.random.split(jax.random.wrap_key_data(p.key))
+    sid = selfid.run(system, k_sid, p.q0, iters=static.iters, eps=p.eps, m_a=p.m_a, pose_noise=p.pose_noise,
+                     rot_noise=p.rot_noise, stop_at_convergence=False)
+    truth = system.true_inverse_jacobian(p.q0)
+
+    def follow(jinv):
+        return control.follow(system, jinv, static.path, p.q0, p.controller, steps=static.steps)
+
+    rows = []
+    for method in static.methods:
+        est = baselines.run_stream(method, k_est, sid.dtheta, sid.V, truth)
+        if method.name == "true":
+            res = jax.tree.map(lambda x: jnp.broadcast_to(x, checkpoints.shape + jnp.shape(x)),
+                               follow(control.true_inverse(system)))
+        else:
+            res = jax.vmap(lambda J: follow(control.fixed(J)))(est[checkpoints])
+        rows.append(Outputs(res.completion, res.mean_error, res.failed, estimator.convergence_iteration(est, p.eps)))
+    return jax.tree.map(lambda *x: jnp.stack(x), *rows)
+
+
+def build(cfg: AblationConfig) -> Part:
+    """Configs x trials x noise levels x m_a streams on the UR5e (position task)."""
+    system = ur5e(task_dim=3)
     meta = grid_table(
         {
             "noise_level": range(len(cfg.pose_noise)),
@@ -149,58 +156,52 @@ def grid(cfg: AblationConfig, system) -> tuple[pd.DataFrame, dict[str, np.ndarra
     meta.insert(1, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
     meta.insert(2, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
     path = paths.star(size=cfg.path.size, dim=system.task_dim)
-    c = cfg.controller
     configs = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
-                                                 steps=c.steps, max_step=c.max_step, tol=c.tol, gain=c.gain))
-    params = {
-        "key": row_keys(cfg.seed, len(meta)),
-        "q0": configs[meta["config_id"].to_numpy()],
-        "pose_noise": meta["pose_noise"].to_numpy(float),
-        "rot_noise": meta["rot_noise"].to_numpy(float),
-        "m_a": meta["m_a"].to_numpy(float),
-    }
-    return meta, params
+                                                 control.ControllerParams(**cfg.controller.traced()),
+                                                 steps=cfg.controller.steps))
+    n = len(meta)
+    params = Params(
+        key=row_keys(cfg.seed, n),
+        q0=configs[meta["config_id"].to_numpy()],
+        pose_noise=meta["pose_noise"].to_numpy(float),
+        rot_noise=meta["rot_noise"].to_numpy(float),
+        m_a=meta["m_a"].to_numpy(float),
+        eps=np.full((n,), cfg.eps),
+        controller=controller_rows(cfg.controller, n),
+    )
+    static = Static(
+        system=system,
+        path=path,
+        steps=cfg.controller.steps,
+        iters=max(cfg.iterations),
+        checkpoints=tuple(i - 1 for i in cfg.iterations),
+        methods=tuple(baselines.make(spec.method, **spec.options) for spec in cfg.methods),
+    )
+    return Part(cfg.system, static, params, meta)
 
 
-def to_long(wide: pd.DataFrame, cfg: AblationConfig) -> pd.DataFrame:
-    """Wide chunk table (list columns per method) -> one row per (grid row, method, iteration count)."""
+def tabulate(wide: pd.DataFrame, part: Part, cfg: AblationConfig) -> pd.DataFrame:
+    """Stream table (list columns of M x C values) -> one row per (stream, method, iteration count)."""
     base_cols = ["noise_level", "pose_noise", "rot_noise", "m_a", "config_id", "trial"]
-    frames = []
     its = np.asarray(cfg.iterations)
-    for spec in cfg.methods:
-        n = spec.name
-        comp = np.stack(wide[f"{n}/completion"].to_numpy())
-        err = np.stack(wide[f"{n}/mean_error"].to_numpy())
-        fail = np.stack(wide[f"{n}/failed"].to_numpy())
-        rows = len(wide)
-        df = wide[base_cols].loc[wide.index.repeat(len(its))].reset_index(drop=True)
-        df.insert(0, "method", n)
+    M, C, rows = len(cfg.methods), len(its), len(wide)
+
+    def cube(col):  # (rows, M, C)
+        return np.stack(wide[col].to_numpy()).reshape(rows, M, C)
+
+    comp, err, fail = cube("completion"), cube("mean_error"), cube("failed")
+    conv = np.stack(wide["converged_at"].to_numpy()).reshape(rows, M)
+    frames = []
+    for i, spec in enumerate(cfg.methods):
+        df = wide[base_cols].loc[wide.index.repeat(C)].reset_index(drop=True)
+        df.insert(0, "method", spec.name)
         df["iterations"] = np.tile(its, rows)
-        df["completion"] = comp.reshape(-1)
-        df["mean_error"] = err.reshape(-1)
-        df["failed"] = fail.reshape(-1).astype(bool)
-        df["converged_at"] = np.repeat(wide[f"{n}/converged_at"].to_numpy(), len(its))
+        df["completion"] = comp[:, i].reshape(-1)
+        df["mean_error"] = err[:, i].reshape(-1)
+        df["failed"] = fail[:, i].reshape(-1).astype(bool)
+        df["converged_at"] = np.repeat(conv[:, i], C)
         frames.append(df)
     return pd.concat(frames, ignore_index=True)
-
-
-def study(cfg: AblationConfig, out_dir: str | Path | None = None, *, fresh: bool = False,
-          progress: bool = False) -> pd.DataFrame | None:
-    """Run the ablation; returns the tidy long table (also written to ``out_dir/results.parquet``)."""
-    if out_dir is None:
-        with tempfile.TemporaryDirectory() as tmp:
-            return study(cfg, tmp, fresh=True, progress=progress)
-    out_dir = Path(out_dir)
-    system = ur5e(task_dim=3)
-    meta, params = grid(cfg, system)
-    wide = run_chunked(make_compute(cfg, system), params, chunk_size=cfg.chunk_size,
-                       out_dir=out_dir / "systems" / cfg.system, meta=meta, fresh=fresh, progress=progress,
-                       desc="ablation")
-    if wide is None:
-        return None
-    df = to_long(wide, cfg)
-    write_results(out_dir, df)
-    return df
 
 
 def summarize(df: pd.DataFrame, cfg: AblationConfig) -> dict[str, Any]:
@@ -234,18 +235,24 @@ def summarize(df: pd.DataFrame, cfg: AblationConfig) -> dict[str, Any]:
     }
 
 
-def run(cfg: AblationConfig, out_dir: Path, fresh: bool, progress: bool) -> None:
-    """CLI runner: the ablation, then ``summary.json``."""
-    df = study(cfg, out_dir, fresh=fresh, progress=progress)
-    if df is None or jax.process_index() != 0:
-        return
-    summary = summarize(df, cfg)
-    write_summary(out_dir, summary)
-    print(f"{'method':24s} {'iters to ' + format(cfg.completion_threshold, '.0%'):>14s} {'converged at':>16s}")
+def report(summary: dict[str, Any]) -> str:
+    """A table: iterations to the completion threshold and convergence iteration per method."""
+    lines = [f"{'method':24s} {'iters to ' + format(summary['completion_threshold'], '.0%'):>14s} {'converged at':>16s}"]
     for name, s in summary["methods"].items():
         conv = s["convergence_iteration_mean"]
         conv_txt = f"{conv:.1f} +- {s['convergence_iteration_sd']:.1f}" if conv is not None else "never"
-        print(f"{name:24s} {str(s['iterations_to_threshold']):>14s} {conv_txt:>16s}")
+        lines.append(f"{name:24s} {str(s['iterations_to_threshold']):>14s} {conv_txt:>16s}")
+    return "\n".join(lines)
 
 
-register_experiment("ablation", run, plots.ablation_figures)
+EXPERIMENT = Experiment(
+    name="ablation",
+    config=AblationConfig,
+    build=build,
+    compute=compute,
+    summarize=summarize,
+    tabulate=tabulate,
+    plot=plots.ablation_figures,
+    report=report,
+    description="estimation ablation: completion vs self-ID iterations per estimation method (Fig. 5)",
+)

@@ -1,102 +1,191 @@
 """The README's main job: self-identify the UR5e, then follow a star with the estimated inverse Jacobian.
 
-From a few start configurations at once (one vmapped, compiled call), the
-arm runs Algorithm 1 (random actuations of ``m_a`` rad, signed x magnitude
-initial guess, closed-form refinement, convergence test of Sec. IV-D), then
-follows a 5 cm star with the final estimate and, for comparison, with the true
-inverse Jacobian. Writes ``demo.png`` (estimated vs true inverse Jacobian, the
-traced paths, the convergence curves) and ``summary.json`` to the output
-directory and prints a short summary.
+From a few start configurations at once (one vmapped, compiled call), the arm
+runs Algorithm 1 (random actuations of ``m_a`` rad, signed x magnitude initial
+guess, closed-form refinement, convergence test of Sec. IV-D), then follows a
+5 cm star with the final estimate and, for comparison, with the true inverse
+Jacobian, both from where self-ID left the arm. ``selfid-jax demo`` runs it
+with the defaults of :class:`DemoConfig` into ``runs/demo`` (``results.parquet``,
+``summary.json``, ``figures/demo.png``) and prints the summary.
 """
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pandas as pd
+from pydantic import Field
 
 from selfid_jax import control, paths, selfid
-from selfid_jax.systems import ur5e
-
-N_CONFIGS = 4
-ITERS = 30
-EPS = 0.5  # ||J_t - J_{t-1}||_F threshold (rad/m); the UR5e position inverse Jacobian has norm ~4-5
-CTRL = dict(steps=400, max_step=0.0025, tol=0.0005)
+from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig
+from selfid_jax.experiment import Experiment, Part, controller_rows
+from selfid_jax.plots import save_figure
+from selfid_jax.systems import System, ur5e
 
 
-def main(out_dir: Path | str = "runs/demo") -> dict:
-    """Run the demo, write its figure and summary into ``out_dir``; return the summary."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+class DemoConfig(BaseConfig):
+    """UR5e (position task) self-ID from ``n_configs`` start configurations, then a star with each estimate."""
+
+    experiment: Literal["demo"] = "demo"
+    n_configs: int = Field(4, ge=1, description="start configurations")
+    iters: int = Field(30, ge=2, description="self-ID iterations (Algorithm 1)")
+    eps: float = Field(0.5, gt=0, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]")
+    m_a: float = Field(0.03, gt=0, le=0.1, description="self-ID magnitude [rad]")
+    path: PathConfig = PathConfig(size=0.05)
+    controller: ControllerConfig = ControllerConfig(steps=400)
+
+
+class Static(NamedTuple):
+    system: System
+    path: jax.Array  # (W, 3) star waypoint offsets [m]
+    iters: int
+    steps: int
+
+
+class Params(NamedTuple):
+    key: jax.Array  # (2,) uint32 PRNG key data of the self-ID stream
+    q0: jax.Array  # (6,) start configuration [rad]
+    m_a: jax.Array  # () self-ID magnitude [rad]
+    eps: jax.Array  # () Sec. IV-D threshold [rad/m]
+    controller: control.ControllerParams
+
+
+class Outputs(NamedTuple):
+    q0: jax.Array  # (6,) start configuration of self-ID [rad]
+    converged_at: jax.Array  # () int32 Sec. IV-D iteration, -1 if never
+    relative_error: jax.Array  # () ||J_est - J_true||_F / ||J_true||_F at the start of the star
+    task_error: jax.Array  # () ||J(q) J_est - I||_F: the part of the error the controller sees
+    completion_estimated: jax.Array  # () star completion with the estimate
+    completion_true: jax.Array  # () ... with the true inverse Jacobian
+    mean_error_estimated: jax.Array  # () mean distance to the path [m]
+    mean_error_true: jax.Array  # () [m]
+    estimate: jax.Array  # (6, 3) final self-ID estimate [rad/m]
+    truth: jax.Array  # (6, 3) true inverse Jacobian where the star starts [rad/m]
+    deltas: jax.Array  # (iters,) ||J_t - J_{t-1}||_F per self-ID iteration [rad/m]
+    positions_estimated: jax.Array  # (steps + 1, 3) end-effector positions [m]
+    positions_true: jax.Array  # (steps + 1, 3) [m]
+
+
+def compute(static: Static, p: Params) -> Outputs:
+    """Self-ID from ``p.q0``, then the star from where self-ID ended, with the estimate and with the truth."""
+    system = static.system
+    sid = selfid.run(system, jax.random.wrap_key_data(p.key), p.q0, iters=static.iters, eps=p.eps, m_a=p.m_a)
+    q_start = sid.env  # follow from where self-ID left the arm
+
+    def follow(jinv):
+        return control.follow(system, jinv, static.path, q_start, p.controller, steps=static.steps,
+                              return_trajectory=True)
+
+    est, true = follow(control.fixed(sid.estimate)), follow(control.true_inverse(system))
+    truth = system.true_inverse_jacobian(q_start)
+    J = system.jacobian(q_start)
+    return Outputs(
+        q0=p.q0,
+        converged_at=sid.converged_at,
+        relative_error=jnp.linalg.norm(sid.estimate - truth) / jnp.linalg.norm(truth),
+        task_error=jnp.linalg.norm(J @ sid.estimate - jnp.eye(system.task_dim, dtype=J.dtype)),
+        completion_estimated=est.completion,
+        completion_true=true.completion,
+        mean_error_estimated=est.mean_error,
+        mean_error_true=true.mean_error,
+        estimate=sid.estimate,
+        truth=truth,
+        deltas=sid.deltas,
+        positions_estimated=est.positions,
+        positions_true=true.positions,
+    )
+
+
+def build(cfg: DemoConfig) -> Part:
+    """``n_configs`` feasible UR5e starts (key ``seed``) and one self-ID stream each (keys from ``seed + 1``)."""
     system = ur5e(task_dim=3)
-    star = paths.star(size=0.05, dim=3)
-    q0 = control.feasible_starts(system, star, jax.random.key(0), N_CONFIGS, **CTRL)
-    keys = jax.random.split(jax.random.key(1), N_CONFIGS)
+    path = paths.star(size=cfg.path.size, dim=3)
+    ctrl = control.ControllerParams(**cfg.controller.traced())
+    q0 = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs, ctrl,
+                                            steps=cfg.controller.steps))
+    n = cfg.n_configs
+    keys = np.asarray(jax.random.key_data(jax.random.split(jax.random.key(cfg.seed + 1), n)))
+    params = Params(key=keys, q0=q0, m_a=np.full((n,), cfg.m_a), eps=np.full((n,), cfg.eps),
+                    controller=controller_rows(cfg.controller, n))
+    meta = pd.DataFrame({"config_id": np.arange(n)})
+    return Part("ur5e", Static(system, path, cfg.iters, cfg.controller.steps), params, meta)
 
-    def one(key, q):
-        sid = selfid.run(system, key, q, iters=ITERS, eps=EPS)
-        q_start = sid.env  # follow from where self-ID left the arm
-        est = control.follow(system, control.fixed(sid.estimate), star, q_start, return_trajectory=True, **CTRL)
-        true = control.follow(system, control.true_inverse(system), star, q_start, return_trajectory=True, **CTRL)
-        return sid, est, true, system.true_inverse_jacobian(q_start)
 
-    sid, est, true, truth = jax.block_until_ready(jax.jit(jax.vmap(one))(keys, q0))
-    seconds = time.perf_counter() - t0
+def summarize(table: pd.DataFrame, cfg: DemoConfig) -> dict:
+    """Per start configuration: convergence iteration, errors, completions; the protocol beside them."""
 
-    rel_err = np.linalg.norm(sid.estimate - truth, axis=(1, 2)) / np.linalg.norm(truth, axis=(1, 2))
-    summary = {
+    def col(name):
+        return table[name].to_numpy().tolist()
+
+    return {
         "system": "ur5e (position task, 3-D)",
-        "self_id": {"iterations": ITERS, "m_a_rad": float(system.m_a), "eps": EPS},
-        "controller": dict(CTRL, path="star, outer radius 0.05 m"),
-        "start_configs_rad": np.asarray(q0).tolist(),
-        "converged_at": np.asarray(sid.converged_at).tolist(),
-        "relative_error_vs_true_inverse": rel_err.tolist(),
-        "completion_estimated": np.asarray(est.completion).tolist(),
-        "completion_true": np.asarray(true.completion).tolist(),
-        "mean_tracking_error_estimated_m": np.asarray(est.mean_error).tolist(),
-        "mean_tracking_error_true_m": np.asarray(true.mean_error).tolist(),
-        "seconds_including_compile": seconds,
+        "self_id": {"iterations": cfg.iters, "m_a_rad": cfg.m_a, "eps": cfg.eps},
+        "controller": cfg.controller.model_dump(),
+        "path": f"star, outer radius {cfg.path.size} m",
+        "start_configs_rad": [np.asarray(q).tolist() for q in table["q0"]],
+        "converged_at": col("converged_at"),
+        "relative_error_vs_true_inverse": col("relative_error"),
+        "task_error_J_Jest_minus_I": col("task_error"),
+        "completion_estimated": col("completion_estimated"),
+        "completion_true": col("completion_true"),
+        "mean_tracking_error_estimated_m": col("mean_error_estimated"),
+        "mean_tracking_error_true_m": col("mean_error_true"),
     }
-    print(f"UR5e self-ID from {N_CONFIGS} start configurations, then a 5 cm star ({seconds:.1f} s incl. compilation)")
-    print(f"{'config':>6s} {'converged at':>12s} {'rel. error':>10s} {'completion est/true':>20s} "
-          f"{'tracking error est/true [mm]':>29s}")
-    for b in range(N_CONFIGS):
-        print(f"{b:6d} {int(sid.converged_at[b]):12d} {rel_err[b]:10.3f} "
-              f"{float(est.completion[b]):9.0%} / {float(true.completion[b]):4.0%} "
-              f"{1e3 * float(est.mean_error[b]):16.3f} / {1e3 * float(true.mean_error[b]):.3f}")
-    print("estimated inverse Jacobian (config 0, rad/m):\n", np.array2string(np.asarray(sid.estimate[0]), precision=2))
-    print("true inverse Jacobian (config 0, rad/m):\n", np.array2string(np.asarray(truth[0]), precision=2))
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    _figure(sid, est, true, truth, out_dir / "demo.png")
-    print(f"wrote {out_dir / 'demo.png'} and {out_dir / 'summary.json'}")
-    return summary
 
 
-def _figure(sid, est, true, truth, path):
-    import matplotlib
+def report(summary: dict) -> str:
+    """The per-configuration table and what its error columns mean."""
+    n = len(summary["converged_at"])
+    lines = [
+        f"UR5e self-ID from {n} start configurations, then a 5 cm star (m_a {summary['self_id']['m_a_rad']} rad, "
+        f"eps {summary['self_id']['eps']} rad/m)",
+        f"{'config':>6s} {'converged at':>12s} {'rel. error':>10s} {'||J Jest - I||':>14s} {'completion est/true':>20s} "
+        f"{'tracking error est/true [mm]':>29s}",
+    ]
+    for b in range(n):
+        lines.append(
+            f"{b:6d} {summary['converged_at'][b]:12d} {summary['relative_error_vs_true_inverse'][b]:10.3f} "
+            f"{summary['task_error_J_Jest_minus_I'][b]:14.3f} "
+            f"{summary['completion_estimated'][b]:9.0%} / {summary['completion_true'][b]:4.0%} "
+            f"{1e3 * summary['mean_tracking_error_estimated_m'][b]:16.3f} / "
+            f"{1e3 * summary['mean_tracking_error_true_m'][b]:.3f}"
+        )
+    lines += [
+        "rel. error = ||J_est - J_true^+||_F / ||J_true^+||_F. With 6 actuators and a 3-D task, any J_est with",
+        "J J_est = I tracks perfectly; J_est may differ from the minimum-norm J^+ by null-space rows the position",
+        "samples cannot pin down, so rel. error stays large while ||J J_est - I|| is what",
+        "the controller sees.",
+    ]
+    return "\n".join(lines)
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 4, figsize=(16, 4))
-    vmax = float(np.abs(truth[0]).max())
-    for ax, mat, title in ((axes[0], sid.estimate[0], "estimated"), (axes[1], truth[0], "true")):
-        im = ax.imshow(np.asarray(mat), cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
+    """``demo``: estimated vs true inverse Jacobian (config 0), the traced stars, the convergence curves."""
+    from matplotlib.figure import Figure
+
+    n_act, m = 6, 3
+    est0 = np.asarray(table["estimate"].iloc[0]).reshape(n_act, m)
+    true0 = np.asarray(table["truth"].iloc[0]).reshape(n_act, m)
+    fig = Figure(figsize=(16, 4))
+    axes = fig.subplots(1, 4)
+    vmax = float(np.abs(true0).max())
+    for ax, mat, title in ((axes[0], est0, "estimated"), (axes[1], true0, "true")):
+        im = ax.imshow(mat, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
         ax.set_title(f"{title} $J^+$, config 0")
-        ax.set_xticks(range(3), ["x", "y", "z"])
-        ax.set_yticks(range(6), [f"q{i + 1}" for i in range(6)])
-        for (i, j), v in np.ndenumerate(np.asarray(mat)):
+        ax.set_xticks(range(m), ["x", "y", "z"])
+        ax.set_yticks(range(n_act), [f"q{i + 1}" for i in range(n_act)])
+        for (i, j), v in np.ndenumerate(mat):
             ax.text(j, i, f"{v:.1f}", ha="center", va="center", fontsize=7)
     fig.colorbar(im, ax=axes[:2], shrink=0.8, label="rad/m")
     ax = axes[2]
-    for b in range(est.positions.shape[0]):
-        p_true = np.asarray(true.positions[b]) - np.asarray(true.positions[b][0])
-        p_est = np.asarray(est.positions[b]) - np.asarray(est.positions[b][0])
+    for b in range(len(table)):
+        p_true = np.asarray(table["positions_true"].iloc[b]).reshape(-1, 3)
+        p_est = np.asarray(table["positions_estimated"].iloc[b]).reshape(-1, 3)
+        p_true, p_est = p_true - p_true[0], p_est - p_est[0]
         ax.plot(1e3 * p_true[:, 0], 1e3 * p_true[:, 1], color="0.6", lw=3, label="true inverse" if b == 0 else None)
         ax.plot(1e3 * p_est[:, 0], 1e3 * p_est[:, 1], lw=1, label=f"estimate, config {b}")
     ax.set_aspect("equal")
@@ -105,17 +194,24 @@ def _figure(sid, est, true, truth, path):
     ax.set_title("star traced by the end effector")
     ax.legend(fontsize=7)
     ax = axes[3]
-    for b in range(sid.deltas.shape[0]):
-        d = np.asarray(sid.deltas[b])
+    for b in range(len(table)):
+        d = np.asarray(table["deltas"].iloc[b])
         ax.semilogy(np.arange(1, len(d) + 1)[d > 0], d[d > 0], marker=".", label=f"config {b}")
-    ax.axhline(EPS, color="k", ls=":", label="eps")
+    ax.axhline(summary["self_id"]["eps"], color="k", ls=":", label="eps")
     ax.set_xlabel("self-ID iteration")
     ax.set_ylabel(r"$\|J_t - J_{t-1}\|_F$")
     ax.set_title("convergence (Sec. IV-D)")
     ax.legend(fontsize=7)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    return save_figure(fig, out_dir, "demo", dpi=110)
 
 
-if __name__ == "__main__":
-    main()
+EXPERIMENT = Experiment(
+    name="demo",
+    config=DemoConfig,
+    build=build,
+    compute=compute,
+    summarize=summarize,
+    plot=plot,
+    report=report,
+    description="the main job: UR5e self-ID from 4 starts, then a 5 cm star with the estimate and the truth",
+)

@@ -1,4 +1,4 @@
-"""Valid inverse-Jacobian region (paper Sec. III-C, Fig. 2), as one batched computation per system.
+"""Valid inverse-Jacobian region (paper Sec. III-C, Fig. 2), one compiled batched computation per system.
 
 For each ``eps_limit`` on the grid, each start configuration and each trial, a
 scaling matrix ``m_eps (n, m)`` is drawn elementwise from
@@ -6,33 +6,31 @@ scaling matrix ``m_eps (n, m)`` is drawn elementwise from
 trial; the controller follows the star path with ``m_eps * Jinv_true(q)`` at
 every step. Start configurations are drawn away from singularities and kept
 only if the true inverse Jacobian completes the path from them
-(:func:`selfid_jax.control.feasible_starts`). The valid region is the contiguous range of ``eps_limit`` around 1
-where the mean path completion reaches the threshold.
+(:func:`selfid_jax.control.feasible_starts`). The valid region is the
+contiguous range of ``eps_limit`` around 1 where the mean path completion
+reaches the threshold.
 
 From Python::
 
+    from selfid_jax import experiment
     from selfid_jax.config import load_config
-    from experiments.valid_region import study
-    df = study(load_config("configs/valid_region_two_link.yaml"), "runs/vr")   # one row per rollout
-
-``selfid-jax sweep configs/valid_region_ur5e.yaml`` runs the same and also
-writes ``summary.json`` and the figures.
+    table, summary = experiment.run(experiment.get("valid_region"), load_config("configs/valid_region_two_link.yaml"), "runs/vr")
 """
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
+from typing import Annotated, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
+from pydantic import Field, field_validator
 
 from selfid_jax import control, paths, plots
-from selfid_jax.config import ValidRegionConfig
-from selfid_jax.results import write_results, write_summary
-from selfid_jax.sweep import grid_table, register_experiment, row_keys, run_chunked
+from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig, unique
+from selfid_jax.experiment import Experiment, Part, controller_rows
+from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System, two_link, ur5e
 
 SYSTEMS = {
@@ -41,9 +39,55 @@ SYSTEMS = {
 }
 
 
-def build_system(name: str) -> System:
-    """The named system of the study (position tasks: 2-link xy, UR5e xyz)."""
-    return SYSTEMS[name]()
+class ValidRegionConfig(BaseConfig):
+    """Valid inverse-Jacobian region study (paper Sec. III-C, Fig. 2).
+
+    Every rollout scales the true inverse Jacobian elementwise by ``m_eps`` with
+    entries drawn from ``uniform(1, eps_limit)`` and follows the path; the grid is
+    ``systems x eps_limits x n_configs x n_trials`` rollouts.
+    """
+
+    experiment: Literal["valid_region"] = "valid_region"
+    systems: Annotated[list[Literal["two_link", "ur5e"]], Field(min_length=1)]
+    eps_limits: EpsLimits
+    n_configs: int = Field(ge=1)
+    n_trials: int = Field(ge=1)
+    controller: ControllerConfig = ControllerConfig()
+    path: PathConfig
+    completion_threshold: float = Field(0.95, gt=0, le=1)
+
+    @field_validator("systems")
+    @classmethod
+    def _unique(cls, systems: list[str]) -> list[str]:
+        return unique(systems, "systems")
+
+
+class Static(NamedTuple):
+    """What every rollout of one system shares (closed over by the compiled function)."""
+
+    system: System
+    path: jax.Array  # (W, task_dim) star waypoint offsets [m]
+    steps: int  # control-step budget
+
+
+class Params(NamedTuple):
+    """One rollout's traced inputs (batch axis first when batched)."""
+
+    eps_limit: jax.Array  # () m_eps entries ~ uniform(1, eps_limit)
+    key: jax.Array  # (2,) uint32 PRNG key data of the trial
+    q0: jax.Array  # (n,) start configuration
+    controller: control.ControllerParams  # () each: controller protocol
+
+
+class Outputs(NamedTuple):
+    """One rollout's metrics (see :class:`selfid_jax.control.FollowResult`)."""
+
+    completion: jax.Array
+    mean_error: jax.Array
+    max_error: jax.Array
+    waypoint_error: jax.Array
+    steps_used: jax.Array
+    failed: jax.Array
 
 
 def scaling_matrix(key, eps_limit, shape):
@@ -52,118 +96,75 @@ def scaling_matrix(key, eps_limit, shape):
     return 1.0 + (eps_limit - 1.0) * u
 
 
-def make_compute(system: System, cfg: ValidRegionConfig):
-    """Batched rollout function: params ``{eps_limit (B,), key (B, 2), q0 (B, n)}`` -> metric columns."""
-    path = paths.star(size=cfg.path.size, dim=system.task_dim)
-    ctrl = cfg.controller
-
-    def one(eps_limit, key_data, q0):
-        m_eps = scaling_matrix(jax.random.wrap_key_data(key_data), eps_limit, (system.n_act, system.task_dim))
-        res = control.follow(
-            system,
-            control.scaled_true_inverse(system, m_eps),
-            path,
-            q0,
-            steps=ctrl.steps,
-            max_step=ctrl.max_step,
-            tol=ctrl.tol,
-            gain=ctrl.gain,
-        )
-        return {
-            "completion": res.completion,
-            "mean_error": res.mean_error,
-            "max_error": res.max_error,
-            "waypoint_error": res.waypoint_error,
-            "steps_used": res.steps_used,
-            "failed": res.failed,
-        }
-
-    def compute(params):
-        return jax.vmap(one)(params["eps_limit"], params["key"], params["q0"])
-
-    return compute
+def compute(static: Static, p: Params) -> Outputs:
+    """Follow the star from ``p.q0`` with ``m_eps * Jinv_true(q)`` for one trial's ``m_eps``."""
+    system = static.system
+    m_eps = scaling_matrix(jax.random.wrap_key_data(p.key), p.eps_limit, (system.n_act, system.task_dim))
+    res = control.follow(system, control.scaled_true_inverse(system, m_eps), static.path, p.q0, p.controller,
+                         steps=static.steps)
+    return Outputs(*(getattr(res, f) for f in Outputs._fields))
 
 
-def system_grid(cfg: ValidRegionConfig, name: str, system: System) -> tuple[pd.DataFrame, dict]:
-    """Meta table and parameter arrays of one system's part of the grid."""
-    meta = grid_table(
-        {
-            "system": [name],
-            "eps_limit": cfg.eps_limits.values(),
-            "config_id": range(cfg.n_configs),
-            "trial": range(cfg.n_trials),
-        }
-    )
-    ctrl = cfg.controller
-    configs = np.asarray(
-        control.feasible_starts(
-            system, paths.star(size=cfg.path.size, dim=system.task_dim), jax.random.key(cfg.seed), cfg.n_configs,
-            steps=ctrl.steps, max_step=ctrl.max_step, tol=ctrl.tol, gain=ctrl.gain,
-        )
-    )
-    params = {
-        "eps_limit": meta["eps_limit"].to_numpy(float),
-        "key": row_keys(cfg.seed, len(meta)),
-        "q0": configs[meta["config_id"].to_numpy()],
-    }
-    return meta, params
-
-
-def study(cfg: ValidRegionConfig, out_dir: str | Path | None = None, *, fresh: bool = False,
-          progress: bool = False) -> pd.DataFrame:
-    """Run the study; returns the tidy results table (one row per rollout).
-
-    Each system is one compiled batched function run in chunks of
-    ``cfg.chunk_size`` rollouts under ``out_dir/systems/<name>/`` (resumable);
-    the combined table is written to ``out_dir/results.parquet``. Without
-    ``out_dir`` a temporary directory is used.
-    """
-    if out_dir is None:
-        with tempfile.TemporaryDirectory() as tmp:
-            return study(cfg, tmp, fresh=True, progress=progress)
-    out_dir = Path(out_dir)
-    tables = []
+def build(cfg: ValidRegionConfig) -> list[Part]:
+    """One part per system: ``eps_limits x n_configs x n_trials`` rollouts from feasible start configurations."""
+    parts = []
     for name in cfg.systems:
-        system = build_system(name)
-        meta, params = system_grid(cfg, name, system)
-        df = run_chunked(
-            make_compute(system, cfg),
-            params,
-            chunk_size=cfg.chunk_size,
-            out_dir=out_dir / "systems" / name,
-            meta=meta,
-            fresh=fresh,
-            progress=progress,
-            desc=name,
+        system = SYSTEMS[name]()
+        path = paths.star(size=cfg.path.size, dim=system.task_dim)
+        meta = grid_table(
+            {
+                "system": [name],
+                "eps_limit": cfg.eps_limits.values(),
+                "config_id": range(cfg.n_configs),
+                "trial": range(cfg.n_trials),
+            }
         )
-        if df is None:  # another process of a jax.distributed run writes the files
-            return None
-        tables.append(df.drop(columns=["row"]))
-    df = pd.concat(tables, ignore_index=True)
-    write_results(out_dir, df)
-    return df
+        ctrl = controller_rows(cfg.controller, len(meta))
+        configs = np.asarray(
+            control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
+                                    control.ControllerParams(**cfg.controller.traced()), steps=cfg.controller.steps)
+        )
+        params = Params(
+            eps_limit=meta["eps_limit"].to_numpy(float),
+            key=row_keys(cfg.seed, len(meta)),
+            q0=configs[meta["config_id"].to_numpy()],
+            controller=ctrl,
+        )
+        parts.append(Part(name, Static(system, path, cfg.controller.steps), params, meta))
+    return parts
 
 
-def run(cfg: ValidRegionConfig, out_dir: Path, fresh: bool, progress: bool) -> None:
-    """CLI runner: the study, then ``summary.json`` with the bounds and the protocol beside them."""
-    df = study(cfg, out_dir, fresh=fresh, progress=progress)
-    if df is None or jax.process_index() != 0:
-        return
-    summary = plots.valid_region_summary(
-        df,
+def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:
+    """Bounds per system with the protocol beside them."""
+    return plots.valid_region_summary(
+        table,
         cfg.completion_threshold,
         controller=cfg.controller.model_dump(),
         path=cfg.path.model_dump(),
         n_configs=cfg.n_configs,
         n_trials=cfg.n_trials,
     )
-    write_summary(out_dir, summary)
+
+
+def report(summary: dict) -> str:
+    """One line per system: the valid region or its absence."""
+    lines = []
     for system, entry in summary["systems"].items():
         if entry["lower"] is None:
-            print(f"{system}: no valid region around 1 ({entry['n_rollouts']} rollouts)")
+            lines.append(f"{system}: no valid region around 1 ({entry['n_rollouts']} rollouts)")
         else:
-            print(f"{system}: valid region {entry['lower']:.3g}x - {entry['upper']:.3g}x the true inverse Jacobian "
-                  f"({entry['n_rollouts']} rollouts)")
+            lines.append(f"{system}: valid region {entry['lower']:.3g}x - {entry['upper']:.3g}x the true inverse "
+                         f"Jacobian ({entry['n_rollouts']} rollouts)")
+    return "\n".join(lines)
 
 
-register_experiment("valid_region", run, plots.valid_region_figure)
+EXPERIMENT = Experiment(
+    name="valid_region",
+    config=ValidRegionConfig,
+    build=build,
+    compute=compute,
+    summarize=summarize,
+    plot=plots.valid_region_figure,
+    report=report,
+    description="valid inverse-Jacobian region: completion vs elementwise scaling of the true inverse (Fig. 2)",
+)

@@ -1,15 +1,16 @@
-"""``selfid-jax`` command line: ``sweep``, ``plot``, ``demo``.
+"""``selfid-jax`` command line: ``sweep``, ``plot``, ``demo``, ``list``.
 
     selfid-jax sweep CONFIG [--set key.sub=value ...] [--out DIR] [--fresh] [--no-progress]
     selfid-jax plot RUN_DIR
     selfid-jax demo [--out DIR]
+    selfid-jax list
 
 ``sweep`` validates the config before any compute, creates the run directory
-(default ``runs/<config stem>``), runs the experiment registered under the
-config's ``experiment:`` name (``experiments/<name>.py`` registers itself with
-``selfid_jax.sweep.register_experiment``), then draws the figures from the
-saved results, exactly as ``plot`` would. Interrupt it (Ctrl-C or ``kill``) and
-run the same command again to resume; ``--fresh`` starts over.
+(default ``runs/<config stem>``), runs the experiment named by the config's
+``experiment:`` key (found through the ``selfid_jax.experiments`` entry points,
+:mod:`selfid_jax.experiment`), prints its report, then draws the figures from
+the saved results, exactly as ``plot`` would. Interrupt it (Ctrl-C or ``kill``)
+and run the same command again to resume; ``--fresh`` starts over.
 
 Several hosts: run the same ``sweep`` command on every host with
 ``--distributed`` (SLURM/Open MPI/Kubernetes auto-detection) or with
@@ -26,10 +27,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -50,8 +51,12 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=_PROG, description="Self-identified inverse Jacobians: sweeps and figures.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    s = sub.add_parser("sweep", help="run an experiment sweep from a YAML config (resumable)")
-    s.add_argument("config", type=Path, help="YAML config with a top-level 'experiment:' key")
+    s = sub.add_parser(
+        "sweep", help="run an experiment sweep from a YAML config (resumable)",
+        description="Validate CONFIG, run its experiment in resumable chunks into a run directory, print the "
+        "report and draw the figures. Run the same command again after an interruption to resume.",
+    )
+    s.add_argument("config", type=Path, help="YAML config with a top-level 'experiment:' key (see 'selfid-jax list')")
     s.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a config value by dotted key, e.g. --set controller.tol=1e-3 (repeatable)",
@@ -69,11 +74,26 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--num-processes", type=int, metavar="P", help="number of processes (implies --distributed)")
     g.add_argument("--process-id", type=int, metavar="I", help="this process, 0..P-1 (implies --distributed)")
 
-    pl = sub.add_parser("plot", help="redraw every figure of a run from its saved results")
-    pl.add_argument("run_dir", type=Path)
+    pl = sub.add_parser(
+        "plot", help="redraw every figure of a run from its saved results",
+        description="Redraw every figure of RUN_DIR into RUN_DIR/figures from results.parquet and summary.json "
+        "(no simulation).",
+    )
+    pl.add_argument("run_dir", type=Path, help="a run directory written by 'selfid-jax sweep' or 'selfid-jax demo'")
 
-    d = sub.add_parser("demo", help="run the small demo (experiments/demo.py)")
-    d.add_argument("--out", type=Path, default=Path("runs/demo"), help="output directory (default: runs/demo)")
+    d = sub.add_parser(
+        "demo", help="the main job: UR5e self-ID, then a star with the estimate (about 20 s on 2 CPU cores)",
+        description="Self-identify a UR5e from 4 start configurations in one compiled call, follow a 5 cm star "
+        "with each estimate and with the true inverse Jacobian, print a summary and write the run directory "
+        "(results.parquet, summary.json, figures/demo.png). Always starts fresh.",
+    )
+    d.add_argument("--out", type=Path, default=Path("runs/demo"), help="run directory (default: runs/demo)")
+
+    sub.add_parser(
+        "list", help="list the experiments, built-in systems and shipped configs",
+        description="List the installed experiments (entry-point group selfid_jax.experiments), the built-in "
+        "systems and the configs under ./configs.",
+    )
     return p
 
 
@@ -106,26 +126,14 @@ def _graceful_sigterm() -> Iterator[list[int]]:
         clear_stop()
 
 
-def _experiment(name: str):
-    from selfid_jax.sweep import get_experiment
-
-    exp = get_experiment(name)
-    if exp is None:
-        raise _UsageError(
-            f"no runner registered for experiment {name!r}: experiments/{name}.py is missing or does "
-            "not call selfid_jax.sweep.register_experiment"
-        )
-    return exp
-
-
 def _draw(exp, run_dir: Path) -> list[Path]:
     from selfid_jax.results import FIGURES_DIR, load_results, read_summary
 
-    if exp.plotter is None:
+    if exp.plot is None:
         return []
     df = load_results(run_dir)
     summary = read_summary(run_dir, missing_ok=True)
-    return [Path(p) for p in exp.plotter(df, summary, run_dir / FIGURES_DIR)]
+    return [Path(p) for p in exp.plot(df, summary, run_dir / FIGURES_DIR)]
 
 
 def _init_distributed(args: argparse.Namespace) -> None:
@@ -141,19 +149,17 @@ def _init_distributed(args: argparse.Namespace) -> None:
     )
 
 
-def _sweep(args: argparse.Namespace) -> int:
-    from selfid_jax.config import load_config
+def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progress: bool) -> int:
+    """Create the run directory, run the experiment under SIGTERM handling, print its report and figures."""
+    from selfid_jax import experiment
     from selfid_jax.results import create_run_dir
 
-    cfg = load_config(args.config, args.overrides)
-    exp = _experiment(cfg.experiment)
-    run_dir = args.out if args.out is not None else Path("runs") / args.config.stem
-    _init_distributed(args)  # after validation, before any JAX computation
-    create_run_dir(run_dir, cfg, args.config, overrides=args.overrides, fresh=args.fresh)
+    create_run_dir(run_dir, cfg, config_path, overrides=overrides, fresh=fresh)
     received: list[int] = []
+    t0 = time.perf_counter()
     try:
         with _graceful_sigterm() as received:
-            exp.runner(cfg, run_dir, args.fresh, args.progress)
+            out = experiment.run(exp, cfg, run_dir, fresh=fresh, progress=progress)
     except (KeyboardInterrupt, _Terminated):
         print(
             f"{_PROG}: interrupted; finished chunks are kept in {run_dir}. "
@@ -161,18 +167,32 @@ def _sweep(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 143 if received else 130
-    import jax
-
-    if jax.process_index() != 0:
+    if out is None:  # not process 0 of a jax.distributed run
         return 0
+    _, summary = out
+    if exp.report is not None:
+        print(exp.report(summary))
     figures = _draw(exp, run_dir)
-    print(f"results: {run_dir}")
+    print(f"results: {run_dir} ({time.perf_counter() - t0:.1f} s)")
     for f in figures:
         print(f"figure:  {f}")
     return 0
 
 
+def _sweep(args: argparse.Namespace) -> int:
+    from selfid_jax import experiment
+    from selfid_jax.config import load_config
+
+    cfg = load_config(args.config, args.overrides)
+    exp = experiment.get(cfg.experiment)
+    run_dir = args.out if args.out is not None else Path("runs") / args.config.stem
+    _init_distributed(args)  # after validation, before any JAX computation
+    return _run(exp, cfg, run_dir, config_path=args.config, overrides=args.overrides, fresh=args.fresh,
+                progress=args.progress)
+
+
 def _plot(args: argparse.Namespace) -> int:
+    from selfid_jax import experiment
     from selfid_jax.results import read_run_config
 
     run_dir: Path = args.run_dir
@@ -181,23 +201,36 @@ def _plot(args: argparse.Namespace) -> int:
     name = read_run_config(run_dir).get("experiment")
     if not isinstance(name, str):
         raise _UsageError(f"{run_dir / 'config.yaml'}: no 'experiment' key")
-    exp = _experiment(name)
-    if exp.plotter is None:
-        raise _UsageError(f"experiment {name!r} registers no plotter")
+    exp = experiment.get(name)
+    if exp.plot is None:
+        raise _UsageError(f"experiment {name!r} draws no figures")
     for f in _draw(exp, run_dir):
         print(f"figure: {f}")
     return 0
 
 
 def _demo(args: argparse.Namespace) -> int:
-    try:
-        demo = importlib.import_module("experiments.demo")
-    except ModuleNotFoundError as err:
-        if err.name not in ("experiments.demo", "experiments"):
-            raise
-        raise _UsageError("the demo is not available (experiments/demo.py is missing)") from None
-    result = demo.main(args.out)
-    return result if isinstance(result, int) else 0
+    from selfid_jax import experiment
+
+    exp = experiment.get("demo")
+    return _run(exp, exp.config(), args.out, config_path=None, overrides=(), fresh=True, progress=False)
+
+
+def _list(args: argparse.Namespace) -> int:  # noqa: ARG001
+    from selfid_jax import experiment, systems
+
+    print("experiments (selfid-jax sweep CONFIG with 'experiment: NAME'):")
+    for name in experiment.available():
+        exp = experiment.get(name)
+        print(f"  {name:14s} {exp.description}")
+    print("systems (selfid_jax.systems):")
+    for name, doc in systems.BUILTIN.items():
+        print(f"  {name:14s} {doc}")
+    configs = sorted(Path("configs").glob("*.yaml"))
+    print("configs (./configs):" if configs else "configs: none in ./configs")
+    for path in configs:
+        print(f"  {path}")
+    return 0
 
 
 def _enable_compilation_cache() -> None:
@@ -231,7 +264,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.command in ("sweep", "demo"):
         _enable_compilation_cache()
-    command = {"sweep": _sweep, "plot": _plot, "demo": _demo}[args.command]
+    command = {"sweep": _sweep, "plot": _plot, "demo": _demo, "list": _list}[args.command]
     try:
         return command(args)
     except (_UsageError, ConfigError, FileNotFoundError) as err:

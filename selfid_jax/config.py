@@ -1,8 +1,8 @@
 """Experiment configs: YAML -> dotted overrides -> validated, frozen pydantic model.
 
 A config file names its experiment at the top level (``experiment: valid_region``);
-that name picks the pydantic model from a registry
-(:func:`register_experiment_config`). Every model forbids unknown keys, checks
+that name picks the experiment (:func:`selfid_jax.experiment.get`, the one
+registry) and so its pydantic model. Every model forbids unknown keys, checks
 types strictly (``3`` is not a string, ``2.0`` is not an integer) and is frozen.
 Any problem raises :class:`ConfigError` whose message names the file, the dotted
 key, the problem, the offending value and what is allowed, before any compute.
@@ -16,7 +16,6 @@ values and numeric parameter arrays before ``jit`` (STYLE.md rule 6).
 
 from __future__ import annotations
 
-import importlib
 import re
 import types
 import typing
@@ -35,15 +34,12 @@ __all__ = [
     "ControllerConfig",
     "EpsLimits",
     "PathConfig",
-    "ValidRegionConfig",
     "apply_overrides",
     "dump_config",
     "flatten_dict",
-    "get_experiment_config",
     "load_config",
     "parse_override",
-    "register_experiment_config",
-    "registered_experiment_configs",
+    "unique",
     "yaml_load",
 ]
 
@@ -113,14 +109,25 @@ class EpsLimits(BaseModel):
 
 
 class ControllerConfig(BaseModel):
-    """Inverse-Jacobian path-following protocol (state it beside every bound)."""
+    """Inverse-Jacobian path-following protocol (state it beside every bound).
+
+    The defaults are :class:`selfid_jax.control.ControllerParams`' and
+    ``control.follow``'s (the UR5e protocol of the shipped configs). ``steps``
+    is static (the scan length); the rest are traced, see :meth:`traced`.
+    """
 
     model_config = _STRICT
 
-    max_step: float = Field(gt=0, description="largest POM step per control step [m]")
-    tol: float = Field(gt=0, description="waypoint reached when closer than this [m]")
-    steps: int = Field(ge=1, description="control-step budget per rollout")
+    max_step: float = Field(0.0025, gt=0, description="largest POM step per control step [m]")
+    tol: float = Field(0.0005, gt=0, description="waypoint reached when closer than this [m]")
+    steps: int = Field(435, ge=1, description="control-step budget per rollout")
     gain: float = Field(1.0, gt=0, description="fraction of the correction applied per step")
+    max_rot_step: float = Field(0.05, gt=0, description="largest rotation step per control step [rad] (6-D tasks)")
+    rot_tol: float = Field(0.01, gt=0, description="waypoint orientation reached within this [rad] (6-D tasks)")
+
+    def traced(self) -> dict[str, float]:
+        """The swept numbers (every field but ``steps``), the fields of ``control.ControllerParams``."""
+        return self.model_dump(exclude={"steps"})
 
 
 class PathConfig(BaseModel):
@@ -132,69 +139,12 @@ class PathConfig(BaseModel):
     size: float = Field(gt=0, description="path extent [m]")
 
 
-class ValidRegionConfig(BaseConfig):
-    """Valid inverse-Jacobian region study (paper Sec. III-C, Fig. 2).
-
-    Every rollout scales the true inverse Jacobian elementwise by ``m_eps`` with
-    entries drawn from ``uniform(1, eps_limit)`` and follows the path; the grid is
-    ``systems x eps_limits x n_configs x n_trials`` rollouts.
-    """
-
-    experiment: Literal["valid_region"] = "valid_region"
-    systems: Annotated[list[Literal["two_link", "ur5e"]], Field(min_length=1)]
-    eps_limits: EpsLimits
-    n_configs: int = Field(ge=1)
-    n_trials: int = Field(ge=1)
-    controller: ControllerConfig
-    path: PathConfig
-    completion_threshold: float = Field(0.95, gt=0, le=1)
-
-    @field_validator("systems")
-    @classmethod
-    def _unique(cls, systems: list[str]) -> list[str]:
-        dup = sorted({s for s in systems if systems.count(s) > 1})
-        if dup:
-            raise ValueError(f"systems must be unique, repeated: {', '.join(dup)}")
-        return systems
-
-
-# --------------------------------------------------------------------------- registry
-
-_REGISTRY: dict[str, type[BaseConfig]] = {}
-
-
-def register_experiment_config(name: str, model: type[BaseConfig]) -> None:
-    """Make ``experiment: <name>`` in a YAML file validate against ``model``."""
-    if not (isinstance(model, type) and issubclass(model, BaseModel)):
-        raise TypeError(f"model for {name!r} must be a pydantic BaseModel subclass, got {model!r}")
-    _REGISTRY[name] = model
-
-
-def registered_experiment_configs() -> dict[str, type[BaseConfig]]:
-    """A copy of the name -> config model registry."""
-    return dict(_REGISTRY)
-
-
-def import_experiment_module(name: str) -> None:
-    """Import ``experiments.<name>`` so it can register itself; absent module is fine."""
-    if not name.isidentifier():
-        return
-    module = f"experiments.{name}"
-    try:
-        importlib.import_module(module)
-    except ModuleNotFoundError as err:
-        if err.name not in (module, "experiments"):
-            raise
-
-
-def get_experiment_config(name: str) -> type[BaseConfig] | None:
-    """The config model registered for ``name`` (importing ``experiments.<name>`` if needed)."""
-    if name not in _REGISTRY:
-        import_experiment_module(name)
-    return _REGISTRY.get(name)
-
-
-register_experiment_config("valid_region", ValidRegionConfig)
+def unique(values: list, what: str) -> list:
+    """``values`` if no item repeats, else ``ValueError`` naming the repeated ones (for field validators)."""
+    dup = sorted({str(v) for v in values if values.count(v) > 1})
+    if dup:
+        raise ValueError(f"{what} must be unique, repeated: {', '.join(dup)}")
+    return values
 
 
 # --------------------------------------------------------------------------- overrides
@@ -253,7 +203,8 @@ def load_config(
     """Read a YAML config, apply ``a.b=value`` overrides and validate it.
 
     Args:
-      path: YAML file with a top-level ``experiment:`` key (unless ``model`` is given).
+      path: YAML file with a top-level ``experiment:`` key naming an installed
+        experiment (unless ``model`` is given).
       overrides: dotted ``key=value`` strings, applied in order.
       model: validate against this model instead of the registered one.
 
@@ -285,14 +236,19 @@ def load_config(
     set_keys = {".".join(parse_override(o)[0]): o for o in overrides}
 
     if model is None:
+        from selfid_jax.experiment import available, get  # the registry of experiments (and so of models)
+
         name = data.get("experiment")
-        known = ", ".join(sorted(_REGISTRY)) or "(none registered)"
         if name is None:
+            known = ", ".join(available()) or "(none installed)"
             raise ConfigError(f"{path}: key 'experiment': required key is missing; allowed: one of {known}")
-        if not isinstance(name, str) or get_experiment_config(name) is None:
-            known = ", ".join(sorted(_REGISTRY)) or "(none registered)"
+        try:
+            model = get(name).config if isinstance(name, str) else None
+        except ConfigError:
+            model = None
+        if model is None:
+            known = ", ".join(available()) or "(none installed)"
             raise ConfigError(f"{path}: key 'experiment': unknown experiment {name!r}; allowed: one of {known}")
-        model = _REGISTRY[name]
     try:
         return model.model_validate(data)
     except ValidationError as err:

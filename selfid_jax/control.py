@@ -28,6 +28,25 @@ JinvFn = Callable[[jax.Array], jax.Array]
 """``jinv_fn(q (n,)) -> (n, m)``: the inverse Jacobian the controller uses at ``q``."""
 
 
+class ControllerParams(NamedTuple):
+    """Traced controller settings of :func:`follow` (sweepable: any field may carry a batch axis under ``vmap``).
+
+    The defaults are the shipped configs' UR5e protocol
+    (:class:`selfid_jax.config.ControllerConfig` has the same ones).
+    """
+
+    max_step: jax.Array | float = 0.0025  # () largest POM position step per control step [m]
+    tol: jax.Array | float = 0.0005  # () waypoint reached within this distance [m]
+    gain: jax.Array | float = 1.0  # () fraction of the error commanded per step (before clipping)
+    max_rot_step: jax.Array | float = 0.05  # () largest rotation step per control step [rad] (6-D tasks)
+    rot_tol: jax.Array | float = 0.01  # () waypoint orientation reached within this angle [rad] (6-D tasks)
+    diverge_dist: jax.Array | float | None = None  # () failed beyond this distance to the path [m]; None: 2 max|path| + 10 tol
+
+
+DEFAULT_STEPS = 435
+"""Default step budget of :func:`follow`: 3x the full-speed step count of the shipped star protocols."""
+
+
 class FollowResult(NamedTuple):
     """Metrics of one rollout (leading batch axes if vmapped)."""
 
@@ -41,37 +60,71 @@ class FollowResult(NamedTuple):
     positions: jax.Array | None  # (steps + 1, 3) POM positions if return_trajectory, else None
 
 
-def fixed(J) -> JinvFn:
+# ------------------------------------------------------------------ inverse-Jacobian sources
+# Each has ``pose_and_jinv(system, q) -> ((p (3,), R (3, 3)), Jinv (n, m))``, the one call the controller makes per step.
+
+class Fixed(NamedTuple):
     """A constant inverse Jacobian ``J (n, m)`` (e.g. a self-ID estimate)."""
-    return lambda q: J
+
+    J: jax.Array
+
+    def __call__(self, q):
+        return self.J
+
+    def pose_and_jinv(self, system: System, q):
+        return system.pose(q), self.J
 
 
 class JacobianInverse(NamedTuple):
-    """An inverse-Jacobian function built from the system's Jacobian: ``scale * pinv(J(q))``.
-
-    Callable as a :data:`JinvFn`; :func:`follow` recognises it and computes the
-    pose and the Jacobian in one kinematics pass (``System.pose_and_jacobian``).
-    """
+    """``scale * pinv(J(q))`` from the system's Jacobian, pose and Jacobian from one kinematics pass."""
 
     system: System
     scale: jax.Array | float = 1.0  # () or (n, m), elementwise
 
     def __call__(self, q):
-        return self.from_jacobian(self.system.jacobian(q))
+        return self.scale * pseudo_inverse(self.system.jacobian(q))
 
-    def from_jacobian(self, J):
-        """``scale * pinv(J)`` for a Jacobian ``J (m, n)``."""
-        return self.scale * pseudo_inverse(J)
+    def pose_and_jinv(self, system: System, q):
+        pose, J = system.pose_and_jacobian(q)
+        return pose, self.scale * pseudo_inverse(J)
 
 
-def true_inverse(system: System) -> JinvFn:
+class FromFunction(NamedTuple):
+    """Any ``jinv_fn(q) -> (n, m)``; the pose is read separately."""
+
+    fn: JinvFn
+
+    def __call__(self, q):
+        return self.fn(q)
+
+    def pose_and_jinv(self, system: System, q):
+        return system.pose(q), self.fn(q)
+
+
+def fixed(J) -> Fixed:
+    """A constant inverse Jacobian ``J (n, m)`` (e.g. a self-ID estimate)."""
+    return Fixed(J)
+
+
+def true_inverse(system: System) -> JacobianInverse:
     """The system's true inverse Jacobian at every step."""
     return JacobianInverse(system)
 
 
-def scaled_true_inverse(system: System, m_eps) -> JinvFn:
+def scaled_true_inverse(system: System, m_eps) -> JacobianInverse:
     """``m_eps * true_inverse_jacobian(q)`` elementwise, ``m_eps (n, m)`` (the valid-region study, Sec. III-C)."""
     return JacobianInverse(system, m_eps)
+
+
+# ------------------------------------------------------------------ task space
+
+def _norm(v):
+    return jnp.sqrt(jnp.sum(v * v))
+
+
+def _clip_norm(v, limit):
+    norm = _norm(v)
+    return v * jnp.minimum(1.0, limit / jnp.where(norm > 0, norm, 1.0))
 
 
 def _segment_distance(p, a, b):
@@ -83,149 +136,180 @@ def _segment_distance(p, a, b):
     return jnp.sqrt(jnp.sum((p[None, :] - closest) ** 2, axis=-1))
 
 
-def _clip_norm(v, limit):
-    norm = jnp.sqrt(jnp.sum(v * v))
-    return v * jnp.minimum(1.0, limit / jnp.where(norm > 0, norm, 1.0))
+class _Task(NamedTuple):
+    """Waypoints in task space: ``pos_dim`` position components and, for 6-D tasks, target orientations."""
+
+    targets: jax.Array  # (W, pos_dim) waypoint positions [m]
+    vertices: jax.Array  # (W + 1, pos_dim) path polyline, start pose first [m]
+    target_R: jax.Array  # (W, 3, 3) waypoint orientations; (W, 0, 0) without rotation
+
+    @staticmethod
+    def make(path, pose0, task_dim: int) -> "_Task":
+        p0, R0 = pose0
+        pos_dim = min(task_dim, 3)
+        targets = p0[:pos_dim][None, :] + path[:, :pos_dim]
+        vertices = jnp.concatenate([p0[None, :pos_dim], targets], axis=0)
+        if task_dim == 6:
+            target_R = jnp.einsum("wij,jk->wik", geometry.so3_exp(path[:, 3:]), R0)
+        else:
+            target_R = jnp.zeros((path.shape[0], 0, 0), path.dtype)
+        return _Task(targets, vertices, target_R)
+
+    def error(self, pose, w):
+        """``(e_p (pos_dim,), e_r (0,) or (3,))`` from ``pose`` to waypoint ``w`` (clamped to the last)."""
+        p, R = pose
+        wc = jnp.minimum(w, self.targets.shape[0] - 1)
+        e_p = self.targets[wc] - p[: self.targets.shape[1]]
+        e_r = geometry.so3_log(self.target_R[wc] @ R.T) if self.target_R.shape[-1] else e_p[:0]
+        return e_p, e_r
+
+    def reached(self, e_p, e_r, ctrl: ControllerParams):
+        return (_norm(e_p) <= ctrl.tol) & (_norm(e_r) <= ctrl.rot_tol)
+
+    def twist(self, e_p, e_r, ctrl: ControllerParams):
+        """Commanded pose change ``V (m,)``: the gained error, position and rotation parts clipped separately."""
+        return jnp.concatenate([_clip_norm(ctrl.gain * e_p, ctrl.max_step), _clip_norm(ctrl.gain * e_r, ctrl.max_rot_step)])
+
+    def path_distance(self, p):
+        """Distance of position ``p`` to the path polyline [m]."""
+        return jnp.min(_segment_distance(p[: self.targets.shape[1]], self.vertices[:-1], self.vertices[1:]))
+
+
+class _Carry(NamedTuple):
+    q: jax.Array  # (n,) actuator positions
+    waypoint: jax.Array  # () int32 index of the current waypoint (W when done)
+    failed: jax.Array  # () bool
+    err_sum: jax.Array  # () sum of path distances over active steps [m]
+    err_max: jax.Array  # () largest path distance over active steps [m]
+    used: jax.Array  # () int32 active steps
+    wp_err: jax.Array  # (W,) position error when each waypoint was reached [m]; -1 before
+
+
+def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams):
+    """Mark the current waypoint reached if ``pose`` is within tolerance; returns ``(carry, active, e_p, e_r)``."""
+    W = task.targets.shape[0]
+    active = (carry.waypoint < W) & ~carry.failed
+    e_p, e_r = task.error(pose, carry.waypoint)
+    reached = active & task.reached(e_p, e_r, ctrl)
+    wc = jnp.minimum(carry.waypoint, W - 1)
+    carry = carry._replace(
+        wp_err=jnp.where(reached, carry.wp_err.at[wc].set(_norm(e_p)), carry.wp_err),
+        waypoint=carry.waypoint + reached.astype(carry.waypoint.dtype),
+    )
+    return carry, active & (carry.waypoint < W)
 
 
 def follow(
     system: System,
-    jinv_fn: JinvFn,
+    jinv,
     path,
     q0,
+    controller: ControllerParams = ControllerParams(),
     *,
-    steps: int,
-    max_step=0.005,
-    tol=0.002,
-    gain=1.0,
-    max_rot_step=0.05,
-    rot_tol=0.01,
-    diverge_dist=None,
+    steps: int = DEFAULT_STEPS,
     return_trajectory: bool = False,
 ) -> FollowResult:
-    """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)`` with ``dtheta = jinv_fn(q) @ V``.
+    """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)`` with ``dtheta = Jinv @ V``.
 
-    ``path`` holds offsets from the start pose (see :mod:`selfid_jax.paths`):
-    positions are added to the start position, rotation vectors ``r`` give the
-    target orientation ``exp(r) R_start``. ``steps`` (the step budget) is
-    static; ``max_step`` (m per step), ``tol`` (m), ``gain``, ``max_rot_step``,
-    ``rot_tol`` (rad) and ``diverge_dist`` (m; default: twice the path's
-    largest offset plus 10 ``tol``) may be traced, so they can be swept.
+    Each step the desired twist ``V`` points from the current pose to the
+    current waypoint, times ``controller.gain``, position part clipped to
+    ``max_step`` [m], rotation part to ``max_rot_step`` [rad]; the actuators
+    move by ``Jinv @ V`` (clipped by ``system.apply``), and the waypoint
+    advances within ``tol`` (and ``rot_tol`` for 6-D tasks).
+
+    Args:
+      system: the :class:`~selfid_jax.systems.System`.
+      jinv: where ``Jinv (n, m)`` comes from: :func:`fixed`,
+        :func:`true_inverse`, :func:`scaled_true_inverse`, any object with
+        ``pose_and_jinv(system, q)``, or a plain ``jinv_fn(q) -> (n, m)``.
+      path: waypoint offsets from the start pose (:mod:`selfid_jax.paths`):
+        positions [m] added to the start position, rotation vectors ``r``
+        [rad] giving ``exp(r) R_start``.
+      q0: ``(n,)`` start actuator positions.
+      controller: :class:`ControllerParams`; every field may be traced.
+      steps: static step budget.
+      return_trajectory: also return the ``(steps + 1, 3)`` POM positions.
+
+    A rollout whose state turns non-finite or strays farther than
+    ``diverge_dist`` from the path is frozen and flagged ``failed``, so every
+    metric stays finite.
     """
     steps = check_positive_int("steps", steps)
     n, m = system.n_act, system.task_dim
     check_array("q0", q0, (n,))
     check_array("path", path, (None, m))
+    if not isinstance(controller, ControllerParams):
+        raise TypeError(f"controller must be a ControllerParams, got {type(controller).__name__}")
+    source = jinv if hasattr(jinv, "pose_and_jinv") else FromFunction(jinv)
     dtype = jnp.result_type(float)
     q0 = jnp.asarray(q0, dtype)
     path = jnp.asarray(path, dtype)
     W = path.shape[0]
-    pos_dim = min(m, 3)
+    task = _Task.make(path, system.pose(q0), m)
+    ctrl = controller
+    if ctrl.diverge_dist is None:
+        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : task.targets.shape[1]] ** 2, axis=-1)))
+        ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
 
-    p0, R0 = system.pose(q0)
-    targets = p0[:pos_dim][None, :] + path[:, :pos_dim]  # (W, pos_dim)
-    vertices = jnp.concatenate([p0[None, :pos_dim], targets], axis=0)  # (W + 1, pos_dim)
-    if m == 6:
-        target_R = jnp.einsum("wij,jk->wik", geometry.so3_exp(path[:, 3:]), R0)
-    if diverge_dist is None:
-        diverge_dist = 2.0 * jnp.max(jnp.sqrt(jnp.sum(path[:, :pos_dim] ** 2, axis=-1))) + 10.0 * tol
-
-    def errors(pose, w):
-        """Position and rotation errors from ``pose = (p, R)`` towards waypoint ``w``."""
-        p, R = pose
-        wc = jnp.minimum(w, W - 1)
-        e_p = targets[wc] - p[:pos_dim]
-        if m == 6:
-            return e_p, geometry.so3_log(target_R[wc] @ R.T)
-        return e_p, jnp.zeros((0,), dtype)
-
-    def close_enough(e_p, e_r):
-        ok = jnp.sqrt(jnp.sum(e_p**2)) <= tol
-        if m == 6:
-            ok = ok & (jnp.sqrt(jnp.sum(e_r**2)) <= rot_tol)
-        return ok
-
-    def step(carry, _):
-        q, w, failed, err_sum, err_max, used, wp_err = carry
-        active = (w < W) & ~failed
-        if isinstance(jinv_fn, JacobianInverse):
-            pose, jac = system.pose_and_jacobian(q)
-            J = jinv_fn.from_jacobian(jac)
-        else:
-            pose = system.pose(q)
-            J = jinv_fn(q)
-        p = pose[0]
-        e_p, e_r = errors(pose, w)
-        dist = jnp.min(_segment_distance(p[:pos_dim], vertices[:-1], vertices[1:]))
-        reached = active & close_enough(e_p, e_r)
-        wp_err = jnp.where(reached, wp_err.at[jnp.minimum(w, W - 1)].set(jnp.sqrt(jnp.sum(e_p**2))), wp_err)
-        w = w + reached.astype(w.dtype)
-        active = active & (w < W)
-        e_p, e_r = errors(pose, w)
-        V = _clip_norm(gain * e_p, max_step)
-        if m == 6:
-            V = jnp.concatenate([V, _clip_norm(gain * e_r, max_rot_step)])
-        q_new = system.apply(q, J @ V)
+    def step(carry: _Carry, _):
+        pose, J = source.pose_and_jinv(system, carry.q)
+        dist = task.path_distance(pose[0])
+        carry, active = _advance(task, carry, pose, ctrl)
+        q_new = system.apply(carry.q, J @ task.twist(*task.error(pose, carry.waypoint), ctrl))
         finite = jnp.all(jnp.isfinite(q_new)) & jnp.all(jnp.isfinite(J))
-        diverged = dist > diverge_dist
-        failed = failed | (active & (~finite | diverged))
-        move = active & ~failed
-        q = jnp.where(move, q_new, q)
-        err_sum = err_sum + jnp.where(active, dist, 0.0)
-        err_max = jnp.maximum(err_max, jnp.where(active, dist, 0.0))
-        used = used + active.astype(used.dtype)
-        return (q, w, failed, err_sum, err_max, used, wp_err), (p if return_trajectory else None)
+        failed = carry.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
+        counted = jnp.where(active, dist, 0.0)
+        carry = carry._replace(
+            q=jnp.where(active & ~failed, q_new, carry.q),
+            failed=failed,
+            err_sum=carry.err_sum + counted,
+            err_max=jnp.maximum(carry.err_max, counted),
+            used=carry.used + active.astype(carry.used.dtype),
+        )
+        return carry, (pose[0] if return_trajectory else None)
 
-    init = (
-        q0,
-        jnp.zeros((), jnp.int32),
-        jnp.zeros((), bool),
-        jnp.zeros((), dtype),
-        jnp.zeros((), dtype),
-        jnp.zeros((), jnp.int32),
-        jnp.full((W,), -1.0, dtype),
+    init = _Carry(
+        q=q0,
+        waypoint=jnp.zeros((), jnp.int32),
+        failed=jnp.zeros((), bool),
+        err_sum=jnp.zeros((), dtype),
+        err_max=jnp.zeros((), dtype),
+        used=jnp.zeros((), jnp.int32),
+        wp_err=jnp.full((W,), -1.0, dtype),
     )
-    (q, w, failed, err_sum, err_max, used, wp_err), traj = jax.lax.scan(step, init, None, length=steps)
-    pose_end = system.pose(q)
-    p_end = pose_end[0]
-    # the last step may have reached a waypoint after its move: check once more
-    e_p, e_r = errors(pose_end, w)
-    last = (w < W) & ~failed & close_enough(e_p, e_r)
-    wp_err = jnp.where(last, wp_err.at[jnp.minimum(w, W - 1)].set(jnp.sqrt(jnp.sum(e_p**2))), wp_err)
-    w = w + last.astype(w.dtype)
-    end_dist = jnp.sqrt(jnp.sum((targets - p_end[None, :pos_dim]) ** 2, axis=-1))
-    wp_err = jnp.where(wp_err >= 0, wp_err, end_dist)
-    positions = None
-    if return_trajectory:
-        positions = jnp.concatenate([traj, p_end[None, :]], axis=0)
+    carry, traj = jax.lax.scan(step, init, None, length=steps)
+    pose_end = system.pose(carry.q)
+    carry, _ = _advance(task, carry, pose_end, ctrl)  # the last move may have reached a waypoint
+    end_dist = jnp.sqrt(jnp.sum((task.targets - pose_end[0][None, : task.targets.shape[1]]) ** 2, axis=-1))
+    wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, end_dist)
     return FollowResult(
-        completion=w.astype(dtype) / W,
-        mean_error=err_sum / jnp.maximum(used, 1).astype(dtype),
-        max_error=err_max,
+        completion=carry.waypoint.astype(dtype) / W,
+        mean_error=carry.err_sum / jnp.maximum(carry.used, 1).astype(dtype),
+        max_error=carry.err_max,
         waypoint_error=jnp.mean(wp_err),
-        steps_used=used,
-        failed=failed,
-        final_q=q,
-        positions=positions,
+        steps_used=carry.used,
+        failed=carry.failed,
+        final_q=carry.q,
+        positions=jnp.concatenate([traj, pose_end[0][None, :]], axis=0) if return_trajectory else None,
     )
 
 
-def feasible_starts(system: System, path, key, k: int, *, oversample: int = 4, steps: int, max_step=0.005,
-                    tol=0.002, gain=1.0):
+def feasible_starts(system: System, path, key, k: int, controller: ControllerParams = ControllerParams(), *,
+                    steps: int = DEFAULT_STEPS, oversample: int = 4):
     """``k`` start configurations ``(k, n)`` from which the true inverse Jacobian completes ``path``.
 
     Draws ``k * oversample`` configurations with ``system.sample_configs``
     (away from singularities), follows ``path`` from each with the true inverse
-    Jacobian (controller arguments as for :func:`follow`) and keeps the first
-    ``k`` that complete it without failing, so a study measures robustness to
-    inverse-Jacobian error rather than paths that leave the workspace or hit a
-    joint limit. Sampling and rollouts are one compiled call. Eager; raises
-    ``ValueError`` if fewer than ``k`` qualify.
+    Jacobian (``controller`` and ``steps`` as for :func:`follow`) and keeps the
+    first ``k`` that complete it without failing, so a study measures
+    robustness to inverse-Jacobian error rather than paths that leave the
+    workspace or hit a joint limit. Sampling and rollouts are one compiled
+    call. Eager; raises ``ValueError`` if fewer than ``k`` qualify.
     """
     k = check_positive_int("k", k)
     total = k * check_positive_int("oversample", oversample)
     cand, ok = _feasible_candidates(system, jnp.asarray(path), key, total, check_positive_int("steps", steps),
-                                    max_step, tol, gain)
+                                    controller)
     idx = jnp.flatnonzero(ok)
     if idx.shape[0] < k:
         raise ValueError(
@@ -236,8 +320,7 @@ def feasible_starts(system: System, path, key, k: int, *, oversample: int = 4, s
 
 
 @functools.partial(jax.jit, static_argnames=("total", "steps"))
-def _feasible_candidates(system, path, key, total, steps, max_step, tol, gain):
+def _feasible_candidates(system, path, key, total, steps, controller):
     cand, valid = system.sample_configs(key, total, return_valid=True)
-    res = jax.vmap(lambda q: follow(system, true_inverse(system), path, q, steps=steps, max_step=max_step, tol=tol,
-                                    gain=gain))(cand)
+    res = jax.vmap(lambda q: follow(system, true_inverse(system), path, q, controller, steps=steps))(cand)
     return cand, valid & (res.completion >= 1.0) & ~res.failed

@@ -9,7 +9,10 @@ the pose change it produced. :func:`update` folds a sample into the
 :func:`magnitude_inverse_jacobian` (Eq. 11-12) and :func:`initial_guess`
 (Eq. 13) read estimates out of it; :func:`refine` (Eq. 14) fine-tunes an
 initial guess on the buffered samples; :func:`record` and :func:`converged`
-implement the convergence test of Sec. IV-D.
+implement the convergence test of Sec. IV-D, and :func:`convergence_iteration`
+applies the same test to a whole sequence of estimates. :func:`guarded_update`
+is the one sample screen (rejection of non-finite or all-zero samples) shared
+by :func:`update` and every method of :mod:`selfid_jax.baselines`.
 
 Every function is pure and has no Python control flow on values: all of them
 jit, vmap and (where meaningful) differentiate.
@@ -21,6 +24,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from selfid_jax._checks import check_array, check_positive_int, float_dtype
 
@@ -103,43 +107,79 @@ def sample_contribution(dtheta: jax.Array, V: jax.Array) -> tuple[jax.Array, jax
     return s, w_t[:, None] * w_v[None, :]
 
 
-def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
-    """Fold one self-ID sample ``(dtheta (n,) [actuator units], V (m,) [task units])`` into the state.
+def tally(state, ok: jax.Array):
+    """``state`` with ``count + 1`` if ``ok`` (the sample was accepted), else ``rejected + 1``.
 
-    Accumulates the sign weights (Eq. 6-9) and the magnitude ratios
-    ``|dtheta_i / V_j|`` where ``|V_j| > v_tol`` (Eq. 11), and appends the pair
-    to the ring buffer. A sample with a non-finite entry, or with all-zero
-    ``dtheta`` or ``V``, is rejected: only ``rejected`` changes.
+    ``state`` is any ``NamedTuple`` with int32 scalar fields ``count`` and
+    ``rejected``; ``ok`` is a ``()`` bool. The sample counter of every estimator.
     """
-    n, m, capacity = sizes(state)
+    return state._replace(
+        count=jnp.where(ok, state.count + 1, state.count),
+        rejected=jnp.where(ok, state.rejected, state.rejected + 1),
+    )
+
+
+def guarded_update(fold, state, dtheta, V, *, shape, dtype, tally=tally):
+    """Fold one sample into ``state`` with ``fold`` if it is valid; else only count it as rejected.
+
+    The sample screen shared by :func:`update` and every method of
+    :mod:`selfid_jax.baselines`. ``dtheta (n,)`` (actuator units) and ``V (m,)``
+    (task units), ``shape = (n, m)``, are checked eagerly (``ValueError`` naming
+    the expected and received shape) and cast to ``dtype``. A sample with a
+    non-finite entry, or an all-zero ``dtheta`` or ``V``
+    (:func:`is_valid_sample`), is zeroed before ``fold`` sees it, so no inf/NaN
+    reaches any arithmetic (or its gradient), and the state is kept as it was.
+    ``fold(state, dtheta, V) -> state`` folds a valid sample and leaves the
+    counters alone; ``tally(state, ok) -> state`` then counts the sample
+    (default :func:`tally`: the state's own ``count``/``rejected`` fields).
+    """
+    n, m = shape
     check_array("dtheta", dtheta, (n,))
     check_array("V", V, (m,))
-    dtype = state.sign_pos.dtype
     dtheta = jnp.asarray(dtheta, dtype)
     V = jnp.asarray(V, dtype)
     ok = is_valid_sample(dtheta, V)
-    # Zero out rejected samples first so no inf/NaN reaches any arithmetic (or its gradient).
-    dtheta = jnp.where(ok, dtheta, 0.0)
-    V = jnp.where(ok, V, 0.0)
+    new = fold(state, jnp.where(ok, dtheta, 0.0), jnp.where(ok, V, 0.0))
+    return tally(jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, state), ok)
 
+
+def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
+    """Fold one *valid* sample ``(dtheta (n,), V (m,))`` into the sums and the ring buffer; counters untouched.
+
+    Adds the sign weights (Eq. 6-9) and the magnitude ratios ``|dtheta_i / V_j|``
+    where ``|V_j| > v_tol`` (Eq. 11), and writes the pair to ring-buffer row
+    ``count % capacity``. No checks: use :func:`update`, which screens the
+    sample and counts it.
+    """
+    n, m, capacity = sizes(state)
+    dtype = state.sign_pos.dtype
     s, w = sample_contribution(dtheta, V)
     big = jnp.abs(V) > state.v_tol  # (m,)
     safe_v = jnp.where(big, V, 1.0)
     ratio = jnp.abs(dtheta[:, None] / safe_v[None, :])  # Eq. 11
     use = jnp.broadcast_to(big[None, :], (n, m))
-
     slot = state.count % capacity
-    new = state._replace(
+    return state._replace(
         sign_pos=state.sign_pos + jnp.where(s > 0, w, 0.0),
         sign_neg=state.sign_neg + jnp.where(s < 0, w, 0.0),
         mag_sum=state.mag_sum + jnp.where(use, ratio, 0.0),
         mag_count=state.mag_count + use.astype(dtype),
         dtheta_buf=state.dtheta_buf.at[slot].set(dtheta),
         v_buf=state.v_buf.at[slot].set(V),
-        count=state.count + 1,
     )
-    rejected = state._replace(rejected=state.rejected + 1)
-    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, rejected)
+
+
+def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
+    """Fold one self-ID sample ``(dtheta (n,) [actuator units], V (m,) [task units])`` into the state.
+
+    Accumulates the sign weights (Eq. 6-9) and the magnitude ratios
+    ``|dtheta_i / V_j|`` where ``|V_j| > v_tol`` (Eq. 11), and appends the pair
+    to the ring buffer (:func:`accumulate`). A sample with a non-finite entry, or
+    with all-zero ``dtheta`` or ``V``, is rejected: only ``rejected`` changes
+    (:func:`guarded_update`).
+    """
+    n, m, _ = sizes(state)
+    return guarded_update(accumulate, state, dtheta, V, shape=(n, m), dtype=state.sign_pos.dtype)
 
 
 def signed_inverse_jacobian(state: EstimatorState) -> jax.Array:
@@ -176,6 +216,11 @@ def objective(state: EstimatorState, J: jax.Array) -> jax.Array:
     return jnp.sum(jnp.where(mask[:, None], r, 0.0) ** 2)
 
 
+def _both_within(deltas: jax.Array, eps) -> jax.Array:
+    """The Sec. IV-D test on the last two changes ``deltas (..., 2)``: both ``<= eps`` -> ``(...)`` bool."""
+    return jnp.all(deltas <= eps, axis=-1)
+
+
 def record(state: EstimatorState, J: jax.Array, eps) -> EstimatorState:
     """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
 
@@ -189,8 +234,7 @@ def record(state: EstimatorState, J: jax.Array, eps) -> EstimatorState:
     delta = jnp.sqrt(jnp.sum((J - state.estimate) ** 2))
     iteration = state.iteration + 1
     deltas = jnp.stack([state.last_deltas[1], delta])
-    now = jnp.all(deltas <= eps)
-    first = now & (state.converged_at < 0)
+    first = _both_within(deltas, eps) & (state.converged_at < 0)
     return state._replace(
         estimate=J,
         last_deltas=deltas,
@@ -201,4 +245,25 @@ def record(state: EstimatorState, J: jax.Array, eps) -> EstimatorState:
 
 def converged(state: EstimatorState, eps) -> jax.Array:
     """True iff the last two recorded changes ``||J_t - J_{t-1}||_F`` are both ``<= eps`` (Sec. IV-D)."""
-    return jnp.all(state.last_deltas <= eps)
+    return _both_within(state.last_deltas, eps)
+
+
+def convergence_iteration(estimates: jax.Array, eps) -> jax.Array:
+    """First iteration at which the Sec. IV-D test holds over a sequence of estimates; ``()`` int32, -1 if never.
+
+    ``estimates (T, n, m)``: ``J_1 .. J_T`` (inverse-Jacobian units, actuator
+    per task unit); ``eps`` in the same units (may be traced). With ``J_0 = 0``
+    and ``delta_t = ||J_t - J_{t-1}||_F``, returns the smallest 1-based ``t``
+    with ``delta_{t-1} <= eps`` and ``delta_t <= eps``, where ``delta_0 = +inf``
+    as :func:`record` starts (so a finite ``eps`` never holds at ``t = 1``): the
+    same test as :func:`record`, equal to its ``converged_at`` after recording
+    the sequence.
+    """
+    check_array("estimates", estimates, (None, None, None))
+    if np.shape(estimates)[0] == 0:  # static: an empty sequence never converges
+        return jnp.full((), -1, jnp.int32)
+    prev = jnp.concatenate([jnp.zeros_like(estimates[:1]), estimates[:-1]], axis=0)
+    deltas = jnp.sqrt(jnp.sum((estimates - prev) ** 2, axis=(1, 2)))  # (T,)
+    before = jnp.concatenate([jnp.full((1,), jnp.inf, deltas.dtype), deltas])[:-1]  # delta_{t-1}, inf first
+    both = _both_within(jnp.stack([before, deltas], axis=-1), eps)  # (T,)
+    return jnp.where(jnp.any(both), jnp.argmax(both) + 1, -1).astype(jnp.int32)

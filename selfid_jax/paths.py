@@ -25,6 +25,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
+from selfid_jax.font import FONT, FONT_CAP_UNITS
+
 __all__ = [
     "DIMS",
     "PLANES",
@@ -148,74 +150,8 @@ def star(*, size: float = 0.1, plane: str = "xy", dim: int = 3, inner_ratio: flo
 
 
 # ----------------------------------------------------------------------------
-# Text: a small single-stroke (Hershey-like) font
+# Text in the single-stroke font of selfid_jax.font
 # ----------------------------------------------------------------------------
-
-FONT_CAP_UNITS: int = 6
-"""Cap height of ``FONT`` in font units; ``text`` scales a unit to ``height / 6``."""
-
-# char -> (advance width in font units, strokes). Each stroke is a polyline of
-# (x, y) points, y up, inside [0, width] x [0, 6]. Strokes may retrace a line
-# so that a letter is one pen-down polyline; the straight moves between strokes
-# and letters are drawn too (the pen never lifts), so glyphs mostly start near
-# the lower left and end on the baseline or at a right-hand corner, keeping
-# those moves in the gaps between letters.
-FONT: dict[str, tuple[int, tuple[tuple[tuple[float, float], ...], ...]]] = {
-    "A": (4, (((0, 0), (2, 6), (3, 3), (1, 3), (3, 3), (4, 0)),)),
-    "B": (4, (((3, 0), (0, 0), (0, 6), (3, 6), (4, 5), (4, 4), (3, 3), (0, 3), (3, 3), (4, 2), (4, 1), (3, 0)),)),
-    "C": (4, (((4, 5), (3, 6), (1, 6), (0, 5), (0, 1), (1, 0), (3, 0), (4, 1)),)),
-    "D": (4, (((2, 0), (0, 0), (0, 6), (2, 6), (4, 4), (4, 2), (2, 0)),)),
-    "E": (4, (((0, 0), (0, 6), (4, 6), (0, 6), (0, 3), (3, 3), (0, 3), (0, 0), (4, 0)),)),
-    "F": (4, (((0, 0), (0, 6), (4, 6), (0, 6), (0, 3), (3, 3)),)),
-    "G": (4, (((2, 3), (4, 3), (4, 1), (3, 0), (1, 0), (0, 1), (0, 5), (1, 6), (3, 6), (4, 5)),)),
-    "H": (4, (((0, 0), (0, 6), (0, 3), (4, 3), (4, 6), (4, 0)),)),
-    "I": (2, (((0, 6), (2, 6), (1, 6), (1, 0), (0, 0), (2, 0)),)),
-    "J": (4, (((0, 2), (0, 1), (1, 0), (3, 0), (4, 1), (4, 6)),)),
-    "K": (4, (((0, 6), (0, 0), (0, 2), (4, 6), (1, 3), (4, 0)),)),
-    "L": (4, (((0, 6), (0, 0), (4, 0)),)),
-    "M": (4, (((0, 0), (0, 6), (2, 3), (4, 6), (4, 0)),)),
-    "N": (4, (((0, 0), (0, 6), (4, 0), (4, 6)),)),
-    "O": (4, (((1, 0), (0, 1), (0, 5), (1, 6), (3, 6), (4, 5), (4, 1), (3, 0), (1, 0)),)),
-    "P": (4, (((0, 3), (3, 3), (4, 4), (4, 5), (3, 6), (0, 6), (0, 0)),)),
-    # Q: the tail (2, 2) -> (4, 0) crosses the bowl's corner at (3.5, 0.5); start there.
-    "Q": (
-        4,
-        (((3.5, 0.5), (3, 0), (1, 0), (0, 1), (0, 5), (1, 6), (3, 6), (4, 5), (4, 1), (3.5, 0.5), (2, 2), (4, 0)),),
-    ),
-    "R": (4, (((0, 0), (0, 6), (3, 6), (4, 5), (4, 4), (3, 3), (0, 3), (2, 3), (4, 0)),)),
-    "S": (4, (((0, 1), (1, 0), (3, 0), (4, 1), (4, 2), (3, 3), (1, 3), (0, 4), (0, 5), (1, 6), (3, 6), (4, 5)),)),
-    "T": (4, (((0, 6), (4, 6), (2, 6), (2, 0)),)),
-    "U": (4, (((0, 6), (0, 1), (1, 0), (3, 0), (4, 1), (4, 6)),)),
-    "V": (4, (((0, 6), (2, 0), (4, 6)),)),
-    "W": (4, (((0, 6), (1, 0), (2, 4), (3, 0), (4, 6)),)),
-    "X": (4, (((0, 6), (4, 0)), ((0, 0), (4, 6)))),
-    "Y": (4, (((0, 6), (2, 3), (4, 6), (2, 3), (2, 0)),)),
-    "Z": (4, (((0, 6), (4, 6), (0, 0), (4, 0)),)),
-    "0": (4, (((1, 0), (0, 1), (0, 5), (1, 6), (3, 6), (4, 5), (4, 1), (3, 0), (1, 0), (4, 5)),)),
-    "1": (3, (((0, 5), (1.5, 6), (1.5, 0), (0, 0), (3, 0)),)),
-    "2": (4, (((0, 5), (1, 6), (3, 6), (4, 5), (4, 4), (0, 0), (4, 0)),)),
-    "3": (
-        4,
-        (((0, 5), (1, 6), (3, 6), (4, 5), (4, 4), (3, 3), (1, 3), (3, 3), (4, 2), (4, 1), (3, 0), (1, 0), (0, 1)),),
-    ),
-    "4": (4, (((3, 0), (3, 6), (0, 2), (4, 2)),)),
-    "5": (4, (((4, 6), (0, 6), (0, 3), (3, 3), (4, 2), (4, 1), (3, 0), (0, 0)),)),
-    "6": (4, (((0, 3), (3, 3), (4, 2), (4, 1), (3, 0), (1, 0), (0, 1), (0, 5), (1, 6), (3, 6), (4, 5)),)),
-    "7": (4, (((0, 6), (4, 6), (1, 0)),)),
-    "8": (
-        4,
-        (
-            (
-                (1, 3), (0, 4), (0, 5), (1, 6), (3, 6), (4, 5), (4, 4), (3, 3), (1, 3),
-                (0, 2), (0, 1), (1, 0), (3, 0), (4, 1), (4, 2), (3, 3), (1, 3),
-            ),
-        ),
-    ),  # fmt: skip
-    "9": (4, (((0, 1), (1, 0), (3, 0), (4, 1), (4, 5), (3, 6), (1, 6), (0, 5), (0, 4), (1, 3), (4, 3)),)),
-    "-": (3, (((0, 3), (3, 3)),)),
-    " ": (3, ()),
-}
-
 
 def supported_characters() -> str:
     """The characters ``text`` can draw, as one string."""
@@ -426,6 +362,18 @@ def _position_dims(dim: int) -> int:
     return 3 if dim == 6 else dim
 
 
+def _waypoints_and_start(waypoints, start) -> tuple[np.ndarray, np.ndarray, int]:
+    """Checked ``(waypoints (W, dim) with W >= 1, start (dim,) default 0, dim)`` as float64 numpy."""
+    pts = np.asarray(waypoints, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[0] == 0:
+        raise ValueError(f"waypoints must have shape (W, dim) with W >= 1, got {pts.shape}")
+    dim = _check_dim(pts.shape[1])
+    start = np.zeros(dim) if start is None else np.asarray(start, dtype=np.float64)
+    if start.shape != (dim,):
+        raise ValueError(f"start must have shape ({dim},), got {start.shape}")
+    return pts, start, dim
+
+
 def path_length(waypoints, start=None) -> float:
     """Euclidean length (metres) of the polyline start -> waypoints[0] -> ... -> waypoints[-1].
 
@@ -433,13 +381,7 @@ def path_length(waypoints, start=None) -> float:
     for offsets). For dim 6 only the position part is measured. Eager
     (returns a Python float).
     """
-    pts = np.asarray(waypoints, dtype=np.float64)
-    if pts.ndim != 2:
-        raise ValueError(f"waypoints must have shape (W, dim), got {pts.shape}")
-    dim = _check_dim(pts.shape[1])
-    start = np.zeros(dim) if start is None else np.asarray(start, dtype=np.float64)
-    if start.shape != (dim,):
-        raise ValueError(f"start must have shape ({dim},), got {start.shape}")
+    pts, start, dim = _waypoints_and_start(waypoints, start)
     p = _position_dims(dim)
     full = np.concatenate([start[None, :p], pts[:, :p]], axis=0)
     return float(np.sum(np.linalg.norm(np.diff(full, axis=0), axis=1)))
@@ -468,13 +410,7 @@ def densify(waypoints, max_segment: float, *, start=None, max_angle: float | Non
     max_segment = _check_positive("max_segment", max_segment)
     if max_angle is not None:
         max_angle = _check_positive("max_angle", max_angle)
-    pts = np.asarray(waypoints, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[0] == 0:
-        raise ValueError(f"waypoints must have shape (W, dim) with W >= 1, got {pts.shape}")
-    dim = _check_dim(pts.shape[1])
-    start = np.zeros(dim) if start is None else np.asarray(start, dtype=np.float64)
-    if start.shape != (dim,):
-        raise ValueError(f"start must have shape ({dim},), got {start.shape}")
+    pts, start, dim = _waypoints_and_start(waypoints, start)
     p = _position_dims(dim)
     prev = np.concatenate([start[None], pts[:-1]], axis=0)
     delta = pts - prev

@@ -4,8 +4,9 @@ Layout of a run directory ``RUN``::
 
     RUN/config.yaml       resolved config (every default filled in)
     RUN/versions.json     package versions, git revision, devices, command
-    RUN/manifest.json     what the chunks hold (written by sweep.run_chunked)
-    RUN/chunks/           one Parquet file per finished chunk
+    RUN/parts/<part>/     per compiled part of an experiment (e.g. per system):
+                          manifest.json (what its chunks hold) and chunks/, one
+                          Parquet file per finished chunk (sweep.run_chunked)
     RUN/results.parquet   tidy table, one row per batch element (rollout)
     RUN/summary.json      per-system summaries (e.g. valid-region bounds)
     RUN/figures/          PNG and PDF figures, redrawn by ``selfid-jax plot RUN``
@@ -56,12 +57,13 @@ CONFIG_FILE = "config.yaml"
 VERSIONS_FILE = "versions.json"
 MANIFEST_FILE = "manifest.json"
 CHUNKS_DIR = "chunks"
+PARTS_DIR = "parts"
 RESULTS_FILE = "results.parquet"
 SUMMARY_FILE = "summary.json"
 FIGURES_DIR = "figures"
 
 # Everything create_run_dir/run_chunked may write; --fresh removes exactly these.
-_OWNED = (CONFIG_FILE, VERSIONS_FILE, MANIFEST_FILE, CHUNKS_DIR, RESULTS_FILE, SUMMARY_FILE, FIGURES_DIR)
+_OWNED = (CONFIG_FILE, VERSIONS_FILE, MANIFEST_FILE, CHUNKS_DIR, PARTS_DIR, RESULTS_FILE, SUMMARY_FILE, FIGURES_DIR)
 
 
 class RunDirError(ConfigError):
@@ -238,7 +240,7 @@ def create_run_dir(
                 + "; ".join(diff)
                 + ". Use --fresh (fresh=True) to discard them, or choose another --out."
             )
-    elif (run_dir / CHUNKS_DIR).exists() or (run_dir / RESULTS_FILE).exists():
+    elif any((run_dir / d).exists() for d in (CHUNKS_DIR, PARTS_DIR, RESULTS_FILE)):
         raise RunDirError(
             f"{run_dir}: holds results but no {CONFIG_FILE}; use --fresh to discard them or another --out."
         )
@@ -268,7 +270,8 @@ def load_results(run_dir: str | Path, *, partial: bool = False) -> pd.DataFrame:
     """The tidy results table of a run, one row per batch element, sorted by ``row``.
 
     With ``partial=True`` an unfinished run (no ``results.parquet`` yet) returns
-    the rows of its finished chunks instead of raising.
+    the rows of its finished chunks (one row per batch element, before any
+    experiment's ``tabulate``) instead of raising.
 
     Raises:
       FileNotFoundError: no results (naming the file looked for).
@@ -278,6 +281,7 @@ def load_results(run_dir: str | Path, *, partial: bool = False) -> pd.DataFrame:
     if path.is_file():
         return pd.read_parquet(path)
     chunks = sorted((run_dir / CHUNKS_DIR).glob("chunk_*.parquet"))
+    chunks += sorted((run_dir / PARTS_DIR).glob(f"*/{CHUNKS_DIR}/chunk_*.parquet"))
     if partial and chunks:
         df = pd.concat([pd.read_parquet(c) for c in chunks], ignore_index=True)
         return df.sort_values("row", kind="stable").reset_index(drop=True)

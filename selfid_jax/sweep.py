@@ -1,15 +1,15 @@
 """Chunked, sharded, resumable execution of one batched computation over a grid.
 
-An experiment is a pure batched function ``compute_fn(params_chunk) -> outputs``
-plus an ``N``-row parameter table. :func:`run_chunked` cuts the table into
+The runner knows nothing of any experiment: it takes a pure batched function
+``compute_fn(params_chunk) -> outputs`` over pytrees (``NamedTuple``s or dicts
+of arrays) and ``N`` parameter rows (:func:`selfid_jax.experiment.run` feeds it
+each part of an experiment). :func:`run_chunked` cuts the table into
 chunks of ``chunk_size`` rows, runs every chunk through ONE compiled function
 whose batch axis is sharded over the devices, writes each finished chunk to
 ``out_dir/chunks/chunk_00012.parquet`` atomically, and finally writes the tidy
 ``out_dir/results.parquet`` (one row per batch element). Re-running the same
 call skips the chunk files that exist, so an interrupted sweep (Ctrl-C, kill,
 lost machine) resumes without recomputing, losing or duplicating rows.
-
-Experiments plug in with :func:`register_experiment` (see ``selfid_jax.cli``).
 
 Devices and chunk size
     The compiled batch is ``chunk_size`` rounded up to a multiple of the number
@@ -42,9 +42,7 @@ Several hosts (``jax.distributed``)
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
-import json
 import math
 import threading
 import time
@@ -56,41 +54,27 @@ import jax
 import numpy as np
 import pandas as pd
 import pyarrow as pa
-import pyarrow.parquet as pq
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from selfid_jax.results import (
-    CHUNKS_DIR,
-    MANIFEST_FILE,
-    RESULTS_FILE,
-    RunDirError,
-    atomic_write_bytes,
-    write_json,
-)
+from selfid_jax import chunks
+from selfid_jax.chunks import MANIFEST_FORMAT, SweepResumeError
+from selfid_jax.results import CHUNKS_DIR, RESULTS_FILE, atomic_write_bytes
 
 __all__ = [
-    "Experiment",
     "SweepInterrupted",
     "SweepResumeError",
     "clear_stop",
-    "get_experiment",
     "grid_table",
+    "named_leaves",
     "params_hash",
-    "register_experiment",
-    "registered_experiments",
     "request_stop",
     "row_keys",
     "run_chunked",
 ]
 
 BATCH_AXIS = "batch"
-_MANIFEST_FORMAT = 1
-
-
-class SweepResumeError(RunDirError):
-    """``out_dir`` holds chunks of a different sweep; the message names what differs."""
 
 
 class SweepInterrupted(KeyboardInterrupt):
@@ -115,63 +99,23 @@ def clear_stop() -> None:
     _STOP.clear()
 
 
-# --------------------------------------------------------------------------- registry
+# --------------------------------------------------------------------------- pytrees
 
-@dataclasses.dataclass(frozen=True)
-class Experiment:
-    """An experiment the CLI can run and plot.
-
-    Attributes:
-      name: the config's ``experiment:`` value.
-      runner: ``runner(cfg, out_dir, fresh, progress)``; computes the results
-        (normally via :func:`run_chunked`, which writes ``results.parquet``)
-        and writes ``summary.json`` (``results.write_summary``). The CLI has
-        already created ``out_dir`` with ``config.yaml``/``versions.json``.
-        Under ``jax.distributed`` every process runs it; ``run_chunked``
-        returns ``None`` on processes other than 0 unless ``out_dir`` is on a
-        shared filesystem, so write the summary only where
-        ``jax.process_index() == 0``.
-      plotter: ``plotter(df, summary, fig_dir) -> list[Path]``; draws every
-        figure from the saved results table and summary only. Called by
-        ``selfid-jax sweep`` after the runner and by ``selfid-jax plot``.
-    """
-
-    name: str
-    runner: Callable[..., Any]
-    plotter: Callable[[pd.DataFrame, dict, Path], Sequence[Path]] | None = None
+def _key_name(k) -> str:
+    for attr in ("name", "key", "idx"):
+        if hasattr(k, attr):
+            return str(getattr(k, attr))
+    return str(k)
 
 
-_EXPERIMENTS: dict[str, Experiment] = {}
-
-
-def register_experiment(
-    name: str,
-    runner: Callable[..., Any],
-    plotter: Callable[[pd.DataFrame, dict, Path], Sequence[Path]] | None = None,
-) -> Experiment:
-    """Register (or replace) the runner and plotter of experiment ``name``.
-
-    Call it at import time of ``experiments/<name>.py`` together with
-    ``config.register_experiment_config(name, Model)``; the CLI imports
-    ``experiments.<name>`` when a config names that experiment.
-    """
-    exp = Experiment(name, runner, plotter)
-    _EXPERIMENTS[name] = exp
-    return exp
-
-
-def registered_experiments() -> dict[str, Experiment]:
-    """A copy of the name -> :class:`Experiment` registry."""
-    return dict(_EXPERIMENTS)
-
-
-def get_experiment(name: str) -> Experiment | None:
-    """The registered experiment ``name``, importing ``experiments.<name>`` first if needed."""
-    if name not in _EXPERIMENTS:
-        from selfid_jax.config import import_experiment_module
-
-        import_experiment_module(name)
-    return _EXPERIMENTS.get(name)
+def named_leaves(tree) -> tuple[dict[str, Any], Any]:
+    """``({dotted name: leaf}, treedef)`` of a pytree: ``Params(q0=.., controller=ControllerParams(tol=..))``
+    gives ``q0``, ``controller.tol``; ``None`` fields have no leaf. Rebuild with ``jax.tree.unflatten``."""
+    flat, treedef = jax.tree_util.tree_flatten_with_path(tree)
+    names = [".".join(_key_name(k) for k in path) for path, _ in flat]
+    if any(not n for n in names) or len(set(names)) != len(names):
+        raise ValueError(f"params/outputs must be a NamedTuple or dict of named arrays, got leaves named {names}")
+    return dict(zip(names, (leaf for _, leaf in flat))), treedef
 
 
 # --------------------------------------------------------------------------- grid helpers
@@ -223,37 +167,9 @@ def params_hash(params: Mapping[str, np.ndarray], meta: pd.DataFrame | None = No
 
 # --------------------------------------------------------------------------- files
 
-def _chunk_path(out_dir: Path, i: int, n_chunks: int) -> Path:
-    width = max(5, len(str(n_chunks - 1)))
-    return out_dir / CHUNKS_DIR / f"chunk_{i:0{width}d}.parquet"
-
-
-def _table_bytes(table: pa.Table) -> bytes:
-    sink = pa.BufferOutputStream()
-    pq.write_table(table, sink)
-    return sink.getvalue().to_pybytes()
-
-
 def _write_chunk(path: Path, table: pa.Table) -> None:
     """Atomically write one finished chunk (module-level so tests can interrupt here)."""
-    atomic_write_bytes(path, _table_bytes(table))
-
-
-def _output_column(arr: np.ndarray) -> pa.Array:
-    if arr.ndim == 1:
-        return pa.array(arr)
-    flat = arr.reshape(arr.shape[0], -1)
-    return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
-
-
-def _chunk_table(rows: np.ndarray, meta: pd.DataFrame | None, outputs: Mapping[str, np.ndarray]) -> pa.Table:
-    cols: dict[str, pa.Array] = {"row": pa.array(rows.astype(np.int64))}
-    if meta is not None:
-        mt = pa.Table.from_pandas(meta.iloc[rows[0] : rows[-1] + 1], preserve_index=False)
-        cols.update(zip(mt.column_names, mt.columns))
-    for name, arr in outputs.items():
-        cols[name] = _output_column(arr)
-    return pa.table(cols)
+    atomic_write_bytes(path, chunks.table_bytes(table))
 
 
 # --------------------------------------------------------------------------- main loop
@@ -265,41 +181,6 @@ def _canonical(name: str, v: Any, n_rows: int | None) -> np.ndarray:
     if n_rows is not None and arr.shape[0] != n_rows:
         raise ValueError(f"params[{name!r}] has {arr.shape[0]} rows, expected {n_rows} (all params share axis 0)")
     return np.ascontiguousarray(arr, dtype=jax.dtypes.canonicalize_dtype(arr.dtype))
-
-
-def _check_manifest(out_dir: Path, manifest: dict) -> None:
-    path = out_dir / MANIFEST_FILE
-    old = json.loads(path.read_text())
-    keys = ("format", "n_rows", "chunk_size", "n_chunks", "params_hash", "meta_hash")
-    diff = [f"{k} (was {old.get(k)!r}, now {manifest[k]!r})" for k in keys if old.get(k) != manifest[k]]
-    if diff:
-        raise SweepResumeError(
-            f"{path}: the chunks in {out_dir} belong to a different sweep; differing: "
-            + "; ".join(diff)
-            + ". Use --fresh (fresh=True) to discard them, or choose another output directory."
-        )
-
-
-def _prepare_dir(out_dir: Path, manifest: dict, fresh: bool) -> None:
-    """Writer side: clear on ``fresh``, verify or write the manifest, drop stale temp files."""
-    chunk_dir = out_dir / CHUNKS_DIR
-    if fresh:
-        for p in (out_dir / MANIFEST_FILE, out_dir / RESULTS_FILE):
-            p.unlink(missing_ok=True)
-        if chunk_dir.exists():
-            for p in [*chunk_dir.glob("chunk_*.parquet"), *chunk_dir.glob(".*.tmp")]:
-                p.unlink()
-    if (out_dir / MANIFEST_FILE).exists():
-        _check_manifest(out_dir, manifest)
-    elif chunk_dir.exists() and any(chunk_dir.glob("chunk_*.parquet")):
-        raise SweepResumeError(
-            f"{chunk_dir}: holds chunks but {out_dir / MANIFEST_FILE} is missing, so they cannot be "
-            "checked. Use --fresh (fresh=True) to discard them."
-        )
-    chunk_dir.mkdir(parents=True, exist_ok=True)
-    for p in chunk_dir.glob(".*.tmp"):  # left by a killed writer
-        p.unlink(missing_ok=True)
-    write_json(out_dir / MANIFEST_FILE, manifest)
 
 
 def _sync_done(done: np.ndarray, error: bool) -> tuple[np.ndarray, bool]:
@@ -314,8 +195,8 @@ def _sync_done(done: np.ndarray, error: bool) -> tuple[np.ndarray, bool]:
 
 
 def run_chunked(
-    compute_fn: Callable[[dict[str, jax.Array]], Mapping[str, jax.Array]],
-    params: Mapping[str, np.ndarray],
+    compute_fn: Callable[[Any], Any],
+    params: Any,
     *,
     chunk_size: int,
     out_dir: str | Path,
@@ -329,16 +210,19 @@ def run_chunked(
     """Run ``compute_fn`` over ``N`` parameter rows in resumable, sharded chunks.
 
     Args:
-      compute_fn: pure JAX function ``params_chunk -> outputs``. It receives a
-        dict with the keys of ``params``, each array of shape
-        ``(B, *row_shape)`` (``B`` = the compiled batch, see module docstring),
-        and returns a dict of arrays with leading axis ``B``: shape ``(B,)``
-        becomes a scalar column, ``(B, *s)`` a list column of the flattened
-        ``s`` values. Rows must not interact (padding rows are copies).
-        It is compiled once (twice with ``static_shapes=False``).
-      params: ``name -> array`` with a shared leading axis of ``N`` rows
-        (numbers a sweep varies, PRNG key data from :func:`row_keys`, ...).
-        Dtypes are canonicalised (float64 -> float32 unless x64 is enabled).
+      compute_fn: pure JAX function ``params_chunk -> outputs``. It receives
+        ``params``' pytree with each array of shape ``(B, *row_shape)``
+        (``B`` = the compiled batch, see module docstring) and returns a
+        pytree (``NamedTuple`` or dict) of arrays with leading axis ``B``;
+        each leaf becomes a column named by its dotted path
+        (:func:`named_leaves`): shape ``(B,)`` a scalar column, ``(B, *s)`` a
+        list column of the flattened ``s`` values. Rows must not interact
+        (padding rows are copies). It is compiled once (twice with
+        ``static_shapes=False``).
+      params: a pytree (``NamedTuple`` or dict) of arrays with a shared
+        leading axis of ``N`` rows (numbers a sweep varies, PRNG key data from
+        :func:`row_keys`, ...). Dtypes are canonicalised (float64 -> float32
+        unless x64 is enabled).
       chunk_size: rows per chunk (capped at ``N``); bounds device memory.
       out_dir: run directory; chunks go to ``out_dir/chunks/``.
       meta: optional ``N``-row table (e.g. :func:`grid_table`) whose columns
@@ -361,6 +245,7 @@ def run_chunked(
         (different N, chunk size, params or meta) and ``fresh`` is False.
     """
     out_dir = Path(out_dir)
+    params, treedef = named_leaves(params)
     if not params:
         raise ValueError("params is empty: need at least one N-row array")
     if not (isinstance(chunk_size, (int, np.integer)) and chunk_size > 0):
@@ -383,7 +268,7 @@ def run_chunked(
     batch = -(-rows_per_chunk // n_dev) * n_dev
     n_chunks = math.ceil(n_rows / rows_per_chunk)
     manifest = {
-        "format": _MANIFEST_FORMAT,
+        "format": MANIFEST_FORMAT,
         "n_rows": n_rows,
         "chunk_size": rows_per_chunk,
         "n_chunks": n_chunks,
@@ -398,8 +283,8 @@ def run_chunked(
     done = np.zeros(n_chunks, bool)
     if writer:
         try:
-            _prepare_dir(out_dir, manifest, fresh)
-            done = np.array([_chunk_path(out_dir, i, n_chunks).exists() for i in range(n_chunks)])
+            chunks.prepare_dir(out_dir, manifest, fresh)
+            done = np.array([chunks.chunk_path(out_dir, i, n_chunks).exists() for i in range(n_chunks)])
         except Exception as err:  # broadcast before raising so other hosts do not hang
             error = err
     done, failed = _sync_done(done, error is not None)
@@ -410,14 +295,14 @@ def run_chunked(
     skipped = [i for i in range(n_chunks) if done[i]]
     if todo:
         _compute_chunks(
-            compute_fn, params, meta, todo, out_dir=out_dir, n_rows=n_rows, n_chunks=n_chunks,
+            lambda leaves: compute_fn(jax.tree.unflatten(treedef, [leaves[k] for k in params])), params, meta, todo, out_dir=out_dir, n_rows=n_rows, n_chunks=n_chunks,
             rows_per_chunk=rows_per_chunk, batch=batch, devices=devices, writer=writer,
             static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped),
         )
 
     result = None
     if writer:
-        result = _assemble(out_dir, n_rows, n_chunks, rows_per_chunk)
+        result = chunks.assemble(out_dir, n_rows, n_chunks, rows_per_chunk)
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
@@ -449,7 +334,7 @@ def _compute_chunks(
                 for k, v in params.items()
             }
             exe = jitted.lower(spec).compile()
-            _check_outputs(exe.out_info, size)
+            _check_outputs(named_leaves(exe.out_info)[0], size)
             compiled[size] = exe
         return compiled[size]
 
@@ -478,9 +363,9 @@ def _compute_chunks(
             nxt = (i, *dispatch(i)) if i is not None and not stop else None
             if pending is not None:
                 j, rows, out = pending
-                host = {k: np.asarray(v)[: len(rows)] for k, v in out.items()}
+                host = {k: np.asarray(v)[: len(rows)] for k, v in named_leaves(out)[0].items()}
                 if writer:
-                    _write_chunk(_chunk_path(out_dir, j, n_chunks), _chunk_table(rows, meta, host))
+                    _write_chunk(chunks.chunk_path(out_dir, j, n_chunks), chunks.chunk_table(rows, meta, host))
                 rows_done += len(rows)
                 bar.set_postfix(rows_per_s=f"{rows_done / max(time.perf_counter() - t0, 1e-9):.3g}", refresh=False)
                 bar.update(1)
@@ -490,29 +375,15 @@ def _compute_chunks(
 
 
 def _check_outputs(out_info: Any, size: int) -> None:
-    if not isinstance(out_info, Mapping) or not out_info:
-        raise TypeError(f"compute_fn must return a non-empty dict of arrays, got {type(out_info).__name__}")
+    if not out_info:
+        raise TypeError("compute_fn must return a non-empty NamedTuple or dict of arrays")
     for name, info in out_info.items():
         shape = getattr(info, "shape", None)
         if shape is None:
-            raise TypeError(f"compute_fn output {name!r} must be an array, not a nested {type(info).__name__}")
+            raise TypeError(f"compute_fn output {name!r} must be an array, got {type(info).__name__}")
         if len(shape) == 0 or shape[0] != size:
             raise ValueError(f"compute_fn output {name!r} has shape {tuple(shape)}; need leading batch axis {size}")
         if name == "row":
             raise ValueError("compute_fn output must not be named 'row' (the row index column)")
 
 
-def _assemble(out_dir: Path, n_rows: int, n_chunks: int, rows_per_chunk: int) -> pd.DataFrame:
-    """Concatenate all chunk files, check every row appears once, write results.parquet."""
-    tables = []
-    for i in range(n_chunks):
-        path = _chunk_path(out_dir, i, n_chunks)
-        t = pq.read_table(path)
-        expect = np.arange(i * rows_per_chunk, min((i + 1) * rows_per_chunk, n_rows))
-        got = t.column("row").to_numpy()
-        if not np.array_equal(got, expect):
-            raise SweepResumeError(f"{path}: holds rows {got[:3]}... not {expect[:3]}...; use --fresh")
-        tables.append(t)
-    table = pa.concat_tables(tables, promote_options="default")
-    atomic_write_bytes(out_dir / RESULTS_FILE, _table_bytes(table))
-    return table.to_pandas()

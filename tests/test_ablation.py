@@ -2,13 +2,14 @@
 
 import json
 
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
 
 from selfid_jax import cli
+
+pytestmark = pytest.mark.slow  # end-to-end sweep through the CLI
 
 CONFIG = {
     "experiment": "ablation",
@@ -50,11 +51,18 @@ def test_ablation_table_bounds_and_methods(run_dir):
         assert np.all(np.isfinite(df[col]))
     true = df[df.method == "true"]
     np.testing.assert_array_equal(true.completion, 1.0)
-    clean = df[df.pose_noise == 0]
-    ours = clean[(clean.method == "ours") & (clean.iterations == 20)].completion.mean()
-    direct = clean[(clean.method == "direct") & (clean.iterations == 20)].completion.mean()
-    assert ours >= direct
-    assert ours >= 0.9
+    clean = df[df.pose_noise == 0].sort_values(["config_id", "trial"])
+
+    def completion(method, iterations):
+        return clean[(clean.method == method) & (clean.iterations == iterations)].completion.to_numpy()
+
+    # 2 samples < 3 task dims: least squares from zero ("direct") has no component along the unexcited
+    # direction and cannot steer there; the signed x magnitude guess ("ours") fills it in
+    assert completion("direct", 2).max() == 0.0
+    assert completion("ours", 2).mean() > 0.0
+    # 20 samples: least squares has one solution, so the initial guess no longer matters
+    np.testing.assert_allclose(completion("ours", 20), completion("direct", 20))
+    assert completion("ours", 20).mean() >= 0.9
     # with tracker noise nothing turns NaN and the estimates still steer somewhere
     noisy = df[(df.pose_noise > 0) & (df.method == "ours") & (df.iterations == 20)]
     assert np.all(np.isfinite(noisy.mean_error)) and noisy.completion.mean() > 0
@@ -67,18 +75,6 @@ def test_summary_and_figures(run_dir):
     for name in ("ablation", "ablation_noise"):
         for ext in ("png", "pdf"):
             assert (run_dir / "figures" / f"{name}.{ext}").stat().st_size > 1000
-
-
-def test_convergence_iteration_matches_numpy():
-    from experiments.ablation import convergence_iteration
-
-    rng = np.random.default_rng(0)
-    est = np.cumsum(rng.normal(size=(30, 2, 2)) * np.geomspace(1, 1e-4, 30)[:, None, None], axis=0)
-    for eps in (1e-3, 1e-2, 0.1, 10.0, 1e-9):
-        deltas = np.linalg.norm(np.diff(np.concatenate([np.zeros((1, 2, 2)), est]), axis=0), axis=(1, 2))
-        small = deltas <= eps
-        want = next((t + 1 for t in range(1, 30) if small[t] and small[t - 1]), -1)
-        assert int(convergence_iteration(jnp.asarray(est), eps)) == want
 
 
 def test_config_errors_name_key(tmp_path):

@@ -8,15 +8,15 @@ import numpy as np
 import pydantic
 import pytest
 
+from experiments.valid_region import ValidRegionConfig
+from selfid_jax import experiment
 from selfid_jax.config import (
     BaseConfig,
     ConfigError,
-    ValidRegionConfig,
     apply_overrides,
     dump_config,
     load_config,
     parse_override,
-    register_experiment_config,
 )
 
 VALID = textwrap.dedent(
@@ -58,7 +58,8 @@ def test_valid_config_loads_with_defaults_and_exponent_floats(cfg_file):
     with pytest.raises(pydantic.ValidationError):
         cfg.seed = 4  # frozen
     dumped = dump_config(cfg)
-    assert dumped["controller"] == {"max_step": 0.01, "tol": 0.001, "steps": 400, "gain": 1.0}
+    assert dumped["controller"] == {"max_step": 0.01, "tol": 0.001, "steps": 400, "gain": 1.0,
+                                    "max_rot_step": 0.05, "rot_tol": 0.01}
     assert ValidRegionConfig.model_validate(dumped) == cfg
 
 
@@ -67,7 +68,7 @@ def test_unknown_key_lists_allowed_keys(cfg_file):
     assert str(cfg_file) in msg and "key 'foo'" in msg and "unknown key" in msg
     assert "n_trials" in msg and "controller" in msg
     msg = _error(cfg_file, text=VALID.replace("steps: 400", "steps: 400, kp: 2"))
-    assert "key 'controller.kp'" in msg and "allowed keys at 'controller': max_step, tol, steps, gain" in msg
+    assert "key 'controller.kp'" in msg and "allowed keys at 'controller': max_step, tol, steps, gain, max_rot_step, rot_tol" in msg
 
 
 def test_wrong_type_names_key_value_and_type(cfg_file):
@@ -124,7 +125,10 @@ def test_registered_model_and_parse_override(tmp_path):
         experiment: str = "tiny_test"
         scale: float = pydantic.Field(gt=0)
 
-    register_experiment_config("tiny_test", Tiny)
+    experiment.register(experiment.Experiment(
+        name="tiny_test", config=Tiny, build=lambda cfg: [], compute=lambda static, p: p,
+        summarize=lambda table, cfg: {},
+    ))
     path = tmp_path / "tiny.yaml"
     path.write_text("experiment: tiny_test\nscale: 2\n")
     cfg = load_config(path, ["chunk_size=8"])

@@ -6,7 +6,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import selfid_jax as sj
 from selfid_jax import control, paths, selfid
 from selfid_jax.systems import from_pose_fn, two_link, ur5e
 
@@ -14,7 +13,9 @@ import numpy_reference as ref
 
 UR5E = ur5e(task_dim=3)
 STAR = paths.star(size=0.05, dim=3)
-CTRL = dict(steps=300, max_step=0.004, tol=0.001)
+CTRL = control.ControllerParams(max_step=0.004, tol=0.001)
+STEPS = 300
+OLD_DEFAULTS = control.ControllerParams(max_step=0.005, tol=0.002)  # what these tests were written with
 
 
 @pytest.fixture(scope="module")
@@ -24,18 +25,19 @@ def ur5e_configs():
 
 @jax.jit
 def _ur5e_true(q0s):
-    return jax.vmap(lambda q: control.follow(UR5E, control.true_inverse(UR5E), STAR, q, **CTRL))(q0s)
+    return jax.vmap(lambda q: control.follow(UR5E, control.true_inverse(UR5E), STAR, q, CTRL, steps=STEPS))(q0s)
 
 
 @jax.jit
 def _ur5e_selfid_then_follow(keys, q0s):
     def one(key, q0):
         r = selfid.run(UR5E, key, q0, iters=24, eps=0.5)
-        return r.converged_at, control.follow(UR5E, control.fixed(r.estimate), STAR, r.env, **CTRL)
+        return r.converged_at, control.follow(UR5E, control.fixed(r.estimate), STAR, r.env, CTRL, steps=STEPS)
 
     return jax.vmap(one)(keys, q0s)
 
 
+@pytest.mark.slow
 def test_true_inverse_completes_star_on_ur5e(ur5e_configs):
     res = _ur5e_true(ur5e_configs)
     np.testing.assert_array_equal(res.completion, 1.0)
@@ -43,6 +45,7 @@ def test_true_inverse_completes_star_on_ur5e(ur5e_configs):
     assert np.all(res.mean_error < 1e-3)
 
 
+@pytest.mark.slow
 def test_controller_matches_numpy_loop_on_ur5e(ur5e_configs):
     """The scan controller equals an independent numpy loop using DH kinematics."""
     res = _ur5e_true(ur5e_configs)
@@ -56,13 +59,16 @@ def test_controller_matches_numpy_loop_on_ur5e(ur5e_configs):
             dq_max=np.asarray(UR5E.dq_max),
             q_low=np.asarray(UR5E.q_low),
             q_high=np.asarray(UR5E.q_high),
-            **CTRL,
+            steps=STEPS,
+            max_step=CTRL.max_step,
+            tol=CTRL.tol,
         )
         assert comp == float(res.completion[b]) and used == int(res.steps_used[b]) and not failed
         np.testing.assert_allclose(res.mean_error[b], mean_err, rtol=1e-6, atol=1e-12)
         np.testing.assert_allclose(res.max_error[b], max_err, rtol=1e-6, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_selfid_estimate_completes_star_on_ur5e(ur5e_configs):
     keys = jax.random.split(jax.random.key(1), 9)
     conv, res = _ur5e_selfid_then_follow(keys, ur5e_configs)
@@ -78,13 +84,15 @@ def test_steps_and_errors_match_closed_form_on_identity_system():
     sys2 = from_pose_fn(lambda params, q: jnp.stack([q[0], q[1], 0.0]), 2, task_dim=2, q_low=[-9, -9],
                         q_high=[9, 9], dq_max=[1, 1], m_a=0.01)
     path = jnp.array([[0.3, 0.0], [0.3, 0.23], [0.0, 0.0]])
-    res = control.follow(sys2, control.true_inverse(sys2), path, jnp.zeros(2), steps=200, max_step=0.007, tol=1e-9)
+    res = control.follow(sys2, control.true_inverse(sys2), path, jnp.zeros(2),
+                         control.ControllerParams(max_step=0.007, tol=1e-9), steps=200)
     lengths = np.linalg.norm(np.diff(np.vstack([np.zeros(2), path]), axis=0), axis=1)
     assert int(res.steps_used) == int(np.sum(np.ceil(lengths / 0.007)))
     assert float(res.completion) == 1.0 and float(res.max_error) < 1e-12
     # a skewed inverse Jacobian leaves the path; the numpy loop gives the same errors
     skew = jnp.array([[1.0, 0.0], [0.8, 1.0]])
-    res = control.follow(sys2, control.fixed(skew), path, jnp.zeros(2), steps=200, max_step=0.007, tol=1e-3)
+    res = control.follow(sys2, control.fixed(skew), path, jnp.zeros(2), control.ControllerParams(max_step=0.007, tol=1e-3),
+                         steps=200)
     comp, mean_err, max_err, used, _, _ = ref.follow(
         lambda q: np.array([q[0], q[1], 0.0]), lambda q: np.asarray(skew), np.asarray(path), np.zeros(2),
         steps=200, max_step=0.007, tol=1e-3, dq_max=1.0, q_low=-9.0, q_high=9.0,
@@ -98,9 +106,10 @@ def test_divergent_and_singular_cases_fail_with_finite_metrics():
     arm = two_link()
     q0 = jnp.array([0.4, 1.2])
     path = paths.star(size=0.2, dim=2)
-    flipped = control.follow(arm, control.scaled_true_inverse(arm, -jnp.ones((2, 2))), path, q0, steps=300)
-    nan_jinv = control.follow(arm, lambda q: jnp.full((2, 2), jnp.nan), path, q0, steps=50)
-    singular = control.follow(arm, control.true_inverse(arm), path, jnp.array([0.4, 0.0]), steps=50)
+    flipped = control.follow(arm, control.scaled_true_inverse(arm, -jnp.ones((2, 2))), path, q0, OLD_DEFAULTS,
+                             steps=300)
+    nan_jinv = control.follow(arm, lambda q: jnp.full((2, 2), jnp.nan), path, q0, OLD_DEFAULTS, steps=50)
+    singular = control.follow(arm, control.true_inverse(arm), path, jnp.array([0.4, 0.0]), OLD_DEFAULTS, steps=50)
     for res in (flipped, nan_jinv, singular):
         assert bool(res.failed)
         for x in (res.completion, res.mean_error, res.max_error, res.waypoint_error, res.final_q):
@@ -118,10 +127,12 @@ def test_user_defined_three_link_arm_runs_through_selfid_and_control():
                         sample_high=[1, 1.5, 1.5])
     q0 = arm3.sample_configs(jax.random.key(2), 1)[0]
     r = selfid.run(arm3, jax.random.key(3), q0, iters=20, eps=0.05)
-    res = control.follow(arm3, control.fixed(r.estimate), paths.star(size=0.05, dim=2), r.env, steps=300)
+    res = control.follow(arm3, control.fixed(r.estimate), paths.star(size=0.05, dim=2), r.env, OLD_DEFAULTS,
+                         steps=300)
     assert float(res.completion) == 1.0 and not bool(res.failed)
 
 
+@pytest.mark.slow
 def test_selfid_run_noise_jit_vmap_and_no_retrace():
     arm = two_link()
 
@@ -152,8 +163,8 @@ def test_rollout_metrics_are_differentiable_in_the_inverse_jacobian_scale():
     path = paths.star(size=0.2, dim=2)
 
     def err(scale):
-        res = control.follow(arm, control.scaled_true_inverse(arm, scale), path, q0, steps=300, max_step=0.01,
-                             tol=0.002)
+        res = control.follow(arm, control.scaled_true_inverse(arm, scale), path, q0,
+                             control.ControllerParams(max_step=0.01, tol=0.002), steps=300)
         return res.mean_error
 
     g = jax.jit(jax.grad(err))(jnp.full((2, 2), 1.3))
@@ -162,3 +173,35 @@ def test_rollout_metrics_are_differentiable_in_the_inverse_jacobian_scale():
     d = jnp.zeros((2, 2)).at[0, 0].set(1e-4)
     fd = (err(jnp.full((2, 2), 1.3) + d) - err(jnp.full((2, 2), 1.3) - d)) / 2e-4
     np.testing.assert_allclose(g[0, 0], fd, rtol=0.2, atol=1e-6)
+
+
+def test_controller_params_are_traced_one_compilation_for_a_sweep():
+    """Every ControllerParams field is traced: sweeping step, tolerance and gain compiles follow once."""
+    arm = two_link()
+    q0 = jnp.array([0.4, 1.2])
+    path = paths.star(size=0.2, dim=2)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def sweep(ctrl):
+        return jax.vmap(lambda c: control.follow(arm, control.true_inverse(arm), path, q0, c, steps=200))(ctrl)
+
+    for gain in (1.0, 0.5):
+        ctrl = control.ControllerParams(max_step=jnp.array([0.01, 0.02]), tol=jnp.array([0.002, 0.004]),
+                                        gain=jnp.full(2, gain), max_rot_step=jnp.full(2, 0.05),
+                                        rot_tol=jnp.full(2, 0.01), diverge_dist=jnp.full(2, 1.0))
+        res = sweep(ctrl)
+        assert np.all(np.asarray(res.completion) == 1.0)
+    # a larger step needs fewer steps: the swept value reached the computation
+    assert int(res.steps_used[1]) < int(res.steps_used[0])
+
+
+def test_follow_defaults_are_the_shipped_protocol():
+    from selfid_jax.config import ControllerConfig
+
+    cfg = ControllerConfig()
+    assert cfg.traced() == {k: v for k, v in control.ControllerParams()._asdict().items() if k != "diverge_dist"}
+    assert cfg.steps == control.DEFAULT_STEPS
+    with pytest.raises(TypeError, match="ControllerParams"):
+        control.follow(two_link(), control.fixed(jnp.eye(2)), paths.star(size=0.2, dim=2), jnp.array([0.4, 1.2]),
+                       {"tol": 0.1})

@@ -134,6 +134,59 @@ def test_convergence_test_needs_two_consecutive_small_changes():
     np.testing.assert_allclose(state.last_deltas, [0.05, 0.02], atol=1e-12)
 
 
+def _numpy_convergence_iteration(est, eps):
+    """Sec. IV-D over a sequence, straight numpy: first t with delta_{t-1}, delta_t <= eps (J_0 = 0), else -1."""
+    deltas = np.linalg.norm(np.diff(np.concatenate([np.zeros((1,) + est.shape[1:]), est]), axis=0), axis=(1, 2))
+    for t in range(1, len(est)):
+        if deltas[t] <= eps and deltas[t - 1] <= eps:
+            return t + 1
+    return -1
+
+
+def test_convergence_iteration_matches_numpy_and_record():
+    """One convergence test: convergence_iteration over a sequence == a numpy loop == record's converged_at."""
+    rng = np.random.default_rng(0)
+    T, n, m = 30, 3, 2
+    est = np.cumsum(rng.normal(size=(T, n, m)) * np.geomspace(1, 1e-4, T)[:, None, None], axis=0)
+    est[12] = est[11]  # an exact repeat (delta 0) in the middle
+    conv = jax.jit(E.convergence_iteration)
+    seen = set()
+    for eps in (1e-9, 1e-3, 1e-2, 0.1, 1.0, 10.0):
+        want = _numpy_convergence_iteration(est, eps)
+        got = conv(jnp.asarray(est), eps)
+        assert got.dtype == jnp.int32 and int(got) == want, eps
+        state = E.init(n, m)
+        for J in est:
+            state = E.record(state, jnp.asarray(J), eps)
+        assert int(state.converged_at) == want, eps
+        seen.add(want)
+    assert -1 in seen and len(seen) >= 3  # the sweep covers never, early and late convergence
+    # the sequence in test_convergence_test_needs_two_consecutive_small_changes
+    seq = jnp.asarray([1.0, 1.05, 2.0, 2.05, 2.1, 2.12])[:, None, None]
+    assert int(E.convergence_iteration(seq, 0.1)) == 5
+    assert int(E.convergence_iteration(seq[:4], 0.1)) == -1
+    assert int(E.convergence_iteration(jnp.zeros((0, 1, 1)), 0.1)) == -1
+    with pytest.raises(ValueError, match=r"estimates: expected shape .*, got \(3, 2\)"):
+        E.convergence_iteration(jnp.zeros((3, 2)), 0.1)
+
+
+def test_guarded_update_is_the_one_sample_screen():
+    """update == guarded_update(accumulate): valid samples are folded and counted, invalid ones only counted."""
+    state = E.init(3, 2, capacity=4)
+    d, V = jnp.array([0.01, -0.02, 0.03]), jnp.array([0.1, -0.2])
+    folded = E.accumulate(state, d, V)
+    chex.assert_trees_all_equal(E.update(state, d, V), folded._replace(count=jnp.int32(1)))
+    seen = []
+
+    def fold(s, a, b):  # sees a zeroed sample when invalid, never the NaN
+        seen.append((a, b))
+        return E.accumulate(s, a, b)
+
+    out = E.guarded_update(fold, state, jnp.array([jnp.nan, 0.0, 0.1]), V, shape=(3, 2), dtype=state.sign_pos.dtype)
+    chex.assert_trees_all_equal(out, state._replace(rejected=jnp.int32(1)))
+    np.testing.assert_array_equal(seen[0][0], np.zeros(3))
+
+
 class JitVmapTest(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
     def test_update_and_estimates_jit_equals_eager(self):

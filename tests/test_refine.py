@@ -8,7 +8,6 @@ import pytest
 
 import selfid_jax as sj
 from selfid_jax import estimator as E
-from selfid_jax import refine as R
 
 
 def make_state(rng, J, K, noise=0.0, capacity=32, scale=0.05):

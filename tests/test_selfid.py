@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 import selfid_jax as sj
-from selfid_jax._xla import merged_xla_flags
 
 J_TRUE = jnp.array([[1.0, 0.5, 0.0], [-0.3, 2.0, 0.4], [0.2, -0.1, 1.5]])
 OBSERVE = sj.stateless(lambda key, d: J_TRUE @ d)
@@ -35,6 +34,7 @@ def test_recovers_linear_system_and_converges():
     assert np.all(np.abs(res.dtheta) <= 0.05)
 
 
+@pytest.mark.slow
 def test_vmap_over_keys_m_a_and_eps_equals_loop_without_retracing():
     keys = jax.random.split(jax.random.key(1), 4)
     m_a = jnp.array([0.01, 0.02, 0.05, 0.1])
@@ -75,13 +75,3 @@ def test_bad_arguments():
         sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-3, n_act=3, task_dim=3, iters=2, method="slsqp")
     with pytest.raises(ValueError, match=r"V: expected shape \(2,\)"):
         sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-3, n_act=3, task_dim=2, iters=2)
-
-
-def test_xla_flags_merge_keeps_user_settings():
-    flags = merged_xla_flags("--xla_cpu_use_fusion_emitters=true --foo=1")
-    assert "--xla_cpu_use_fusion_emitters=true" in flags and "--xla_cpu_use_fusion_emitters=false" not in flags
-    assert "--xla_cpu_enable_concurrency_optimized_scheduler=false" in flags and "--foo=1" in flags
-    assert merged_xla_flags(None).split() == [
-        "--xla_cpu_use_fusion_emitters=false",
-        "--xla_cpu_enable_concurrency_optimized_scheduler=false",
-    ]

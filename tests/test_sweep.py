@@ -10,6 +10,7 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import chex
 import jax
@@ -20,11 +21,11 @@ import pydantic
 import pytest
 
 import selfid_jax.sweep as sweep
-from selfid_jax import cli
-from selfid_jax.config import BaseConfig, register_experiment_config
+from selfid_jax import cli, experiment
+from selfid_jax.config import BaseConfig
 from selfid_jax.plots import save_figure
-from selfid_jax.results import load_results, read_summary, write_summary
-from selfid_jax.sweep import SweepResumeError, grid_table, register_experiment, row_keys, run_chunked
+from selfid_jax.results import load_results, read_summary
+from selfid_jax.sweep import SweepResumeError, grid_table, row_keys, run_chunked
 
 TESTS = Path(__file__).resolve().parent
 
@@ -177,6 +178,7 @@ def _env(**extra) -> dict[str, str]:
     return env
 
 
+@pytest.mark.slow
 def test_two_devices_match_one_device(tmp_path):
     script = TWO_DEVICE_SCRIPT.format(tests=str(TESTS), out=str(tmp_path))
     res = subprocess.run(
@@ -206,6 +208,7 @@ KILL_SCRIPT = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 def test_resume_after_kill(tmp_path):
     """SIGKILL mid-sweep leaves only whole chunk files; the re-run finishes the rest."""
     proc = subprocess.Popen(
@@ -245,13 +248,28 @@ class SyntheticConfig(BaseConfig):
 RUNS: list[dict] = []
 
 
-def synthetic_runner(cfg, out_dir, fresh, progress):
+class SyntheticParams(NamedTuple):
+    a: jax.Array  # () gain
+    key: jax.Array  # (2,) key data
+
+
+def synthetic_build(cfg):
     meta = grid_table({"a": cfg.gains, "trial": range(cfg.n_trials)})
-    params = {"a": meta["a"].to_numpy(), "key": row_keys(cfg.seed, len(meta))}
-    df = run_chunked(synthetic_fn, params, chunk_size=cfg.chunk_size, out_dir=out_dir, meta=meta,
-                     fresh=fresh, progress=progress)
-    RUNS.append(df.attrs["sweep"])
-    write_summary(out_dir, {"mean_final": df.groupby("a")["final"].mean().to_dict(), "nan": float("nan")})
+    return experiment.Part("synthetic", None, SyntheticParams(meta["a"].to_numpy(), row_keys(cfg.seed, len(meta))),
+                           meta)
+
+
+def synthetic_compute(static, p):
+    return jax.tree.map(lambda x: x[0], synthetic_fn({"a": p.a[None], "key": p.key[None]}))
+
+
+def synthetic_tabulate(wide, part, cfg):
+    RUNS.append(wide.attrs["sweep"])
+    return wide
+
+
+def synthetic_summarize(df, cfg):
+    return {"mean_final": df.groupby("a")["final"].mean().to_dict(), "nan": float("nan")}
 
 
 def synthetic_plotter(df, summary, fig_dir):
@@ -264,8 +282,12 @@ def synthetic_plotter(df, summary, fig_dir):
     return save_figure(fig, fig_dir, "synthetic")
 
 
-register_experiment_config("synthetic_cli_test", SyntheticConfig)
-register_experiment("synthetic_cli_test", synthetic_runner, synthetic_plotter)
+# A user's experiment, registered at run time (a package would use the selfid_jax.experiments entry point).
+SYNTHETIC = experiment.register(experiment.Experiment(
+    name="synthetic_cli_test", config=SyntheticConfig, build=synthetic_build, compute=synthetic_compute,
+    summarize=synthetic_summarize, tabulate=synthetic_tabulate, plot=synthetic_plotter,
+    report=lambda summary: f"{len(summary['mean_final'])} gains", description="a user-registered test experiment",
+))
 
 
 def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
@@ -287,7 +309,8 @@ def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sweep, "_write_chunk", terminated_write)
     assert cli.main(args) == 143
     assert "resume" in capsys.readouterr().err
-    assert sorted(p.name for p in (out / "chunks").iterdir()) == ["chunk_00000.parquet", "chunk_00001.parquet"]
+    chunk_dir = out / "parts" / "synthetic" / "chunks"
+    assert sorted(p.name for p in chunk_dir.iterdir()) == ["chunk_00000.parquet", "chunk_00001.parquet"]
     assert signal.getsignal(signal.SIGTERM) is not None and not sweep._STOP.is_set()
 
     # Ctrl-C while the last chunk is being saved: exit 130, nothing half-written
@@ -300,8 +323,9 @@ def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sweep, "_write_chunk", real_write)
 
     assert cli.main(args) == 0
+    assert "2 gains" in capsys.readouterr().out  # the experiment's report
     assert RUNS[-1]["skipped"] == [0, 1] and RUNS[-1]["computed"] == [2]
-    for name in ("config.yaml", "versions.json", "manifest.json", "results.parquet", "summary.json",
+    for name in ("config.yaml", "versions.json", "parts/synthetic/manifest.json", "results.parquet", "summary.json",
                  "figures/synthetic.png", "figures/synthetic.pdf"):
         assert (out / name).is_file(), name
     versions = json.loads((out / "versions.json").read_text())
@@ -323,6 +347,7 @@ def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
     for f in (out / "figures").iterdir():
         f.unlink()
     monkeypatch.setattr(sweep, "run_chunked", None)  # any simulation would now fail
+    monkeypatch.setattr(experiment, "run", None)
     assert cli.main(["plot", str(out)]) == 0
     assert (out / "figures" / "synthetic.png").stat().st_size > 0
 
@@ -343,7 +368,7 @@ def test_cli_bad_input_exits_2(tmp_path, capsys):
     assert cli.main(["plot", str(tmp_path / "no_run")]) == 2
     assert "not found" in capsys.readouterr().err
 
-    register_experiment_config("config_only_test", SyntheticConfig)
-    cfg.write_text("experiment: config_only_test\ngains: [0.3]\nn_trials: 1\n")
+    cfg.write_text("experiment: not_installed\ngains: [0.3]\nn_trials: 1\n")
     assert cli.main(["sweep", str(cfg), "--out", str(tmp_path / "r")]) == 2
-    assert "no runner registered" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "unknown experiment 'not_installed'" in err and "valid_region" in err and "synthetic_cli_test" in err

@@ -139,6 +139,7 @@ def arm3():
 
 
 # --------------------------------------------------------------------- UR5e
+@pytest.mark.slow
 def test_ur5e_fk_matches_dh(ur6, ur_mjx):
     qs = random_q(6, UR_B, seed=0)
     refs = [dh_fk(q) for q in qs]
@@ -345,6 +346,7 @@ SMALL_XML = """
 """
 
 
+@pytest.mark.slow
 def test_from_mjcf_chain_and_mjx_match_mujoco_on_a_general_tree():
     # Offset hinge anchors, a slide, tilted axes, rotated bodies and site.
     mj = mujoco.MjModel.from_xml_string(SMALL_XML)

@@ -10,6 +10,8 @@ import yaml
 from selfid_jax import cli, control
 from selfid_jax.config import load_config
 
+pytestmark = pytest.mark.slow  # end-to-end sweep through the CLI
+
 CONFIG = {
     "experiment": "valid_region",
     "seed": 0,
@@ -71,19 +73,20 @@ def test_plot_redraws_from_saved_results_without_simulating(run_dir, monkeypatch
 
 
 def test_resume_gives_identical_table(run_dir, tmp_path):
-    from experiments.valid_region import study
+    from selfid_jax import experiment
 
+    exp = experiment.get("valid_region")
     cfg = load_config(run_dir / "config.yaml")
     full = pd.read_parquet(run_dir / "results.parquet")
     part = tmp_path / "part"
-    study(cfg, part)
-    chunks = sorted((part / "systems" / "two_link" / "chunks").glob("*.parquet"))
+    experiment.run(exp, cfg, part)
+    chunks = sorted((part / "parts" / "two_link" / "chunks").glob("*.parquet"))
     assert len(chunks) == 3
     # simulate a sweep killed after its first chunk: later chunks and the final tables are missing
-    for f in chunks[1:] + [part / "results.parquet", part / "systems" / "two_link" / "results.parquet"]:
+    for f in chunks[1:] + [part / "results.parquet", part / "parts" / "two_link" / "results.parquet"]:
         f.unlink()
     first_chunk_mtime = chunks[0].stat().st_mtime_ns
-    resumed = study(cfg, part)
+    resumed, _ = experiment.run(exp, cfg, part)
     assert chunks[0].stat().st_mtime_ns == first_chunk_mtime  # finished work was not recomputed
     pd.testing.assert_frame_equal(resumed.reset_index(drop=True), full.reset_index(drop=True))
     pd.testing.assert_frame_equal(pd.read_parquet(part / "results.parquet"), full)

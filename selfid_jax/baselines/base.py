@@ -1,224 +1,204 @@
-"""One interface for every inverse-Jacobian estimation method of the ablation (Sec. V-A, Fig. 5).
+"""The estimator protocol of the ablation (Sec. V-A, Fig. 5), its one sample screen, and stream runners.
 
-A :class:`Method` is a static, hashable description (name, static options,
-defaults of the traced parameters) with three pure functions:
+An :class:`Estimator` is a ``NamedTuple`` of pure functions, in the manner of
+optax's ``GradientTransformation(init, update)``:
 
-* ``method.init(n, m, key, *, capacity=64, dtype=None, **params) -> state``:
-  a pytree of fixed-shape arrays. ``key`` feeds the methods that draw random
-  numbers (others ignore it and accept ``None``; those raise on ``None``); ``capacity`` is the sample-buffer size of the
-  buffer-based methods (others ignore it). ``params`` override the traced
-  parameters chosen in :func:`get_method` and may be traced, so one
-  compilation serves a sweep (``vmap`` over ``init``).
-* ``method.update(state, dtheta (n,), V (m,)) -> state``: one self-ID sample
-  (actuator units, task units). A sample with a non-finite entry, or an
-  all-zero ``dtheta`` or ``V``, is rejected: only ``state.rejected`` changes.
-* ``method.estimate(state, truth (n, m)) -> Jinv (n, m)``: the current estimate;
-  ``truth``, the true inverse Jacobian at the configuration of interest, is read
-  by the oracle methods only.
+* ``init(n, m, key=None, *, capacity=64, dtype=None) -> state``: a
+  ``NamedTuple`` of fixed-shape arrays. ``key`` feeds the methods that draw
+  random numbers (the others ignore it and accept ``None``; those raise on
+  ``None``); ``capacity`` is the sample-buffer size of the buffer-based methods
+  (the others ignore it); ``dtype`` defaults to JAX's default float.
+* ``update(state, dtheta (n,), V (m,)) -> state``: one self-ID sample (actuator
+  units, task units). A sample with a non-finite entry, or an all-zero
+  ``dtheta`` or ``V``, is rejected: only the state's ``rejected`` counter
+  changes, and no inf/NaN reaches the state.
+* ``estimate(state, truth (n, m)) -> (n, m)``: the current inverse-Jacobian
+  estimate (actuator per task unit); ``truth``, the true inverse Jacobian at
+  the configuration of interest, is read by the oracle methods only.
+* ``name``: the method's name in :data:`selfid_jax.baselines.METHODS`.
 
-Every state is a ``NamedTuple`` with ``count`` (accepted samples, int32),
-``rejected`` (rejected samples, int32), a ``params`` dict of traced scalars and
-a ``shape_ref`` property (an ``(n, m)`` array of the state's dtype) that gives
-sizes and dtype; families never touch ``count``/``rejected`` themselves. :func:`get_method` builds a method by name
-(:data:`METHOD_NAMES`); :func:`run_stream` feeds a sample stream to one method
-and returns the estimate after every sample.
+A factory per method builds one from keyword-only options (``rls(lam=0.99)``).
+Structural options (variant names, booleans, step and particle counts) are
+checked when the factory is called; numeric options are captured by the
+returned closures and may be traced JAX values, so a jitted or vmapped
+function that calls the factory compiles once for all their values.
+
+Every method is put together by :func:`assemble` from its own ``init``,
+``fold`` (a valid sample) and ``read`` functions, so the eager shape checks,
+the dtype casts and the sample screen
+(:func:`selfid_jax.estimator.guarded_update`, shared with the paper's
+:func:`selfid_jax.estimator.update`) are one code path for all. Accepted and
+rejected samples are counted in the state's int32 fields ``count`` and
+``rejected``; the buffer-based methods keep them in their
+:class:`~selfid_jax.estimator.EstimatorState`, not a second time.
+:func:`scan` and :func:`run_stream` feed a sample stream to an estimator.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
-from collections.abc import Callable, Hashable, Mapping
+from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from selfid_jax import estimator as _estimator
 from selfid_jax._checks import check_array, check_positive_int, float_dtype
-from selfid_jax.estimator import is_valid_sample
-
-METHOD_NAMES = ("ours", "direct", "sign_true_mag", "true", "broyden", "rls", "kalman", "particle")
-
-# Which module implements each method; imported lazily by get_method (no import cycle).
-_MODULES = {
-    "ours": "ours",
-    "direct": "direct",
-    "sign_true_mag": "oracle",
-    "true": "oracle",
-    "broyden": "broyden",
-    "rls": "rls",
-    "kalman": "kalman",
-    "particle": "particle",
-}
 
 
-class Family(NamedTuple):
-    """How a module implements one method (internal; users see :class:`Method`).
+class Estimator(NamedTuple):
+    """An inverse-Jacobian estimation method as three pure functions and a name (see the module docstring).
 
-    ``init(n, m, key, capacity, dtype, static, params) -> state``,
-    ``update(state, dtheta, V, static) -> state`` (``dtheta``/``V`` already cast,
-    validity handled by the caller), ``estimate(state, truth, static) -> (n, m)``;
-    ``static`` and ``params`` are dicts. ``validate(static)`` raises on bad values.
+    ``init(n, m, key=None, *, capacity=64, dtype=None) -> state``;
+    ``update(state, dtheta (n,), V (m,)) -> state``;
+    ``estimate(state, truth (n, m)) -> (n, m)``. Build one with a factory of
+    :mod:`selfid_jax.baselines` or :func:`selfid_jax.baselines.make`.
     """
 
-    init: Callable
-    update: Callable
-    estimate: Callable
-    static_defaults: Mapping[str, Hashable]
-    param_defaults: Mapping[str, float]
-    validate: Callable[[dict], None] = lambda static: None
-
-
-@dataclasses.dataclass(frozen=True)
-class Method:
-    """A named estimation method with its options: static, hashable, equal by value.
-
-    ``static``: sorted ``(name, value)`` pairs of structural options (sizes,
-    variant names, step counts). ``params``: sorted ``(name, default)`` pairs of
-    numeric options that live in the state as traced scalars. Use
-    :func:`get_method` to build one; pass it to ``jit`` as a static argument.
-    """
-
+    init: Callable[..., Any]
+    update: Callable[[Any, jax.Array, jax.Array], Any]
+    estimate: Callable[[Any, jax.Array], jax.Array]
     name: str
-    static: tuple[tuple[str, Hashable], ...] = ()
-    params: tuple[tuple[str, float], ...] = ()
 
-    @property
-    def _family(self) -> Family:
-        return _family(self.name)
 
-    def init(self, n: int, m: int, key=None, *, capacity: int = 64, dtype=None, **params):
-        """Initial state for ``n`` actuators and ``m`` task dims; ``params`` override traced defaults."""
+def assemble(
+    name: str,
+    *,
+    init: Callable[..., Any],
+    fold: Callable[[Any, jax.Array, jax.Array], Any],
+    read: Callable[[Any, jax.Array], jax.Array],
+    ref: Callable[[Any], jax.Array],
+    tally: Callable[[Any, jax.Array], Any] = _estimator.tally,
+) -> Estimator:
+    """An :class:`Estimator` from one method's parts, with the checks and the sample screen shared by all.
+
+    Args:
+      name: the method's name.
+      init: ``(n, m, key, capacity, dtype) -> state``; sizes already checked
+        positive, ``dtype`` resolved.
+      fold: ``(state, dtheta (n,), V (m,)) -> state`` for a valid sample, cast
+        to the state's dtype; leaves the counters alone.
+      read: ``(state, truth (n, m)) -> (n, m)`` estimate; ``truth`` cast to the
+        state's dtype.
+      ref: ``state -> (..., n, m)`` array of the state's dtype: the sizes and
+        dtype the checks and casts use.
+      tally: ``(state, ok) -> state`` counting the sample where the state keeps
+        its counters (default: its own ``count``/``rejected`` fields).
+    """
+
+    def init_fn(n: int, m: int, key=None, *, capacity: int = 64, dtype=None):
         n = check_positive_int("n", n)
         m = check_positive_int("m", m)
         capacity = check_positive_int("capacity", capacity)
-        dtype = float_dtype() if dtype is None else dtype
-        defaults = dict(self.params)
-        unknown = set(params) - set(defaults)
-        if unknown:
-            raise ValueError(
-                f"{self.name}: unknown parameter(s) {sorted(unknown)}; traced parameters are {sorted(defaults)}"
-            )
-        values = {k: jnp.asarray(params.get(k, v), dtype) for k, v in defaults.items()}
-        return self._family.init(n, m, key, capacity, dtype, dict(self.static), values)
+        return init(n, m, key, capacity, float_dtype() if dtype is None else dtype)
 
-    def update(self, state, dtheta, V):
-        """Fold one sample ``dtheta (n,)``, ``V (m,)`` into ``state``; invalid samples only bump ``rejected``."""
-        n, m = self.estimate_shape(state)
-        check_array("dtheta", dtheta, (n,))
-        check_array("V", V, (m,))
-        dtype = _dtype(state)
-        dtheta = jnp.asarray(dtheta, dtype)
-        V = jnp.asarray(V, dtype)
-        ok = is_valid_sample(dtheta, V)
-        # Zero invalid samples before any arithmetic so no inf/NaN reaches the state.
-        new = self._family.update(state, jnp.where(ok, dtheta, 0.0), jnp.where(ok, V, 0.0), dict(self.static))
-        return accept(ok, new, state)
+    def update_fn(state, dtheta, V):
+        r = ref(state)
+        return _estimator.guarded_update(fold, state, dtheta, V, shape=r.shape[-2:], dtype=r.dtype, tally=tally)
 
-    def estimate(self, state, truth):
-        """Inverse-Jacobian estimate ``(n, m)``; ``truth (n, m)`` is read by the oracle methods only."""
-        check_array("truth", truth, self.estimate_shape(state))
-        return self._family.estimate(state, jnp.asarray(truth, _dtype(state)), dict(self.static))
+    def estimate_fn(state, truth):
+        r = ref(state)
+        check_array("truth", truth, r.shape[-2:])
+        return read(state, jnp.asarray(truth, r.dtype))
 
-    @staticmethod
-    def estimate_shape(state) -> tuple[int, int]:
-        """Static ``(n, m)`` of an (unbatched) state."""
-        return tuple(state.shape_ref.shape[-2:])
+    init_fn.__doc__ = f"Initial {name} state for ``n`` actuators and ``m`` task dimensions."
+    update_fn.__doc__ = (
+        f"Fold one sample ``dtheta (n,)``, ``V (m,)`` into a {name} state; an invalid one only bumps ``rejected``."
+    )
+    estimate_fn.__doc__ = f"The {name} inverse-Jacobian estimate ``(n, m)``."
+    return Estimator(init=init_fn, update=update_fn, estimate=estimate_fn, name=name)
 
 
-def _dtype(state):
-    return state.shape_ref.dtype
+# ---- eager option checks shared by the factories --------------------------------------------------
 
 
-def _family(name: str) -> Family:
-    if name not in _MODULES:
-        raise ValueError(f"unknown method {name!r}; valid names: {', '.join(METHOD_NAMES)}")
-    module = importlib.import_module(f"selfid_jax.baselines.{_MODULES[name]}")
-    return module.FAMILIES[name]
+def check_choice(method: str, option: str, value, allowed: Sequence[str]) -> str:
+    """``value`` if it is one of ``allowed``, else ``ValueError`` naming the option, the value and ``allowed``."""
+    if not isinstance(value, str) or value not in allowed:
+        raise ValueError(f"{method}: {option}: expected one of {tuple(allowed)}, got {value!r}")
+    return value
 
 
-def get_method(name: str, **options) -> Method:
-    """The method called ``name`` (one of :data:`METHOD_NAMES`) with ``options`` set.
+def check_bool(method: str, option: str, value) -> bool:
+    """``value`` if it is a Python bool, else ``ValueError`` (allowed: True, False)."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{method}: {option}: expected one of (True, False), got {value!r}")  # noqa: TRY004
+    return bool(value)
 
-    Options are either static (strings, booleans, integers that shape the
-    computation) or traced parameters (numbers stored in the state; their value
-    here is the default that ``Method.init(**params)`` may override). Unknown
-    names or options raise ``ValueError`` listing the valid ones.
+
+def check_count(method: str, option: str, value, *, allow_none: bool = False) -> int | None:
+    """``value`` as a Python int if it is a positive integer (or ``None`` if allowed), else ``ValueError``."""
+    if value is None and allow_none:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 1:
+        want = "None or a positive integer" if allow_none else "a positive integer"
+        raise ValueError(f"{method}: {option}: expected {want}, got {value!r}")
+    return int(value)
+
+
+def check_number(method: str, option: str, value, *, scalar: bool = True):
+    """``value`` if it is a real number (Python, numpy or JAX, possibly traced), else ``ValueError``.
+
+    ``scalar``: also require shape ``()`` (shapes are static, so this holds for
+    traced values too).
     """
-    family = _family(name)
-    static = dict(family.static_defaults)
-    params = dict(family.param_defaults)
-    for k, v in options.items():
-        if k in static:
-            static[k] = v
-        elif k in params:
-            try:
-                params[k] = float(v)
-            except (TypeError, ValueError) as err:
-                raise ValueError(
-                    f"{name}: option {k!r} must be a concrete number here; pass traced values to Method.init"
-                ) from err
-        else:
-            raise ValueError(
-                f"{name}: unknown option {k!r}; static options {sorted(static)}, traced parameters {sorted(params)}"
-            )
-    family.validate(static)
     try:
-        hash(tuple(static.items()))
-    except TypeError as err:
-        raise ValueError(f"{name}: static options must be hashable, got {static}") from err
-    return Method(name, tuple(sorted(static.items())), tuple(sorted(params.items())))
+        dtype = jnp.result_type(value)
+        shape = np.shape(value)
+    except Exception as err:
+        raise ValueError(f"{method}: {option}: expected a real number, got {value!r}") from err
+    if isinstance(value, (bool, np.bool_)) or not (
+        jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)
+    ):
+        raise ValueError(f"{method}: {option}: expected a real number, got {value!r}")
+    if scalar and shape != ():
+        raise ValueError(f"{method}: {option}: expected a scalar (shape ()), got shape {shape}")
+    return value
 
 
-def keep_finite_gain(state, J, P):
-    """``state`` with the filter update ``(J, P)`` if both are finite, else unchanged (RLS and Kalman)."""
-    good = jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(P))
-    return state._replace(J=jnp.where(good, J, state.J), P=jnp.where(good, P, state.P))
+# ---- running a stream ------------------------------------------------------------------------------
 
 
-def accept(ok, new, old):
-    """``new`` with ``count + 1`` if the sample was valid, else ``old`` with ``rejected + 1``."""
-    new = new._replace(count=old.count + 1, rejected=old.rejected)
-    old = old._replace(rejected=old.rejected + 1)
-    return jax.tree.map(lambda a, b: jnp.where(ok, a, b), new, old)
-
-
-def scan(method: Method, state, dthetas, Vs, truth) -> tuple[Any, jax.Array]:
-    """Fold ``dthetas (T, n)``, ``Vs (T, m)`` into ``state`` with ``lax.scan``.
+def scan(estimator: Estimator, state, dthetas, Vs, truth) -> tuple[Any, jax.Array]:
+    """Fold the stream ``dthetas (T, n)``, ``Vs (T, m)`` into ``state`` with ``lax.scan``.
 
     Returns the final state and the estimate after every sample ``(T, n, m)``.
     ``truth`` is ``(n, m)`` (one configuration) or ``(T, n, m)`` (per sample).
+    Shapes are checked eagerly against each other and, by ``update`` and
+    ``estimate``, against the state.
     """
-    n, m = method.estimate_shape(state)
-    T = dthetas.shape[0]
-    check_array("dthetas", dthetas, (T, n))
-    check_array("Vs", Vs, (T, m))
-    truth = jnp.asarray(truth, _dtype(state))
-    per_step = truth.ndim == 3
+    check_array("dthetas", dthetas, (None, None))
+    T, n = np.shape(dthetas)
+    check_array("Vs", Vs, (T, None))
+    m = np.shape(Vs)[1]
+    per_step = np.ndim(truth) == 3
     check_array("truth", truth, (T, n, m) if per_step else (n, m))
 
     def body(s, x):
         d, v, t = x
-        s = method.update(s, d, v)
-        return s, method.estimate(s, t if per_step else truth)
+        s = estimator.update(s, d, v)
+        return s, estimator.estimate(s, t if per_step else truth)
 
-    xs = (dthetas, Vs, truth if per_step else jnp.zeros((T,), _dtype(state)))
+    xs = (dthetas, Vs, truth if per_step else jnp.zeros((T,), jnp.result_type(dthetas)))
     return jax.lax.scan(body, state, xs)
 
 
-def run_stream(method: Method, key, dthetas, Vs, truth, *, capacity: int | None = None, **params) -> jax.Array:
-    """Estimates ``(T, n, m)`` of ``method`` after each sample of the stream ``dthetas (T, n)``, ``Vs (T, m)``.
+def run_stream(estimator: Estimator, key, dthetas, Vs, truth, *, capacity: int | None = None) -> jax.Array:
+    """Estimates ``(T, n, m)`` of ``estimator`` after each sample of the stream ``dthetas (T, n)``, ``Vs (T, m)``.
 
-    A fresh state is built with ``key``, ``capacity`` (default ``T``: the buffer
-    keeps every sample) and traced ``params``; ``truth`` is ``(n, m)`` or
-    ``(T, n, m)``. Jit it with ``method`` and ``capacity`` static::
-
-        jax.jit(run_stream, static_argnames=("method", "capacity"))
+    A fresh state is built with ``key`` and ``capacity`` (default ``T``: the
+    buffer keeps every sample), in the float dtype of ``dthetas``; ``truth`` is
+    ``(n, m)`` or ``(T, n, m)``. Jit it with the estimator closed over or
+    static: ``jax.jit(functools.partial(run_stream, rls(lam=0.9)))``, or build
+    the estimator inside the jitted function to trace its numeric options.
     """
-    T, n = dthetas.shape
-    m = Vs.shape[-1]
-    state = method.init(n, m, key, capacity=T if capacity is None else capacity, dtype=_float_of(dthetas), **params)
-    _, estimates = scan(method, state, dthetas, Vs, truth)
+    check_array("dthetas", dthetas, (None, None))
+    T, n = np.shape(dthetas)
+    check_array("Vs", Vs, (T, None))
+    m = np.shape(Vs)[1]
+    state = estimator.init(n, m, key, capacity=T if capacity is None else capacity, dtype=_float_of(dthetas))
+    _, estimates = scan(estimator, state, dthetas, Vs, truth)
     return estimates
 
 

@@ -1,40 +1,54 @@
 """Oracle baselines of Sec. V-A that read the true inverse Jacobian.
 
-``"sign_true_mag"``: the estimated signed inverse Jacobian (Eq. 6-10) times the
-true element magnitudes, ``signed(state) * |truth|`` ``(n, m)``: isolates the
-sign estimate. ``"true"``: ``truth`` itself, the upper bound of the ablation.
-Neither has options; both count accepted and rejected samples like every method.
+:func:`sign_true_mag`: the estimated signed inverse Jacobian (Eq. 6-10) times
+the true element magnitudes, isolating the sign estimate. :func:`true`: the
+true inverse Jacobian itself, the upper bound of the ablation. Both keep an
+:class:`~selfid_jax.estimator.EstimatorState` with a one-row buffer (only the
+sign weights and the counters are read) and count accepted and rejected
+samples like every method.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from selfid_jax import estimator
-from selfid_jax.baselines.base import Family
-from selfid_jax.baselines.ours import buffer_init, buffer_update
+from selfid_jax.baselines.base import Estimator, assemble, check_number
 
 
-def _init(n, m, key, capacity, dtype, static, params):
-    # Only the sign weights are read: a one-row buffer is enough.
-    return buffer_init(n, m, 1, dtype, params)
+def _init_for(v_tol):
+    def init(n, m, key, capacity, dtype):
+        # Only the sign weights are read: a one-row buffer is enough, whatever `capacity` is.
+        return estimator.init(n, m, capacity=1, v_tol=v_tol, dtype=dtype)
+
+    return init
 
 
-def _sign_true_mag(state, truth, static):
-    return estimator.signed_inverse_jacobian(state.est) * jnp.abs(truth)
+def sign_true_mag(*, v_tol: ArrayLike = 1e-9) -> Estimator:
+    """Sign x true magnitude: ``signed(state) * |truth|`` ``(n, m)`` (Eq. 6-10 with the true Eq. 12).
+
+    State: an :class:`~selfid_jax.estimator.EstimatorState` (one-row buffer).
+
+    Args:
+      v_tol: task units; the estimator's Eq. 11 threshold. It does not change
+        this method's estimate (only the sign weights are read; kept for
+        configurations that set it).
+    """
+    check_number("sign_true_mag", "v_tol", v_tol)
+
+    def read(state, truth):
+        return estimator.signed_inverse_jacobian(state) * jnp.abs(truth)
+
+    return assemble("sign_true_mag", init=_init_for(v_tol), fold=estimator.accumulate, read=read,
+                    ref=lambda s: s.sign_pos)
 
 
-def _true_update(state, dtheta, V, static):
-    return state
+def true() -> Estimator:
+    """The true inverse Jacobian ``truth (n, m)`` itself, whatever the samples; the ablation's upper bound.
 
-
-def _true(state, truth, static):
-    return truth
-
-
-FAMILIES = {
-    "sign_true_mag": Family(
-        init=_init, update=buffer_update, estimate=_sign_true_mag, static_defaults={}, param_defaults={"v_tol": 1e-9}
-    ),
-    "true": Family(init=_init, update=_true_update, estimate=_true, static_defaults={}, param_defaults={}),
-}
+    State: an :class:`~selfid_jax.estimator.EstimatorState` (one-row buffer)
+    that only counts samples.
+    """
+    return assemble("true", init=_init_for(1e-9), fold=lambda state, dtheta, V: state,
+                    read=lambda state, truth: truth, ref=lambda s: s.sign_pos)

@@ -1,6 +1,6 @@
 """Broyden rank-1 secant updates of the inverse Jacobian.
 
-``"broyden"``: after each sample, ``J <- J + step * (dtheta - J V) V^T / (V^T V)``.
+:func:`broyden`: after each sample, ``J <- J + step * (dtheta - J V) V^T / (V^T V)``.
 
 Why this form: we estimate the inverse Jacobian ``J (n, m)`` directly, and each
 sample gives the secant condition ``J V = dtheta``. Among all ``J'`` that satisfy
@@ -15,10 +15,6 @@ converge linearly (the error's component along each new ``V`` is removed).
 Each update forgets old samples partly, so noise is not averaged away:
 ``step < 1`` damps it.
 
-Static option ``init``: ``"zero"`` (default) | ``"identity"`` (``init_scale *
-eye(n, m)``). Traced parameters: ``step`` (relaxation in ``(0, 2)``, default 1),
-``init_scale`` (actuator per task unit).
-
 NaN-safe: the update is computed with ``V`` scaled by its largest magnitude, so
 ``V^T V`` cannot underflow to 0, and an update that is not finite anyway (``V``
 so tiny that the residual overflows) leaves ``J`` unchanged.
@@ -26,25 +22,23 @@ so tiny that the residual overflows) leaves ``J`` unchanged.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
-from selfid_jax.baselines.base import Family
+from selfid_jax.baselines.base import Estimator, assemble, check_choice, check_number
 
 INITS = ("zero", "identity")
 
 
 class BroydenState(NamedTuple):
+    """State of :func:`broyden`."""
+
     J: jax.Array  # (n, m) float: current inverse-Jacobian estimate, actuator per task unit
     count: jax.Array  # () int32: accepted samples
     rejected: jax.Array  # () int32: rejected samples
-    params: dict  # {"step": (), "init_scale": ()}
-
-    @property
-    def shape_ref(self) -> jax.Array:
-        return self.J
 
 
 def secant_update(J, dtheta, V, step=1.0):
@@ -58,34 +52,32 @@ def secant_update(J, dtheta, V, step=1.0):
     return jnp.where(good, J_new, J)
 
 
-def _init(n, m, key, capacity, dtype, static, params):
-    if static["init"] == "identity":
-        J = params["init_scale"] * jnp.eye(n, m, dtype=dtype)
-    else:
-        J = jnp.zeros((n, m), dtype)
-    return BroydenState(J=J, count=jnp.zeros((), jnp.int32), rejected=jnp.zeros((), jnp.int32), params=params)
+def broyden(
+    *, init: Literal["zero", "identity"] = "zero", step: ArrayLike = 1.0, init_scale: ArrayLike = 1.0
+) -> Estimator:
+    """Broyden (secant) estimate ``J (n, m)``: ``J <- J + step (dtheta - J V) V^T / (V^T V)`` per sample.
 
+    State: :class:`BroydenState`.
 
-def _update(state, dtheta, V, static):
-    return state._replace(J=secant_update(state.J, dtheta, V, state.params["step"]))
+    Args:
+      init: the start: ``"zero"`` or ``"identity"`` (``init_scale * eye(n, m)``).
+      step: relaxation, dimensionless, in ``(0, 2)``; 1 solves each sample's
+        secant condition exactly, ``< 1`` damps noise. May be traced.
+      init_scale: actuator per task unit; scale of the identity start. May be traced.
+    """
+    name = "broyden"
+    start = check_choice(name, "init", init, INITS)
+    check_number(name, "step", step)
+    check_number(name, "init_scale", init_scale)
 
+    def init_fn(n, m, key, capacity, dtype):
+        if start == "identity":
+            J = jnp.asarray(init_scale, dtype) * jnp.eye(n, m, dtype=dtype)
+        else:
+            J = jnp.zeros((n, m), dtype)
+        return BroydenState(J=J, count=jnp.zeros((), jnp.int32), rejected=jnp.zeros((), jnp.int32))
 
-def _estimate(state, truth, static):
-    return state.J
+    def fold(state: BroydenState, dtheta, V):
+        return state._replace(J=secant_update(state.J, dtheta, V, jnp.asarray(step, state.J.dtype)))
 
-
-def _validate(static):
-    if static["init"] not in INITS:
-        raise ValueError(f"init: expected one of {INITS}, got {static['init']!r}")
-
-
-FAMILIES = {
-    "broyden": Family(
-        init=_init,
-        update=_update,
-        estimate=_estimate,
-        static_defaults={"init": "zero"},
-        param_defaults={"step": 1.0, "init_scale": 1.0},
-        validate=_validate,
-    )
-}
+    return assemble(name, init=init_fn, fold=fold, read=lambda state, truth: state.J, ref=lambda s: s.J)

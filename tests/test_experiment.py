@@ -1,0 +1,155 @@
+"""The experiment contract: entry-point registry, one compilation per sweep, no back-edge into `experiments`."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+from typing import NamedTuple
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pydantic
+import pytest
+
+import selfid_jax
+from selfid_jax import cli, experiment
+from selfid_jax.config import BaseConfig, ConfigError, ControllerConfig, EpsLimits, PathConfig
+
+PACKAGE = Path(selfid_jax.__file__).resolve().parent
+
+
+def test_shipped_experiments_come_from_entry_points():
+    names = experiment.available()
+    assert {"demo", "valid_region", "ablation"} <= set(names)
+    for name in ("demo", "valid_region", "ablation"):
+        exp = experiment.get(name)
+        assert exp.name == name and exp.config.model_fields["experiment"].default == name
+        assert exp.description
+    with pytest.raises(ConfigError, match="unknown experiment 'nope'.*valid_region"):
+        experiment.get("nope")
+
+
+def test_library_never_imports_the_experiments_package():
+    """No module of selfid_jax imports `experiments` (statically or through importlib with that name)."""
+    offenders = []
+    for path in PACKAGE.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                mods = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                mods = [node.module or ""]
+            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+                mods = [node.value] if node.value.startswith("experiments.") else []
+            else:
+                continue
+            offenders += [f"{path.name}: {m}" for m in mods if m == "experiments" or m.startswith("experiments.")]
+    assert offenders == []
+
+
+def test_no_module_over_about_400_lines():
+    sizes = {p.relative_to(PACKAGE).as_posix(): len(p.read_text().splitlines()) for p in PACKAGE.rglob("*.py")}
+    assert max(sizes.values()) <= 430, {k: v for k, v in sizes.items() if v > 430}
+
+
+def test_valid_region_sweep_of_controller_and_eps_values_compiles_once():
+    """Every sweepable number is a traced Params field: one trace for rows with different values."""
+    from experiments.valid_region import ValidRegionConfig
+
+    cfg = ValidRegionConfig(systems=["two_link"], eps_limits=EpsLimits(start=0.5, stop=1.5, num=2), n_configs=1,
+                            n_trials=2, controller=ControllerConfig(max_step=0.01, tol=0.002, steps=200),
+                            path=PathConfig(size=0.2))
+    exp = experiment.get("valid_region")
+    (part,) = exp.parts(cfg)
+    assert part.params.controller.tol.shape == (4,)
+
+    @jax.jit
+    @chex.assert_max_traces(n=1)
+    def run(params):
+        return exp.batched(part.static)(params)
+
+    first = run(part.params)
+    swept = part.params._replace(
+        controller=part.params.controller._replace(max_step=np.full(4, 0.02), tol=np.full(4, 0.004),
+                                                   gain=np.full(4, 0.5)),
+        eps_limit=np.asarray([0.9, 1.0, 1.1, 1.2]),
+    )
+    second = run(swept)
+    assert first.steps_used.shape == (4,) and not np.array_equal(first.steps_used, second.steps_used)
+
+
+# --------------------------------------------------------------------------- a user's own experiment
+
+class DoublingConfig(BaseConfig):
+    experiment: str = "user_doubling"
+    values: list[float] = pydantic.Field(min_length=1)
+    scale: float = 2.0
+
+
+class DoublingParams(NamedTuple):
+    x: jax.Array  # ()
+    scale: jax.Array  # ()
+
+
+class DoublingOutputs(NamedTuple):
+    y: jax.Array  # () scale * x
+    pair: jax.Array  # (2,) (x, y)
+
+
+def _build(cfg):
+    meta = pd.DataFrame({"x": cfg.values})
+    params = DoublingParams(np.asarray(cfg.values), np.full(len(cfg.values), cfg.scale))
+    return experiment.Part("only", None, params, meta)
+
+
+def _compute(static, p):
+    y = p.scale * p.x
+    return DoublingOutputs(y, jnp.stack([p.x, y]))
+
+
+def _plot(table, summary, out_dir):
+    from matplotlib.figure import Figure
+
+    from selfid_jax.plots import save_figure
+
+    fig = Figure(figsize=(2, 2))
+    fig.subplots().plot(table["x"], table["y"], "o")
+    return save_figure(fig, out_dir, "doubling")
+
+
+USER = experiment.Experiment(
+    name="user_doubling", config=DoublingConfig, build=_build, compute=_compute,
+    summarize=lambda table, cfg: {"sum_y": float(table["y"].sum())}, plot=_plot,
+    report=lambda s: f"sum of y: {s['sum_y']:g}", description="doubles numbers (a user's experiment)",
+)
+
+
+def test_user_registered_experiment_runs_through_the_cli(tmp_path, capsys):
+    experiment.register(USER)
+    cfg = tmp_path / "user.yaml"
+    cfg.write_text("experiment: user_doubling\nvalues: [1.0, 2.5, -3.0]\nchunk_size: 2\n")
+    out = tmp_path / "run"
+    assert cli.main(["sweep", str(cfg), "--out", str(out), "--no-progress", "--set", "scale=3"]) == 0
+    printed = capsys.readouterr().out
+    assert "sum of y: 1.5" in printed and "doubling.png" in printed
+    table = pd.read_parquet(out / "results.parquet")
+    np.testing.assert_allclose(table["y"], [3.0, 7.5, -9.0])
+    np.testing.assert_allclose(np.stack(table["pair"].to_numpy()), [[1.0, 3.0], [2.5, 7.5], [-3.0, -9.0]])
+    assert (out / "parts" / "only" / "chunks").is_dir()
+    assert cli.main(["list"]) == 0
+    listing = capsys.readouterr().out
+    assert "user_doubling" in listing and "doubles numbers" in listing and "valid_region" in listing
+    assert "ur5e" in listing and "two_link" in listing
+
+
+def test_experiment_definition_errors():
+    with pytest.raises(ValueError, match="identifier"):
+        experiment.Experiment(name="bad name", config=DoublingConfig, build=_build, compute=_compute,
+                              summarize=lambda t, c: {})
+    with pytest.raises(TypeError, match="BaseConfig"):
+        experiment.Experiment(name="bad", config=dict, build=_build, compute=_compute, summarize=lambda t, c: {})
+    with pytest.raises(TypeError, match="Experiment"):
+        experiment.register("valid_region")
