@@ -29,13 +29,14 @@ from selfid_jax import baselines, control, estimator, paths, plots, selfid
 from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, unique
 from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.sweep import grid_table, row_keys
-from selfid_jax.systems import System, ur5e
+from selfid_jax.systems import System
+from selfid_jax.systems.spec import SystemSpec, build_system, system_name
 
 
 class MethodSpec(BaseModel):
     """One curve of the ablation: a label, a method of ``selfid_jax.baselines`` and its options."""
 
-    model_config = dict(extra="forbid", frozen=True)
+    model_config = dict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field(min_length=1, description="label of the curve")
     method: Literal[baselines.METHOD_NAMES] = Field(description="one of " + ", ".join(baselines.METHOD_NAMES))
@@ -48,15 +49,16 @@ class AblationConfig(BaseConfig):
     """Estimation ablation on the UR5e (Sec. V-A)."""
 
     experiment: Literal["ablation"] = "ablation"
-    system: Literal["ur5e"] = "ur5e"
+    system: SystemSpec = Field("ur5e", description="a built-in name or {mjcf: ...} / {pose_fn: ...}")
     methods: Annotated[list[MethodSpec], Field(min_length=1)]
-    iterations: Annotated[list[Annotated[int, Field(ge=1)]], Field(min_length=1)]
-    n_configs: int = Field(ge=1)
-    n_trials: int = Field(ge=1)
-    pose_noise: Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=1)]
-    rot_noise: Annotated[list[Annotated[float, Field(ge=0)]], Field(min_length=1)]
+    iterations: Annotated[list[Annotated[int, Field(ge=1, le=10**5)]], Field(min_length=1)]
+    n_configs: int = Field(ge=1, le=10**5)
+    n_trials: int = Field(ge=1, le=10**5)
+    pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)]  # m
+    rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)]  # rad
     m_a: Annotated[list[Annotated[float, Field(gt=0, le=0.1)]], Field(min_length=1)]
-    eps: float = Field(gt=0, description="Sec. IV-D convergence threshold on ||J_t - J_{t-1}||_F")
+    eps: float = Field(gt=0, le=1e6, description="Sec. IV-D convergence threshold on ||J_t - J_{t-1}||_F [rad/m]")
+    eps_rel: float = Field(0.0, ge=0, le=10, description="relative threshold: converged at eps + eps_rel ||J_t||_F")
     controller: ControllerConfig = ControllerConfig()
     path: PathConfig
     completion_threshold: float = Field(0.95, gt=0, le=1)
@@ -78,6 +80,7 @@ class AblationConfig(BaseConfig):
 
     @model_validator(mode="after")
     def _noise_pairs(self):
+        self.path.check_controller(self.controller)
         if len(self.pose_noise) != len(self.rot_noise):
             raise ValueError(
                 f"pose_noise and rot_noise pair up level by level: lengths {len(self.pose_noise)} "
@@ -90,7 +93,7 @@ class Static(NamedTuple):
     """Shared by every row: the arm, the path, the estimators and the static sizes."""
 
     system: System
-    path: jax.Array  # (W, 3) star waypoint offsets [m]
+    path: jax.Array  # (W, task_dim) star waypoint offsets [m]
     steps: int  # control-step budget
     iters: int  # self-ID iterations per stream (the largest checkpoint)
     checkpoints: tuple[int, ...]  # 0-based sample indices at which each estimate is followed
@@ -106,6 +109,7 @@ class Params(NamedTuple):
     rot_noise: jax.Array  # () tracker rotation noise sd [rad]
     m_a: jax.Array  # () self-ID magnitude [rad]
     eps: jax.Array  # () Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]
+    eps_rel: jax.Array  # () relative Sec. IV-D threshold (times ||J_t||_F)
     controller: control.ControllerParams  # () each
 
 
@@ -126,6 +130,7 @@ def compute(static: Static, p: Params) -> Outputs:
     sid = selfid.run(system, k_sid, p.q0, iters=static.iters, eps=p.eps, m_a=p.m_a, pose_noise=p.pose_noise,
                      rot_noise=p.rot_noise, stop_at_convergence=False)
     truth = system.true_inverse_jacobian(p.q0)
+    accepted = jax.vmap(estimator.is_valid_sample)(sid.dtheta, sid.V)  # the screen every method shares
 
     def follow(jinv):
         return control.follow(system, jinv, static.path, p.q0, p.controller, steps=static.steps)
@@ -138,13 +143,14 @@ def compute(static: Static, p: Params) -> Outputs:
                                follow(control.true_inverse(system)))
         else:
             res = jax.vmap(lambda J: follow(control.fixed(J)))(est[checkpoints])
-        rows.append(Outputs(res.completion, res.mean_error, res.failed, estimator.convergence_iteration(est, p.eps)))
+        rows.append(Outputs(res.completion, res.mean_error, res.failed, estimator.convergence_iteration(est, p.eps, p.eps_rel,
+                                                                                    accepted=accepted)))
     return jax.tree.map(lambda *x: jnp.stack(x), *rows)
 
 
 def build(cfg: AblationConfig) -> Part:
-    """Configs x trials x noise levels x m_a streams on the UR5e (position task)."""
-    system = ur5e(task_dim=3)
+    """Configs x trials x noise levels x m_a streams on the configured system (UR5e position task by default)."""
+    system = build_system(cfg.system)
     meta = grid_table(
         {
             "noise_level": range(len(cfg.pose_noise)),
@@ -167,6 +173,7 @@ def build(cfg: AblationConfig) -> Part:
         rot_noise=meta["rot_noise"].to_numpy(float),
         m_a=meta["m_a"].to_numpy(float),
         eps=np.full((n,), cfg.eps),
+        eps_rel=np.full((n,), cfg.eps_rel),
         controller=controller_rows(cfg.controller, n),
     )
     static = Static(
@@ -177,7 +184,7 @@ def build(cfg: AblationConfig) -> Part:
         checkpoints=tuple(i - 1 for i in cfg.iterations),
         methods=tuple(baselines.make(spec.method, **spec.options) for spec in cfg.methods),
     )
-    return Part(cfg.system, static, params, meta)
+    return Part(system_name(cfg.system), static, params, meta)
 
 
 def tabulate(wide: pd.DataFrame, part: Part, cfg: AblationConfig) -> pd.DataFrame:
@@ -241,7 +248,8 @@ def report(summary: dict[str, Any]) -> str:
     for name, s in summary["methods"].items():
         conv = s["convergence_iteration_mean"]
         conv_txt = f"{conv:.1f} +- {s['convergence_iteration_sd']:.1f}" if conv is not None else "never"
-        lines.append(f"{name:24s} {str(s['iterations_to_threshold']):>14s} {conv_txt:>16s}")
+        its = s["iterations_to_threshold"]
+        lines.append(f"{name:24s} {'never' if its is None else str(its):>14s} {conv_txt:>16s}")
     return "\n".join(lines)
 
 

@@ -24,7 +24,7 @@ def check_array(name: str, x, shape: Sequence[int | None], *, floating: bool = T
         shown = tuple("*" if w is None else w for w in want)
         raise ValueError(f"{name}: expected shape {shown}, got {got}")
     if floating:
-        dtype = jnp.result_type(x)
+        dtype = np.asarray(x).dtype if isinstance(x, (list, tuple)) else jnp.result_type(x)
         if not (jnp.issubdtype(dtype, jnp.floating) or jnp.issubdtype(dtype, jnp.integer)):
             raise ValueError(f"{name}: expected a real floating-point array, got dtype {dtype}")
 
@@ -44,3 +44,37 @@ def is_traced(x) -> bool:
 def float_dtype():
     """The default floating dtype (float64 when x64 is on, else float32)."""
     return jnp.zeros(()).dtype
+
+
+def check_float_dtype(name: str, dtype) -> np.dtype:
+    """``dtype`` as a numpy dtype, raising ``ValueError`` unless it is float32 or float64."""
+    try:
+        dt = np.dtype(dtype)
+    except TypeError as err:
+        raise ValueError(f"{name}: expected float32 or float64, got {dtype!r}") from err
+    if dt not in (np.dtype(np.float32), np.dtype(np.float64)):
+        raise ValueError(f"{name}: expected float32 or float64, got {dt}")
+    return dt
+
+
+def check_scalar(name: str, value, *, ge: float | None = None, gt: float | None = None, finite: bool = True):
+    """Eager check of a number that may also be traced: concrete values must be real, in range (and finite).
+
+    Traced values (inside ``jit``/``vmap``) and arrays with a batch axis pass
+    through unchecked elementwise only where concrete; returns ``value``.
+    """
+    if is_traced(value):
+        return value
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "fiu" or arr.dtype == bool:
+        raise ValueError(f"{name}: expected a real number, got {value!r}")
+    arr = arr.astype(np.float64)
+    if np.isnan(arr).any():
+        raise ValueError(f"{name}: must not be NaN, got {value!r}")
+    if finite and not np.isfinite(arr).all():
+        raise ValueError(f"{name}: must be finite, got {value!r}")
+    if ge is not None and (arr < ge).any():
+        raise ValueError(f"{name}: must be >= {ge}, got {value!r}")
+    if gt is not None and (arr <= gt).any():
+        raise ValueError(f"{name}: must be > {gt}, got {value!r}")
+    return value

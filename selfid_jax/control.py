@@ -18,9 +18,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from selfid_jax import geometry
-from selfid_jax._checks import check_array, check_positive_int
+from selfid_jax._checks import check_array, check_positive_int, check_scalar, is_traced
 from selfid_jax.linalg import pseudo_inverse
 from selfid_jax.systems.system import System
 
@@ -232,7 +233,10 @@ def follow(
 
     A rollout whose state turns non-finite or strays farther than
     ``diverge_dist`` from the path is frozen and flagged ``failed``, so every
-    metric stays finite.
+    metric stays finite (distances that cannot be computed, as from a traced
+    NaN ``q0`` or waypoint, count as 0: read them only where ``failed`` is
+    False). Concrete non-finite ``q0``/``path``, non-positive controller
+    settings and an inverse Jacobian of the wrong shape raise ``ValueError``.
     """
     steps = check_positive_int("steps", steps)
     n, m = system.n_act, system.task_dim
@@ -240,10 +244,19 @@ def follow(
     check_array("path", path, (None, m))
     if not isinstance(controller, ControllerParams):
         raise TypeError(f"controller must be a ControllerParams, got {type(controller).__name__}")
+    for name, value in (("q0", q0), ("path", path)):
+        if not is_traced(value) and not np.all(np.isfinite(np.asarray(value, np.float64))):
+            raise ValueError(f"{name} holds non-finite values: {np.asarray(value)}")
+    for name in ("max_step", "tol", "max_rot_step", "rot_tol"):
+        check_scalar(f"controller.{name}", getattr(controller, name), gt=0.0)
+    check_scalar("controller.gain", controller.gain, gt=0.0)
     source = jinv if hasattr(jinv, "pose_and_jinv") else FromFunction(jinv)
     dtype = jnp.result_type(float)
     q0 = jnp.asarray(q0, dtype)
     path = jnp.asarray(path, dtype)
+    jinv_shape = jax.eval_shape(lambda q: source.pose_and_jinv(system, q)[1], q0).shape
+    if jinv_shape != (n, m):
+        raise ValueError(f"jinv: the inverse Jacobian has shape {jinv_shape}, expected ({n}, {m}) = (n_act, task_dim)")
     W = path.shape[0]
     task = _Task.make(path, system.pose(q0), m)
     ctrl = controller
@@ -258,7 +271,7 @@ def follow(
         q_new = system.apply(carry.q, J @ task.twist(*task.error(pose, carry.waypoint), ctrl))
         finite = jnp.all(jnp.isfinite(q_new)) & jnp.all(jnp.isfinite(J))
         failed = carry.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
-        counted = jnp.where(active, dist, 0.0)
+        counted = jnp.where(active & jnp.isfinite(dist), dist, 0.0)
         carry = carry._replace(
             q=jnp.where(active & ~failed, q_new, carry.q),
             failed=failed,
@@ -271,7 +284,7 @@ def follow(
     init = _Carry(
         q=q0,
         waypoint=jnp.zeros((), jnp.int32),
-        failed=jnp.zeros((), bool),
+        failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path))),  # traced NaN input: failed, finite metrics
         err_sum=jnp.zeros((), dtype),
         err_max=jnp.zeros((), dtype),
         used=jnp.zeros((), jnp.int32),
@@ -281,7 +294,7 @@ def follow(
     pose_end = system.pose(carry.q)
     carry, _ = _advance(task, carry, pose_end, ctrl)  # the last move may have reached a waypoint
     end_dist = jnp.sqrt(jnp.sum((task.targets - pose_end[0][None, : task.targets.shape[1]]) ** 2, axis=-1))
-    wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, end_dist)
+    wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
     return FollowResult(
         completion=carry.waypoint.astype(dtype) / W,
         mean_error=carry.err_sum / jnp.maximum(carry.used, 1).astype(dtype),

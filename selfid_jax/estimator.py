@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax._checks import check_array, check_positive_int, float_dtype
+from selfid_jax._checks import check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype
 
 
 class EstimatorState(NamedTuple):
@@ -43,6 +43,9 @@ class EstimatorState(NamedTuple):
     v_tol: jax.Array  # () float: |V_j| at or below this does not enter the magnitude mean
     estimate: jax.Array  # (n, m) float: last estimate passed to `record` (J_t; zeros before any)
     last_deltas: jax.Array  # (2,) float: ||J_t - J_{t-1}||_F of the last two records (inf before)
+    last_norms: jax.Array  # (2,) float: ||J_t||_F of the last two records (for eps_rel; 0 before)
+    last_fresh: jax.Array  # (2,) bool: whether each of the last two records followed a newly accepted sample
+    recorded_count: jax.Array  # () int32: `count` at the last record
     iteration: jax.Array  # () int32: number of estimates recorded
     converged_at: jax.Array  # () int32: iteration at which `record` first saw convergence, -1 if never
 
@@ -55,12 +58,13 @@ def init(n: int, m: int, *, capacity: int = 64, v_tol: float = 1e-9, dtype=None)
       capacity: static number of most recent samples kept for refinement (Eq. 14).
       v_tol: pose-change magnitude (task units) below which a component is not
         used for the magnitude ratio of Eq. 11; may be a traced scalar.
-      dtype: float dtype of the state (default: JAX's default float).
+      dtype: float32 or float64 (default: JAX's default float).
     """
     n = check_positive_int("n", n)
     m = check_positive_int("m", m)
     capacity = check_positive_int("capacity", capacity)
-    dtype = float_dtype() if dtype is None else dtype
+    check_scalar("v_tol", v_tol, ge=0.0)
+    dtype = float_dtype() if dtype is None else check_float_dtype("dtype", dtype)
     zeros = jnp.zeros((n, m), dtype)
     return EstimatorState(
         sign_pos=zeros,
@@ -74,6 +78,9 @@ def init(n: int, m: int, *, capacity: int = 64, v_tol: float = 1e-9, dtype=None)
         v_tol=jnp.asarray(v_tol, dtype),
         estimate=zeros,
         last_deltas=jnp.full((2,), jnp.inf, dtype),
+        last_norms=jnp.zeros((2,), dtype),
+        last_fresh=jnp.zeros((2,), bool),
+        recorded_count=jnp.zeros((), jnp.int32),
         iteration=jnp.zeros((), jnp.int32),
         converged_at=jnp.full((), -1, jnp.int32),
     )
@@ -86,9 +93,15 @@ def sizes(state: EstimatorState) -> tuple[int, int, int]:
 
 
 def is_valid_sample(dtheta: jax.Array, V: jax.Array) -> jax.Array:
-    """True iff the sample is finite and neither ``dtheta`` nor ``V`` is all zero. Shapes ``(n,)``, ``(m,)``."""
-    finite = jnp.all(jnp.isfinite(dtheta)) & jnp.all(jnp.isfinite(V))
-    return finite & jnp.any(dtheta != 0) & jnp.any(V != 0)
+    """True iff the sample is usable: shapes ``(n,)``, ``(m,)``.
+
+    Every entry finite and below ``sqrt`` of the dtype's largest value (so the
+    ratios of Eq. 11 and the products of Eq. 14 cannot overflow: 1.8e19 in
+    float32), and neither ``dtheta`` nor ``V`` all zero.
+    """
+    big = float(np.sqrt(jnp.finfo(jnp.result_type(dtheta, V)).max))
+    bounded = jnp.all(jnp.abs(dtheta) <= big) & jnp.all(jnp.abs(V) <= big)  # False for NaN too
+    return bounded & jnp.any(dtheta != 0) & jnp.any(V != 0)
 
 
 def sample_contribution(dtheta: jax.Array, V: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -216,54 +229,90 @@ def objective(state: EstimatorState, J: jax.Array) -> jax.Array:
     return jnp.sum(jnp.where(mask[:, None], r, 0.0) ** 2)
 
 
-def _both_within(deltas: jax.Array, eps) -> jax.Array:
-    """The Sec. IV-D test on the last two changes ``deltas (..., 2)``: both ``<= eps`` -> ``(...)`` bool."""
-    return jnp.all(deltas <= eps, axis=-1)
+def check_thresholds(eps, eps_rel=0.0):
+    """Eager check of the Sec. IV-D thresholds where they are concrete: ``eps >= 0``, ``eps_rel >= 0``, not both 0, no NaN."""
+    check_scalar("eps", eps, ge=0.0, finite=False)
+    check_scalar("eps_rel", eps_rel, ge=0.0, finite=False)
+    if not (is_concrete_zero(eps) and is_concrete_zero(eps_rel)):
+        return
+    raise ValueError("eps and eps_rel are both 0: the Sec. IV-D test could never hold; set eps > 0 or eps_rel > 0")
 
 
-def record(state: EstimatorState, J: jax.Array, eps) -> EstimatorState:
+def is_concrete_zero(x) -> bool:
+    return not isinstance(x, jax.core.Tracer) and bool(np.all(np.asarray(x) == 0))
+
+
+def _both_within(deltas: jax.Array, norms: jax.Array, fresh: jax.Array, eps, eps_rel) -> jax.Array:
+    """The Sec. IV-D test on the last two records ``(..., 2)``: each followed new data and
+    ``||J_t - J_{t-1}||_F <= eps + eps_rel ||J_t||_F`` -> ``(...)`` bool."""
+    return jnp.all(fresh & (deltas <= eps + eps_rel * norms), axis=-1)
+
+
+def record(state: EstimatorState, J: jax.Array, eps, eps_rel=0.0) -> EstimatorState:
     """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
 
-    Stores ``||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1 line 1) and,
-    the first time the last two changes are both ``<= eps``, the iteration
-    number in ``converged_at`` (1-based count of recorded estimates).
+    Stores ``delta_t = ||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1
+    line 1) and, the first time the last two records both satisfy
+    ``delta <= eps + eps_rel ||J||_F`` and both followed at least one newly
+    accepted sample, the iteration number in ``converged_at`` (1-based count of
+    recorded estimates). A record with no new data never counts, so a stream
+    whose samples are all rejected never converges, and iteration 1 never
+    converges (the test is twice in a row). ``eps`` is absolute
+    (inverse-Jacobian units); ``eps_rel`` relative to the estimate's size, for
+    systems whose inverse Jacobians are far from unit norm (a fingertip of
+    40 rad/m, a large arm of 0.5 rad/m): one threshold then serves all.
     """
     n, m, _ = sizes(state)
     check_array("J", J, (n, m))
+    check_thresholds(eps, eps_rel)
     J = jnp.asarray(J, state.estimate.dtype)
     delta = jnp.sqrt(jnp.sum((J - state.estimate) ** 2))
     iteration = state.iteration + 1
     deltas = jnp.stack([state.last_deltas[1], delta])
-    first = _both_within(deltas, eps) & (state.converged_at < 0)
+    norms = jnp.stack([state.last_norms[1], jnp.sqrt(jnp.sum(J**2))])
+    fresh = jnp.stack([state.last_fresh[1], state.count > state.recorded_count])
+    first = _both_within(deltas, norms, fresh, eps, eps_rel) & (state.converged_at < 0)
     return state._replace(
         estimate=J,
         last_deltas=deltas,
+        last_norms=norms,
+        last_fresh=fresh,
+        recorded_count=state.count,
         iteration=iteration,
         converged_at=jnp.where(first, iteration, state.converged_at),
     )
 
 
-def converged(state: EstimatorState, eps) -> jax.Array:
-    """True iff the last two recorded changes ``||J_t - J_{t-1}||_F`` are both ``<= eps`` (Sec. IV-D)."""
-    return _both_within(state.last_deltas, eps)
+def converged(state: EstimatorState, eps, eps_rel=0.0) -> jax.Array:
+    """True iff the last two records pass the Sec. IV-D test of :func:`record` (``()`` bool, ``(...)`` if batched)."""
+    check_thresholds(eps, eps_rel)
+    return _both_within(state.last_deltas, state.last_norms, state.last_fresh, eps, eps_rel)
 
 
-def convergence_iteration(estimates: jax.Array, eps) -> jax.Array:
+def convergence_iteration(estimates: jax.Array, eps, eps_rel=0.0, *, accepted=None) -> jax.Array:
     """First iteration at which the Sec. IV-D test holds over a sequence of estimates; ``()`` int32, -1 if never.
 
-    ``estimates (T, n, m)``: ``J_1 .. J_T`` (inverse-Jacobian units, actuator
-    per task unit); ``eps`` in the same units (may be traced). With ``J_0 = 0``
-    and ``delta_t = ||J_t - J_{t-1}||_F``, returns the smallest 1-based ``t``
-    with ``delta_{t-1} <= eps`` and ``delta_t <= eps``, where ``delta_0 = +inf``
-    as :func:`record` starts (so a finite ``eps`` never holds at ``t = 1``): the
-    same test as :func:`record`, equal to its ``converged_at`` after recording
-    the sequence.
+    ``estimates (T, n, m)``: ``J_1 .. J_T``, the estimate after each sample
+    (inverse-Jacobian units); ``accepted (T,)`` bool: whether sample ``t`` was
+    accepted (default: all). The test of :func:`record` (``eps``, ``eps_rel``
+    may be traced): the smallest 1-based ``t >= 2`` where records ``t - 1`` and
+    ``t`` both followed an accepted sample and both changed by at most
+    ``eps + eps_rel ||J||_F``, with ``J_0 = 0``; equal to ``converged_at``
+    after recording the sequence.
     """
     check_array("estimates", estimates, (None, None, None))
-    if np.shape(estimates)[0] == 0:  # static: an empty sequence never converges
+    check_thresholds(eps, eps_rel)
+    T = np.shape(estimates)[0]
+    if T == 0:  # static: an empty sequence never converges
         return jnp.full((), -1, jnp.int32)
+    fresh = jnp.ones((T,), bool) if accepted is None else jnp.asarray(accepted, bool)
+    check_array("accepted", fresh, (T,), floating=False)
     prev = jnp.concatenate([jnp.zeros_like(estimates[:1]), estimates[:-1]], axis=0)
     deltas = jnp.sqrt(jnp.sum((estimates - prev) ** 2, axis=(1, 2)))  # (T,)
-    before = jnp.concatenate([jnp.full((1,), jnp.inf, deltas.dtype), deltas])[:-1]  # delta_{t-1}, inf first
-    both = _both_within(jnp.stack([before, deltas], axis=-1), eps)  # (T,)
+    norms = jnp.sqrt(jnp.sum(estimates**2, axis=(1, 2)))
+
+    def pairs(x, first):  # (T, 2): (value at t - 1, value at t), `first` before the sequence
+        return jnp.stack([jnp.concatenate([jnp.full((1,), first, x.dtype), x[:-1]]), x], axis=-1)
+
+    both = _both_within(pairs(deltas, jnp.inf), pairs(norms, 0.0), pairs(fresh, False), eps, eps_rel)
     return jnp.where(jnp.any(both), jnp.argmax(both) + 1, -1).astype(jnp.int32)

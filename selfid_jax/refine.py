@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from selfid_jax._checks import check_array, is_traced
+from selfid_jax._checks import check_array, check_scalar, is_traced
 from selfid_jax.estimator import EstimatorState, samples, signed_inverse_jacobian, sizes
 
 METHODS = ("closed_form", "optax", "slsqp")
@@ -224,7 +224,8 @@ def refine(
     """Refined inverse Jacobian ``(n, m)`` from ``J0 (n, m)`` on the state's buffered samples (Eq. 14).
 
     ``method``, ``steps``, ``loss``, ``sign_project``, ``precondition`` and ``numeric_grad`` are
-    static; ``huber_delta`` (actuator units) and ``ridge`` may be traced.
+    static; ``huber_delta`` (actuator units, > 0) and ``ridge`` (>= 0) may be
+    traced (concrete values out of range raise ``ValueError``).
     ``"closed_form"`` honours ``ridge`` only (always the L2 loss);
     ``"slsqp"`` is eager only and plain L2. See the module docstring.
     """
@@ -234,6 +235,8 @@ def refine(
         raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
     n, m, _ = sizes(state)
     check_array("J0", J0, (n, m))
+    check_scalar("huber_delta", huber_delta, gt=0.0)
+    check_scalar("ridge", ridge, ge=0.0)
     J0 = jnp.asarray(J0, state.dtheta_buf.dtype)
     theta, V, _ = _masked(state)
     if method == "closed_form":

@@ -13,9 +13,10 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from selfid_jax import estimator
-from selfid_jax._checks import check_positive_int, float_dtype
+from selfid_jax._checks import check_positive_int, check_scalar, float_dtype
 from selfid_jax.refine import refine
 
 Observe = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array]]
@@ -59,6 +60,7 @@ def self_identify(
     method: str = "closed_form",
     stop_at_convergence: bool = True,
     refine_options: dict | None = None,
+    eps_rel=0.0,
 ) -> SelfIDResult:
     """Run Algorithm 1 for ``iters`` self-ID iterations under ``lax.scan``.
 
@@ -67,6 +69,8 @@ def self_identify(
       key: PRNG key; split for each actuation and observation.
       m_a: self-ID magnitude, scalar or ``(n_act,)``, actuator units: ``dtheta_i ~ uniform(-m_a_i, m_a_i)``.
       eps: convergence threshold on ``||J_t - J_{t-1}||_F`` (Sec. IV-D), inverse-Jacobian units.
+      eps_rel: relative threshold: converged when ``||J_t - J_{t-1}||_F <=
+        eps + eps_rel ||J_t||_F`` twice in a row (see :func:`estimator.record`).
       n_act, task_dim, iters: static sizes.
       env: initial environment state passed to ``observe`` (any pytree).
       capacity: samples kept for refinement (default ``iters``: all of them).
@@ -76,8 +80,12 @@ def self_identify(
         converged (Algorithm 1 returns there), later iterations repeat that estimate.
       refine_options: static keyword options for :func:`~selfid_jax.refine.refine`.
 
-    ``m_a``, ``eps`` and ``v_tol`` may be traced, so one compilation serves a sweep
-    over them; vmap over ``key``, ``m_a``, ``eps`` or ``env``.
+    ``m_a``, ``eps``, ``eps_rel`` and ``v_tol`` may be traced, so one compilation
+    serves a sweep over them; vmap over ``key``, ``m_a``, ``eps`` or ``env``.
+    Concrete values are checked first (``m_a`` finite, > 0, scalar or
+    ``(n_act,)``; thresholds as :func:`estimator.check_thresholds`); traced bad
+    values give rejected samples, counted in ``state.rejected``, and no
+    convergence.
     """
     n_act = check_positive_int("n_act", n_act)
     task_dim = check_positive_int("task_dim", task_dim)
@@ -87,6 +95,10 @@ def self_identify(
     capacity = iters if capacity is None else check_positive_int("capacity", capacity)
     options = dict(refine_options or {})
     dtype = float_dtype()
+    if np.ndim(m_a) not in (0, 1) or (np.ndim(m_a) == 1 and np.shape(m_a) != (n_act,)):
+        raise ValueError(f"m_a: expected a scalar or shape ({n_act},) (one per actuator), got shape {np.shape(m_a)}")
+    check_scalar("m_a", m_a, gt=0.0)
+    estimator.check_thresholds(eps, eps_rel)
     m_a = jnp.broadcast_to(jnp.asarray(m_a, dtype), (n_act,))
     state0 = estimator.init(n_act, task_dim, capacity=capacity, v_tol=v_tol, dtype=dtype)
 
@@ -98,7 +110,7 @@ def self_identify(
         V = jnp.asarray(V, dtype)
         new = estimator.update(state, dtheta, V)
         J = refine(new, estimator.initial_guess(new), method=method, **options)
-        new = estimator.record(new, J, eps)
+        new = estimator.record(new, J, eps, eps_rel)
         delta = new.last_deltas[1]
         if stop_at_convergence:
             new = jax.tree.map(lambda a, b: jnp.where(done, a, b), state, new)
@@ -147,6 +159,7 @@ def run(
     v_tol=1e-9,
     stop_at_convergence: bool = True,
     refine_options: dict | None = None,
+    eps_rel=0.0,
 ) -> SelfIDResult:
     """Algorithm 1 on a simulated :class:`~selfid_jax.systems.System` starting at ``q0 (n,)``.
 
@@ -156,12 +169,15 @@ def run(
     moves the actuators (``system.apply``: clipped to the actuator limits),
     reads the pose again, and feeds ``V = task_difference(after, before)`` to
     the estimator. ``result.env`` is the configuration where self-ID ended.
-    ``m_a``, ``eps``, ``pose_noise``, ``rot_noise`` and ``q0`` may be traced:
-    vmap over them and over ``key``.
+    ``m_a``, ``eps``, ``eps_rel``, ``pose_noise``, ``rot_noise`` and ``q0`` may
+    be traced: vmap over them and over ``key``. Concrete noise levels must be
+    finite and >= 0.
     """
     from selfid_jax._checks import check_array
 
     check_array("q0", q0, (system.n_act,))
+    check_scalar("pose_noise", pose_noise, ge=0.0)
+    check_scalar("rot_noise", rot_noise, ge=0.0)
     m_a = system.m_a if m_a is None else m_a
 
     def observe(q, k, dtheta):
@@ -185,4 +201,5 @@ def run(
         method=method,
         stop_at_convergence=stop_at_convergence,
         refine_options=refine_options,
+        eps_rel=eps_rel,
     )

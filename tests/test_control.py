@@ -205,3 +205,28 @@ def test_follow_defaults_are_the_shipped_protocol():
     with pytest.raises(TypeError, match="ControllerParams"):
         control.follow(two_link(), control.fixed(jnp.eye(2)), paths.star(size=0.2, dim=2), jnp.array([0.4, 1.2]),
                        {"tol": 0.1})
+
+
+def test_bad_follow_inputs_raise_or_fail_with_finite_metrics():
+    arm = two_link()
+    path = paths.star(size=0.2, dim=2)
+    q0 = jnp.array([0.4, 1.2])
+    with pytest.raises(ValueError, match=r"jinv: the inverse Jacobian has shape \(3, 2\), expected \(2, 2\)"):
+        control.follow(arm, control.fixed(jnp.ones((3, 2))), path, q0)
+    with pytest.raises(ValueError, match=r"jinv: .*shape \(2,\)"):
+        control.follow(arm, control.fixed(jnp.ones(2)), path, q0)
+    with pytest.raises(ValueError, match="q0 holds non-finite"):
+        control.follow(arm, control.true_inverse(arm), path, jnp.array([jnp.nan, 1.2]))
+    with pytest.raises(ValueError, match="path holds non-finite"):
+        control.follow(arm, control.true_inverse(arm), path.at[3, 0].set(jnp.nan), q0)
+    with pytest.raises(ValueError, match="controller.tol: must be finite"):
+        control.follow(arm, control.true_inverse(arm), path, q0, control.ControllerParams(tol=float("inf")))
+    with pytest.raises(ValueError, match="controller.max_step: must be > 0"):
+        control.follow(arm, control.true_inverse(arm), path, q0, control.ControllerParams(max_step=0.0))
+    # traced NaN inputs cannot raise: the rollout is failed from the start and every metric is finite
+    run = jax.jit(lambda q, p: control.follow(arm, control.true_inverse(arm), p, q, OLD_DEFAULTS, steps=50))
+    for q, p in ((jnp.array([jnp.nan, 1.2]), path), (q0, path.at[3, 0].set(jnp.nan))):
+        res = run(q, p)
+        assert bool(res.failed)
+        for x in (res.completion, res.mean_error, res.max_error, res.waypoint_error):
+            assert np.isfinite(float(x))

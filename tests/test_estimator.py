@@ -128,6 +128,7 @@ def test_convergence_test_needs_two_consecutive_small_changes():
     sequence = [1.0, 1.05, 2.0, 2.05, 2.1, 2.12]  # deltas: 1, .05, .95, .05, .05, .02
     expect = [False, False, False, False, True, True]
     for t, (j, want) in enumerate(zip(sequence, expect), start=1):
+        state = E.update(state, jnp.array([0.01]), jnp.array([0.02]))  # new data before each record
         state = E.record(state, jnp.array([[j]]), eps)
         assert bool(sj.converged(state, eps)) == want, t
     assert int(state.converged_at) == 5 and int(state.iteration) == 6
@@ -157,6 +158,7 @@ def test_convergence_iteration_matches_numpy_and_record():
         assert got.dtype == jnp.int32 and int(got) == want, eps
         state = E.init(n, m)
         for J in est:
+            state = E.update(state, jnp.ones(n), jnp.ones(m))
             state = E.record(state, jnp.asarray(J), eps)
         assert int(state.converged_at) == want, eps
         seen.add(want)
@@ -222,3 +224,59 @@ class JitVmapTest(chex.TestCase):
         out = [magnitude(tol, d, V) for tol in (1e-6, 1e-3, 1e-2)]
         np.testing.assert_allclose(out[0][:, 0], [1000.0, 2000.0])
         np.testing.assert_allclose(out[1][:, 0], [0.0, 0.0])
+
+
+def test_no_new_data_never_converges_and_eps_inf_needs_two_records():
+    """Records that follow no accepted sample never count; iteration 1 never converges, even at eps = inf."""
+    state = E.init(2, 2)
+    for _ in range(5):  # every sample rejected: the estimate stays 0, deltas are 0
+        state = E.update(state, jnp.array([jnp.nan, 0.1]), jnp.array([0.1, 0.2]))
+        state = E.record(state, E.initial_guess(state), 0.5)
+    assert int(state.converged_at) == -1 and int(state.rejected) == 5 and not bool(sj.converged(state, 0.5))
+    est = jnp.zeros((5, 2, 2))
+    assert int(E.convergence_iteration(est, 0.5, accepted=jnp.zeros(5, bool))) == -1
+    assert int(E.convergence_iteration(est, 0.5, accepted=jnp.array([0, 1, 0, 1, 1], bool))) == 5
+    fresh = E.init(1, 1)
+    fresh = E.record(E.update(fresh, jnp.ones(1), jnp.ones(1)), jnp.ones((1, 1)), jnp.inf)
+    assert int(fresh.converged_at) == -1  # one record is not "twice in a row"
+    fresh = E.record(E.update(fresh, jnp.ones(1), jnp.ones(1)), jnp.ones((1, 1)), jnp.inf)
+    assert int(fresh.converged_at) == 2
+    assert int(E.convergence_iteration(jnp.ones((3, 1, 1)), jnp.inf)) == 2
+
+
+def test_relative_threshold_scales_with_the_estimate():
+    """eps_rel: ||J_t - J_{t-1}||_F <= eps + eps_rel ||J_t||_F; a 40x larger system converges at the same step."""
+    seq = jnp.asarray([1.0, 1.5, 1.52, 1.53, 1.531])[:, None, None]  # deltas 1, .5, .02, .01, .001
+    for scale in (1.0, 40.0):
+        got = E.convergence_iteration(scale * seq, 0.0, 0.02)  # 2% of the estimate's norm
+        assert int(got) == 4, scale
+        state = E.init(1, 1)
+        for J in scale * seq:
+            state = E.record(E.update(state, jnp.ones(1), jnp.ones(1)), J, 0.0, 0.02)
+        assert int(state.converged_at) == 4
+    assert int(E.convergence_iteration(40.0 * seq, 0.05)) == -1  # the absolute eps does not scale
+
+
+@pytest.mark.parametrize("eps, eps_rel, match", [(-0.1, 0.0, "eps: must be >= 0"), (float("nan"), 0.0, "eps: must not be NaN"),
+                                                 (0.0, 0.0, "both 0"), (0.1, -1.0, "eps_rel")])
+def test_bad_thresholds_raise(eps, eps_rel, match):
+    state = E.init(1, 1)
+    with pytest.raises(ValueError, match=match):
+        E.record(state, jnp.ones((1, 1)), eps, eps_rel)
+    with pytest.raises(ValueError, match=match):
+        E.convergence_iteration(jnp.ones((2, 1, 1)), eps, eps_rel)
+    with pytest.raises(ValueError, match=match):
+        sj.self_identify(sj.stateless(lambda k, d: d), jax.random.key(0), 0.1, eps, n_act=1, task_dim=1, iters=2,
+                         eps_rel=eps_rel)
+
+
+def test_overflowing_samples_are_rejected_and_bad_dtypes_refused():
+    state = E.init(2, 2, dtype=jnp.float32)
+    state = E.update(state, jnp.array([3e38, 0.1], jnp.float32), jnp.array([0.1, 0.2], jnp.float32))
+    assert int(state.rejected) == 1 and int(state.count) == 0
+    assert np.all(np.isfinite(E.initial_guess(state))) and np.all(np.isfinite(sj.refine(state, E.initial_guess(state))))
+    for dtype in (jnp.int32, jnp.float16, "bfloat16"):
+        with pytest.raises(ValueError, match="dtype: expected float32 or float64"):
+            E.init(2, 2, dtype=dtype)
+    lists = E.update(E.init(2, 2), [0.1, 0.2], [0.3, 0.4])  # Python lists are arrays too
+    assert int(lists.count) == 1

@@ -156,3 +156,12 @@ class RefineJitVmapTest(chex.TestCase):
             out = run(batched, ridge)
             for b, s in enumerate(states):
                 np.testing.assert_allclose(out[b], sj.refine(s, sj.initial_guess(s), method="optax", ridge=ridge), rtol=1e-9)
+
+
+def test_negative_huber_delta_and_ridge_raise():
+    state = E.update(E.init(2, 2), jnp.array([0.1, 0.2]), jnp.array([0.3, -0.1]))
+    J0 = E.initial_guess(state)
+    with pytest.raises(ValueError, match="huber_delta: must be > 0"):
+        sj.refine(state, J0, loss="huber", huber_delta=-1.0)
+    with pytest.raises(ValueError, match="ridge: must be >= 0"):
+        sj.refine(state, J0, method="closed_form", ridge=-0.5)

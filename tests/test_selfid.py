@@ -63,7 +63,7 @@ def test_environment_state_is_threaded_through():
     def observe(theta, key, d):
         return theta + d, J_TRUE @ (theta + d) - J_TRUE @ theta
 
-    res = sj.self_identify(observe, jax.random.key(3), 0.05, 0.0, n_act=3, task_dim=3, iters=6,
+    res = sj.self_identify(observe, jax.random.key(3), 0.05, 1e-3, n_act=3, task_dim=3, iters=6,
                            env=jnp.zeros(3), stop_at_convergence=False)
     np.testing.assert_allclose(res.env, res.dtheta.sum(0), atol=1e-12)
 
