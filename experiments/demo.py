@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from selfid_jax import control, paths, selfid
 from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig
@@ -31,12 +31,17 @@ class DemoConfig(BaseConfig):
     """UR5e (position task) self-ID from ``n_configs`` start configurations, then a star with each estimate."""
 
     experiment: Literal["demo"] = "demo"
-    n_configs: int = Field(4, ge=1, description="start configurations")
-    iters: int = Field(30, ge=2, description="self-ID iterations (Algorithm 1)")
-    eps: float = Field(0.5, gt=0, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]")
+    n_configs: int = Field(4, ge=1, le=10**4, description="start configurations")
+    iters: int = Field(30, ge=2, le=10**4, description="self-ID iterations (Algorithm 1)")
+    eps: float = Field(0.5, gt=0, le=1e6, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]")
     m_a: float = Field(0.03, gt=0, le=0.1, description="self-ID magnitude [rad]")
     path: PathConfig = PathConfig(size=0.05)
     controller: ControllerConfig = ControllerConfig(steps=400)
+
+    @model_validator(mode="after")
+    def _tolerance_fits_path(self):
+        self.path.check_controller(self.controller)
+        return self
 
 
 class Static(NamedTuple):

@@ -25,18 +25,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from selfid_jax import control, paths, plots
 from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig, unique
 from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.sweep import grid_table, row_keys
-from selfid_jax.systems import System, two_link, ur5e
-
-SYSTEMS = {
-    "two_link": lambda: two_link(),
-    "ur5e": lambda: ur5e(task_dim=3),
-}
+from selfid_jax.systems import System
+from selfid_jax.systems.spec import SystemSpec, build_system, system_name
 
 
 class ValidRegionConfig(BaseConfig):
@@ -48,18 +44,24 @@ class ValidRegionConfig(BaseConfig):
     """
 
     experiment: Literal["valid_region"] = "valid_region"
-    systems: Annotated[list[Literal["two_link", "ur5e"]], Field(min_length=1)]
+    systems: Annotated[list[SystemSpec], Field(min_length=1, description="built-in names or {mjcf: ...} / {pose_fn: ...}")]
     eps_limits: EpsLimits
-    n_configs: int = Field(ge=1)
-    n_trials: int = Field(ge=1)
+    n_configs: int = Field(ge=1, le=10**5)
+    n_trials: int = Field(ge=1, le=10**5)
     controller: ControllerConfig = ControllerConfig()
     path: PathConfig
     completion_threshold: float = Field(0.95, gt=0, le=1)
 
     @field_validator("systems")
     @classmethod
-    def _unique(cls, systems: list[str]) -> list[str]:
-        return unique(systems, "systems")
+    def _unique(cls, systems: list) -> list:
+        unique([system_name(s) for s in systems], "system names")
+        return systems
+
+    @model_validator(mode="after")
+    def _tolerance_fits_path(self):
+        self.path.check_controller(self.controller)
+        return self
 
 
 class Static(NamedTuple):
@@ -108,8 +110,8 @@ def compute(static: Static, p: Params) -> Outputs:
 def build(cfg: ValidRegionConfig) -> list[Part]:
     """One part per system: ``eps_limits x n_configs x n_trials`` rollouts from feasible start configurations."""
     parts = []
-    for name in cfg.systems:
-        system = SYSTEMS[name]()
+    for spec in cfg.systems:
+        name, system = system_name(spec), build_system(spec)
         path = paths.star(size=cfg.path.size, dim=system.task_dim)
         meta = grid_table(
             {

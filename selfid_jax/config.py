@@ -72,7 +72,8 @@ def yaml_load(text: str) -> Any:
 
 # --------------------------------------------------------------------------- models
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True)
+# Every float field is finite (allow_inf_nan=False): .inf/.nan are refused with the key's name.
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class BaseConfig(BaseModel):
@@ -81,8 +82,8 @@ class BaseConfig(BaseModel):
     model_config = _STRICT
 
     experiment: str
-    seed: int = 0
-    chunk_size: int = Field(256, gt=0, description="rollouts per compiled chunk")
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="PRNG seed (JAX keys hold 32 bits)")
+    chunk_size: int = Field(256, gt=0, le=10**7, description="rollouts per compiled chunk")
     name: str | None = None
 
 
@@ -91,9 +92,9 @@ class EpsLimits(BaseModel):
 
     model_config = _STRICT
 
-    start: float = Field(ge=0)
-    stop: float = Field(description="greater than start")
-    num: int = Field(ge=2, description="number of grid points")
+    start: float = Field(ge=0, le=100)
+    stop: float = Field(le=100, description="greater than start")
+    num: int = Field(ge=2, le=10**5, description="number of grid points")
 
     @field_validator("stop")
     @classmethod
@@ -118,12 +119,12 @@ class ControllerConfig(BaseModel):
 
     model_config = _STRICT
 
-    max_step: float = Field(0.0025, gt=0, description="largest POM step per control step [m]")
-    tol: float = Field(0.0005, gt=0, description="waypoint reached when closer than this [m]")
-    steps: int = Field(435, ge=1, description="control-step budget per rollout")
-    gain: float = Field(1.0, gt=0, description="fraction of the correction applied per step")
-    max_rot_step: float = Field(0.05, gt=0, description="largest rotation step per control step [rad] (6-D tasks)")
-    rot_tol: float = Field(0.01, gt=0, description="waypoint orientation reached within this [rad] (6-D tasks)")
+    max_step: float = Field(0.0025, gt=0, le=1, description="largest POM step per control step [m]")
+    tol: float = Field(0.0005, gt=0, le=1, description="waypoint reached when closer than this [m]")
+    steps: int = Field(435, ge=1, le=10**6, description="control-step budget per rollout")
+    gain: float = Field(1.0, gt=0, le=10, description="fraction of the correction applied per step")
+    max_rot_step: float = Field(0.05, gt=0, le=3.14, description="largest rotation step per control step [rad] (6-D tasks)")
+    rot_tol: float = Field(0.01, gt=0, le=3.14, description="waypoint orientation reached within this [rad] (6-D tasks)")
 
     def traced(self) -> dict[str, float]:
         """The swept numbers (every field but ``steps``), the fields of ``control.ControllerParams``."""
@@ -136,7 +137,13 @@ class PathConfig(BaseModel):
     model_config = _STRICT
 
     kind: Literal["star"] = "star"
-    size: float = Field(gt=0, description="path extent [m]")
+    size: float = Field(gt=0, le=10, description="path extent [m]")
+
+    def check_controller(self, controller: ControllerConfig) -> None:
+        """``ValueError`` unless the tolerance is below half the path's size (else waypoints count as reached at the start)."""
+        if not controller.tol < self.size / 2:
+            raise ValueError(f"controller.tol ({controller.tol}) must be below half of path.size ({self.size}): "
+                             "waypoints would count as reached without moving")
 
 
 def unique(values: list, what: str) -> list:
@@ -250,7 +257,7 @@ def load_config(
             known = ", ".join(available()) or "(none installed)"
             raise ConfigError(f"{path}: key 'experiment': unknown experiment {name!r}; allowed: one of {known}")
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context={"config_dir": path.parent.resolve()})
     except ValidationError as err:
         lines = [_format_error(path, model, e, set_keys) for e in err.errors()]
         raise ConfigError("\n".join(lines)) from None
@@ -358,7 +365,8 @@ def _describe(tp: Any, meta: list[Any], doc: str | None = None) -> str:
 
 
 def _format_error(path: Path, model: type[BaseModel], err: Mapping[str, Any], set_keys: Mapping[str, str]) -> str:
-    loc = tuple(err["loc"])
+    # union members are tagged "<name>" (e.g. systems.spec.SystemSpec): not part of the user's key
+    loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and p.startswith("<")))
     key = _dotted(loc) or "(top level)"
     kind = err["type"]
     msg = str(err["msg"])

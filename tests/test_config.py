@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import textwrap
 
 import numpy as np
@@ -135,3 +136,49 @@ def test_registered_model_and_parse_override(tmp_path):
     assert isinstance(cfg, Tiny) and cfg.scale == 2.0 and cfg.chunk_size == 8
     assert parse_override("a.b=[1, 2.5e-3]") == (("a", "b"), [1, 0.0025])
     assert apply_overrides({"a": {"c": 1}}, ["a.b=x"]) == {"a": {"c": 1, "b": "x"}}
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("controller.tol=.inf", "controller.tol"),
+        ("controller.max_step=.nan", "controller.max_step"),
+        ("eps_limits.stop=.inf", "eps_limits.stop"),
+        ("path.size=.inf", "path.size"),
+        ("seed=9223372036854775808", "seed"),
+        ("seed=-1", "seed"),
+        ("controller.tol=0.3", "controller.tol"),  # not below half the path size (0.5 m)
+    ],
+)
+def test_non_finite_and_out_of_range_numbers_are_refused(cfg_file, override, key):
+    msg = _error(cfg_file, [override])
+    assert str(cfg_file) in msg and key in msg, msg
+
+
+def test_ablation_refuses_infinite_eps_and_noise(tmp_path):
+    import yaml
+
+    base = {"experiment": "ablation", "methods": [{"name": "ours", "method": "ours"}], "iterations": [1],
+            "n_configs": 1, "n_trials": 1, "pose_noise": [0.0], "rot_noise": [0.0], "m_a": [0.03], "eps": 0.5,
+            "path": {"size": 0.05}}
+    path = tmp_path / "abl.yaml"
+    for change, key in (({"eps": float("inf")}, "eps"), ({"pose_noise": [float("inf")]}, "pose_noise[0]"),
+                        ({"methods": [{"name": "r", "method": "rls", "options": {"lam": float("nan")}}]}, "methods")):
+        path.write_text(yaml.safe_dump({**base, **change}))
+        with pytest.raises(ConfigError, match=re.escape(f"key '{key}")):
+            load_config(path)
+
+
+def test_system_specs_name_the_problem_and_resolve_paths(cfg_file, tmp_path):
+    msg = _error(cfg_file, ["systems=[{mjcf: robots/arm.xml, site: tip}]"])
+    assert "key 'systems[0].mjcf'" in msg and str(tmp_path / "robots" / "arm.xml") in msg and "relative to the config" in msg
+    msg = _error(cfg_file, ["systems=[{site: tip}]"])
+    assert "key 'systems[0]'" in msg and "'mjcf' or a 'pose_fn' key" in msg
+    msg = _error(cfg_file, ["systems=[{pose_fn: 'not a target', n_act: 2}]"])
+    assert "key 'systems[0].pose_fn'" in msg
+    (tmp_path / "robots").mkdir()
+    (tmp_path / "robots" / "arm.xml").write_text("<mujoco/>")
+    cfg = load_config(cfg_file, ["systems=[two_link, {mjcf: robots/arm.xml, site: tip, m_a: [0.01, 0.02]}]"])
+    assert cfg.systems[1].mjcf == str((tmp_path / "robots" / "arm.xml").resolve())
+    msg = _error(cfg_file, ["systems=[two_link, {mjcf: robots/arm.xml, site: tip, name: two_link}]"])
+    assert "repeated: two_link" in msg

@@ -1,0 +1,198 @@
+"""Systems named in configs: a built-in name, an MJCF file with a site, or a pose function ``package.module:function``.
+
+In YAML::
+
+    systems: [two_link, ur5e]                       # built-in robots (selfid_jax.systems.BUILTIN)
+    system:                                         # any MuJoCo robot, no Python
+      mjcf: robots/my_arm.xml                       # relative to the config file
+      site: tip                                     # the point of manipulation
+      actuators: [shoulder, elbow, wrist]           # default: every actuator of the model
+      joints_fixed: {gripper_slide: 0.01}           # joints held away from qpos0
+      task_dim: 3
+      m_a: [0.03, 0.03, 0.05]                       # per actuator, or one number
+      home: [0.0, -0.8, 1.2]                        # centre of the start-configuration box
+      sample_half_width: 0.4                        # box half-width around home [rad or m]
+    system:                                         # a pure JAX pose function
+      pose_fn: my_package.robots:planar_three_link  # fn(params, q) -> (p, R) or p
+      n_act: 3
+      task_dim: 2
+      params: [0.5, 0.4, 0.3]
+      q_low: -3.0
+      q_high: 3.0
+      m_a: 0.02
+      sample_box: {low: [-1, 0.3, 0.3], high: [1, 1.5, 1.5]}
+
+:func:`build_system` turns a validated spec into a :class:`~selfid_jax.systems.System`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
+
+from selfid_jax.systems.system import System
+
+__all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "system_name"]
+
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+Numbers = Union[float, list[float]]
+
+
+def _builtin():
+    from selfid_jax.systems.two_link import two_link
+    from selfid_jax.systems.ur5e import ur5e
+
+    return {"two_link": lambda: two_link(), "ur5e": lambda: ur5e(task_dim=3)}
+
+
+BUILTIN_FACTORIES = ("two_link", "ur5e")
+"""Names a config may use for the shipped robots (position tasks: 2-link xy, UR5e xyz)."""
+
+
+class SampleBox(BaseModel):
+    """A box of start configurations, actuator units (rad or m)."""
+
+    model_config = _STRICT
+
+    low: list[float] = Field(min_length=1)
+    high: list[float] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if len(self.low) != len(self.high) or any(lo > hi for lo, hi in zip(self.low, self.high)):
+            raise ValueError(f"low and high must have equal lengths and low <= high, got {self.low} and {self.high}")
+        return self
+
+
+class MjcfSystem(BaseModel):
+    """A MuJoCo model: the actuation space is its actuators (or the named subset)."""
+
+    model_config = _STRICT
+
+    mjcf: str = Field(description="MJCF file, relative to the config file")
+    site: str = Field(min_length=1, description="name of the POM site")
+    actuators: list[str] | None = Field(None, min_length=1, description="actuator names (default: all)")
+    joints_fixed: dict[str, float] | None = Field(None, description="joint name -> held value (rad or m)")
+    task_dim: Literal[2, 3, 6] = 3
+    m_a: Numbers = Field(0.03, description="self-ID magnitude, one number or one per actuator [rad or m]")
+    dq_max: Numbers = Field(0.1, description="largest actuator step per control step [rad or m]")
+    home: list[float] | None = Field(None, description="centre of the start box (default: qpos0)")
+    sample_half_width: float | None = Field(None, gt=0, description="half-width of the start box around home")
+    sample_box: SampleBox | None = Field(None, description="explicit start box (instead of home +- half-width)")
+    min_sigma: float = Field(1e-3, ge=0, description="start configurations need sigma_min(J) above this")
+    name: str | None = Field(None, min_length=1, description="label (default: the file's stem)")
+
+    @field_validator("mjcf")
+    @classmethod
+    def _resolve(cls, value: str, info: ValidationInfo) -> str:
+        base = (info.context or {}).get("config_dir")
+        path = Path(value).expanduser()
+        if not path.is_absolute() and base is not None:
+            path = Path(base) / path
+        if not path.is_file():
+            raise ValueError(f"MJCF file {str(path)!r} not found" + (" (relative paths are relative to the config file)"
+                                                                      if base is not None else ""))
+        return str(path.resolve())
+
+    @field_validator("m_a", "dq_max")
+    @classmethod
+    def _positive(cls, value: Numbers) -> Numbers:
+        values = value if isinstance(value, list) else [value]
+        if not values or any(v <= 0 for v in values):
+            raise ValueError(f"must be > 0 (one number or one per actuator), got {value}")
+        return value
+
+
+class PoseFnSystem(BaseModel):
+    """A pure JAX pose function ``fn(params, q) -> (p (3,), R (3, 3))`` or ``-> p``, importable by name."""
+
+    model_config = _STRICT
+
+    pose_fn: str = Field(pattern=r"^[\w.]+:\w+$", description="'package.module:function'")
+    n_act: int = Field(ge=1, le=1000)
+    task_dim: Literal[2, 3, 6] = 3
+    params: list[float] | None = Field(None, description="passed to the pose function as an array")
+    q_low: Numbers = -3.14159
+    q_high: Numbers = 3.14159
+    dq_max: Numbers = 0.1
+    m_a: Numbers = 0.03
+    sample_box: SampleBox | None = None
+    min_sigma: float = Field(1e-3, ge=0)
+    name: str | None = Field(None, min_length=1)
+
+
+def _kind(value) -> str | None:
+    if isinstance(value, str):
+        return "<builtin>"
+    if isinstance(value, MjcfSystem) or (isinstance(value, dict) and "mjcf" in value):
+        return "<mjcf>"
+    if isinstance(value, PoseFnSystem) or (isinstance(value, dict) and "pose_fn" in value):
+        return "<pose_fn>"
+    return None
+
+
+SystemSpec = Annotated[
+    Union[
+        Annotated[Literal[BUILTIN_FACTORIES], Tag("<builtin>")],  # type: ignore[valid-type]
+        Annotated[MjcfSystem, Tag("<mjcf>")],
+        Annotated[PoseFnSystem, Tag("<pose_fn>")],
+    ],
+    Discriminator(
+        _kind,
+        custom_error_type="system_spec",
+        custom_error_message="a system is a built-in name ('two_link', 'ur5e') or a mapping with an 'mjcf' or a "
+        "'pose_fn' key",
+    ),
+]
+"""What a config's ``system`` / ``systems`` entries accept (config errors drop the ``<tag>`` parts of keys)."""
+
+
+def system_name(spec) -> str:
+    """The label of a system spec: the built-in name, ``name``, the MJCF file stem or the function name."""
+    if isinstance(spec, str):
+        return spec
+    if spec.name is not None:
+        return spec.name
+    if isinstance(spec, MjcfSystem):
+        return Path(spec.mjcf).stem
+    return spec.pose_fn.rsplit(":", 1)[1]
+
+
+def _import(target: str):
+    module, _, attr = target.partition(":")
+    try:
+        fn = getattr(importlib.import_module(module), attr)
+    except (ImportError, AttributeError) as err:
+        raise ValueError(f"pose_fn {target!r}: cannot import ({err})") from None
+    if not callable(fn):
+        raise ValueError(f"pose_fn {target!r} is not callable")
+    return fn
+
+
+def build_system(spec) -> System:
+    """The :class:`System` a validated spec describes (``ValueError`` naming the problem if it cannot be built)."""
+    import numpy as np
+
+    if isinstance(spec, str):
+        factories = _builtin()
+        if spec not in factories:
+            raise ValueError(f"unknown system {spec!r}; built-in: {', '.join(factories)}")
+        return factories[spec]()
+    box = {} if spec.sample_box is None else {"sample_low": spec.sample_box.low, "sample_high": spec.sample_box.high}
+    if isinstance(spec, MjcfSystem):
+        from selfid_jax.systems.mjcf import from_mjcf
+
+        extra = {k: getattr(spec, k) for k in ("actuators", "joints_fixed", "home", "sample_half_width")
+                 if getattr(spec, k) is not None}
+        return from_mjcf(spec.mjcf, spec.site, task_dim=spec.task_dim, m_a=spec.m_a, dq_max=spec.dq_max,
+                         min_sigma=spec.min_sigma, name=system_name(spec), **extra, **box)
+    from selfid_jax.systems.system import from_pose_fn
+
+    params = None if spec.params is None else np.asarray(spec.params)
+    return from_pose_fn(_import(spec.pose_fn), spec.n_act, task_dim=spec.task_dim, q_low=spec.q_low,
+                        q_high=spec.q_high, dq_max=spec.dq_max, m_a=spec.m_a, params=params,
+                        min_sigma=spec.min_sigma, name=system_name(spec), **box)
