@@ -276,6 +276,9 @@ def test_position_only_3d_and_full_pose_fns():
         return jnp.stack([q[0], q[1], q[0] * q[1]])
 
     s = from_pose_fn(p3, 2, task_dim=3, q_low=-1, q_high=1, dq_max=0.1, m_a=0.01)
+    np.testing.assert_allclose(s.m_a, [0.01, 0.01])  # scalar broadcast; a vector is kept per actuator
+    np.testing.assert_allclose(from_pose_fn(p3, 2, task_dim=3, q_low=-1, q_high=1, dq_max=0.1, m_a=[0.01, 0.03]).m_a,
+                               [0.01, 0.03])
     p, R, J, _, _ = evaluate(s, np.array([[0.2, 0.5]]))
     np.testing.assert_allclose(p[0], [0.2, 0.5, 0.1])
     np.testing.assert_allclose(R[0], np.eye(3))
@@ -309,7 +312,8 @@ def _good_kwargs(**over):
         ((three_link_xy, 3, dict(q_low=[0.0, 0.0])), r"q_low must have shape \(3,\)"),
         ((three_link_xy, 3, dict(q_low=1.0, q_high=0.0)), "q_low must be < q_high"),
         ((three_link_xy, 3, dict(dq_max=-0.1)), "dq_max must be positive"),
-        ((three_link_xy, 3, dict(m_a=[0.1, 0.1])), "m_a must be a scalar"),
+        ((three_link_xy, 3, dict(m_a=[0.1, 0.1])), r"m_a must have shape \(3,\) \(one value per actuator"),
+        ((three_link_xy, 3, dict(m_a=[0.1, -0.1, 0.1])), "m_a must be positive"),
         ((three_link_xy, 3, dict(m_a=0.0)), "m_a must be positive"),
         ((three_link_xy, 3, dict(q_low=-np.inf, q_high=np.inf)), "sampling box must be finite"),
         ((three_link_xy, 3, dict(sample_low=-4.0)), "inside the joint limits"),
@@ -353,7 +357,7 @@ def test_from_mjcf_chain_and_mjx_match_mujoco_on_a_general_tree():
     qs = np.random.default_rng(7).uniform([-2, -0.2, -3], [2, 0.2, 3], size=(5, 3))
     p_ref, R_ref, jacp, jacr = mj_site_jacobian(mj, qs, site="tip")
     box = dict(sample_low=[-1.0, -0.1, -1.0], sample_high=[1.0, 0.1, 1.0])
-    chain = from_mjcf(SMALL_XML, "tip", task_dim=6, m_a=0.02, fk="chain", **box)
+    chain = from_mjcf(SMALL_XML, "tip", actuators="joints", task_dim=6, m_a=0.02, fk="chain", **box)
     assert chain.n_act == 3
     np.testing.assert_allclose(chain.q_low, [-2, -0.2, -np.inf])
     p, R, J, _, _ = evaluate(chain, qs)
@@ -363,7 +367,7 @@ def test_from_mjcf_chain_and_mjx_match_mujoco_on_a_general_tree():
     np.testing.assert_allclose(J[:, 3:], jacr, atol=JAC_TOL)
     # The MJX path: pose and one Jacobian-vector product (cheaper to compile
     # than jacfwd through mjx.kinematics).
-    mjx_sys = from_mjcf(SMALL_XML, "tip", task_dim=6, m_a=0.02, fk="mjx", **box)
+    mjx_sys = from_mjcf(SMALL_XML, "tip", actuators="joints", task_dim=6, m_a=0.02, fk="mjx", **box)
     v = np.array([0.3, -0.7, 0.5])
 
     @jax.jit
@@ -384,8 +388,13 @@ def test_from_mjcf_errors(tmp_path):
     missing = tmp_path / "missing.xml"
     with pytest.raises(ValueError, match="missing.xml"):
         from_mjcf(missing, "ee", task_dim=3, m_a=0.02)
-    ball = "<mujoco><worldbody><body><joint type='ball'/><geom size='.1'/><site name='s'/></body></worldbody></mujoco>"
-    with pytest.raises(ValueError, match="hinge or slide"):
+    ball = (
+        "<mujoco><worldbody><body><joint name='b' type='ball'/><geom size='.1'/><body><joint name='h'/>"
+        "<geom size='.1'/><site name='s'/></body></body></worldbody></mujoco>"
+    )
+    with pytest.raises(ValueError, match="'b' is a ball joint on the kinematic chain of site 's'"):
+        from_mjcf(ball, "s", actuators="joints", task_dim=3, m_a=0.02)
+    with pytest.raises(ValueError, match="no actuators .*actuators='joints'"):
         from_mjcf(ball, "s", task_dim=3, m_a=0.02)
     with pytest.raises(ValueError, match="fk must be"):
         from_mjcf(UR5E_XML, "ee", task_dim=3, m_a=0.02, fk="dh")
@@ -431,8 +440,9 @@ def test_system_is_a_pytree_through_jit_without_retracing(arm2):
         return system.apply(q, dtheta), system.true_inverse_jacobian(q), system.m_a
 
     q = jnp.array([0.3, 1.0])
+    assert s.m_a.shape == (2,)  # a scalar m_a is broadcast to one value per actuator
     for m_a, dq in [(0.01, 0.1), (0.02, 0.2), (0.05, 0.05)]:  # data fields: no retrace
-        sys_i = s.replace(m_a=jnp.asarray(m_a, s.m_a.dtype), dq_max=jnp.full(2, dq, s.dq_max.dtype))
+        sys_i = s.replace(m_a=jnp.full(2, m_a, s.m_a.dtype), dq_max=jnp.full(2, dq, s.dq_max.dtype))
         q_new, Jinv, m = step(sys_i, q, jnp.array([1.0, -1.0]))
         np.testing.assert_allclose(q_new, q + np.array([dq, -dq]))
         np.testing.assert_allclose(m, m_a)
@@ -457,9 +467,9 @@ def test_mjx_model_is_a_traced_pytree(ur_mjx):
     np.testing.assert_allclose(pose_one(ur_mjx, q)[0], dh_fk(q)[0], atol=POS_TOL)  # same compiled fn
 
 
-def test_vmap_over_mjx_model_field(ur6):
-    # A sweep over the flange offset: vmap over one field of the mjx.Model in
-    # params (the chain FK reads site_pos from the model like mjx does).
+def test_vmap_over_chain_model_field(ur6):
+    # A sweep over the flange offset: vmap over one field of the ChainModel in
+    # params (the chain FK reads site_pos with the MjModel's indexing).
     q = random_q(6, 1, seed=9)[0]
     site_pos = jnp.stack([ur6.params.site_pos, ur6.params.site_pos + jnp.array([[0.0, 0.0, 0.1]])])
     axes = jax.tree_util.tree_map(lambda _: None, ur6)

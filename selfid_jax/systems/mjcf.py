@@ -1,290 +1,200 @@
-"""MJCF systems: pose maps of an MJCF site and the :func:`from_mjcf` builder.
+"""MJCF systems: :func:`from_mjcf` builds a :class:`System` from a MuJoCo model, its actuators and a site.
 
-Two pose maps read the same ``mjx.Model`` (stored in ``System.params``):
-:class:`MjxSitePose` runs ``mjx.kinematics``; :class:`ChainSitePose` walks the
-joint chain from the world to the site in plain JAX and also gives the
-world-frame site Jacobian ``(6, nq)`` from the same walk (the hot path of
-UR5e rollouts). Both map ``q`` (``(nq,)``, rad / m, ``q = qpos``) to
-``(p (3,), R (3, 3))`` in the model's length unit.
+The actuation space is the model's actuators (the ``q -> qpos`` map of
+:mod:`selfid_jax.systems.actuation`); the pose maps are those of
+:mod:`selfid_jax.systems.kinematics` (:class:`ChainSitePose`, a plain-JAX
+walk of the joint chain, or :class:`MjxSitePose`, ``mjx.kinematics``).
+Only kinematics are used, so any integrator, solver or option loads.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 
-import jax.numpy as jnp
-import jaxlie
 import numpy as np
 
-from selfid_jax import geometry
+from selfid_jax.systems.actuation import build_actuation
+from selfid_jax.systems.kinematics import (
+    ChainModel,
+    ChainSitePose,
+    MjxSitePose,
+    chain_site_pose,
+    kinematic_mjx_model,
+)
 from selfid_jax.systems.system import System, make_system
-from selfid_jax.systems.validation import vector
+from selfid_jax.systems.validation import check_task_dim, vector
 
-__all__ = ["from_mjcf", "MjxSitePose", "ChainSitePose"]
+__all__ = ["from_mjcf", "MjxSitePose", "ChainSitePose", "ChainModel", "HINGE_HALF_WIDTH", "RANGE_FRACTION"]
 
-
-def _mjx():
-    """``mujoco.mjx``, imported with its stdout notices about the optional Warp backend silenced."""
-    import contextlib
-    import io
-
-    with contextlib.redirect_stdout(io.StringIO()):
-        from mujoco import mjx
-    return mjx
+#: Default sampling half-width (rad) around home for actuators that move hinges only.
+HINGE_HALF_WIDTH = 0.5
+#: Default sampling half-width of other actuators (slides, tendons), as a fraction of their finite range.
+RANGE_FRACTION = 0.25
 
 
-@dataclasses.dataclass(frozen=True)
-class MjxSitePose:
-    """Pose map of an MJCF site by ``mjx.kinematics``: ``(mjx.Model, q) -> (site_xpos, site_xmat)``.
-
-    ``q`` is written into ``qpos`` (hinge/slide joints only, so ``q = qpos``).
-    Hashable by value, so systems rebuilt from the same file share compiled
-    code.
-    """
-
-    site_id: int
-
-    def __call__(self, model, q):
-        mjx = _mjx()
-
-        d = mjx.make_data(model)
-        d = d.replace(qpos=jnp.asarray(q, dtype=d.qpos.dtype))
-        d = mjx.kinematics(model, d)
-        return d.site_xpos[self.site_id], d.site_xmat[self.site_id].reshape(3, 3)
-
-
-@dataclasses.dataclass(frozen=True)
-class ChainSitePose:
-    """Pose map of an MJCF site by a plain-JAX product of joint transforms.
-
-    Walks only the bodies from the world to the site's body (static indices),
-    reading ``body_pos``, ``body_quat``, ``jnt_pos``, ``jnt_axis``, ``qpos0``,
-    ``site_pos`` and ``site_quat`` from the ``mjx.Model`` in ``params`` (so it
-    follows the MJCF, including a swept/batched model), with rotation matrices
-    instead of MJX's quaternions and without computing every body, geom and
-    site. Same convention as MuJoCo: a hinge rotates about its anchor by
-    ``qpos - qpos0``; a slide translates by ``qpos - qpos0``. The constant
-    body rotations and all joint rotations are built in one vectorised step
-    each, which keeps tracing and compilation short.
-
-    Attributes:
-      site_id: site index.
-      bodies: body ids from the world's child down to the site's body.
-      joints: per body, tuple of ``(joint id, qpos address, is_hinge)``.
-    """
-
-    site_id: int
-    bodies: tuple[int, ...]
-    joints: tuple[tuple[tuple[int, int, bool], ...], ...]
-
-    def __call__(self, model, q):
-        p, R, _ = self._walk(model, q)
-        return p, R
-
-    def jacobian(self, model, q):
-        """Site Jacobian ``(6, nq)`` in the world frame: rows ``[dp/dq; omega/dq]`` (as ``mj_jacSite``).
-
-        Hinge column ``i``: ``[a_i x (p - c_i); a_i]`` with world axis ``a_i`` and
-        anchor ``c_i``; slide column: ``[a_i; 0]``. Computed from the same walk as
-        the pose, so it costs about one forward-kinematics pass instead of the
-        ``nq + 1`` of ``jax.jacfwd``.
-        """
-        return self.pose_and_jacobian(model, q)[1]
-
-    def pose_and_jacobian(self, model, q):
-        """``((p, R), J (6, nq))`` from one walk: the pose of :meth:`__call__` and :meth:`jacobian`."""
-        p, R, joints = self._walk(model, q)
-        nq = jnp.shape(q)[-1]
-        cols = [jnp.zeros(6, p.dtype)] * nq
-        for adr, is_hinge, axis_w, anchor in joints:
-            if is_hinge:
-                cols[adr] = jnp.concatenate([jnp.cross(axis_w, p - anchor), axis_w])
-            else:
-                cols[adr] = jnp.concatenate([axis_w, jnp.zeros(3, p.dtype)])
-        return (p, R), jnp.stack(cols, axis=1)
-
-    def _walk(self, model, q):
-        """World pose of the site and, per joint, ``(qpos address, is_hinge, world axis, world anchor)``."""
-        q = jnp.asarray(q)
-        dtype = jnp.result_type(q, model.body_pos)
-        bodies = np.asarray(self.bodies, dtype=np.int32)
-        flat = [jt for jnts in self.joints for jt in jnts]
-        jid = np.asarray([j for j, _, _ in flat], dtype=np.int32)
-        adr = np.asarray([a for _, a, _ in flat], dtype=np.int32)
-
-        body_p = model.body_pos[bodies].astype(dtype)  # (nb, 3)
-        body_R = jaxlie.SO3(model.body_quat[bodies].astype(dtype)).as_matrix()  # (nb, 3, 3); quats (w, x, y, z)
-        if len(flat):
-            angle = (q[adr] - model.qpos0[adr]).astype(dtype)  # (nj,)
-            axis = model.jnt_axis[jid].astype(dtype)  # (nj, 3)
-            jpos = model.jnt_pos[jid].astype(dtype)  # (nj, 3)
-            k = geometry.hat(axis)
-            eye = jnp.broadcast_to(jnp.eye(3, dtype=dtype), k.shape)
-            # Rodrigues for unit axes (MuJoCo normalises jnt_axis): smooth, no division. Kept over
-            # geometry.so3_exp (jaxlie): that costs ~1.5x in this walk and ~5-10% in rollout compile time.
-            joint_R = eye + jnp.sin(angle)[:, None, None] * k + (1.0 - jnp.cos(angle))[:, None, None] * (k @ k)
-
-        pos = jnp.zeros(3, dtype)
-        rot = jnp.eye(3, dtype=dtype)
-        joints = []
-        i = 0
-        for b, jnts in enumerate(self.joints):
-            pos = pos + rot @ body_p[b]
-            rot = rot @ body_R[b]
-            for _, qadr, is_hinge in jnts:
-                axis_w = rot @ axis[i]
-                if is_hinge:
-                    anchor = pos + rot @ jpos[i]
-                    rot = rot @ joint_R[i]
-                    pos = anchor - rot @ jpos[i]
-                    joints.append((qadr, True, axis_w, anchor))
-                else:
-                    pos = pos + axis_w * angle[i]
-                    joints.append((qadr, False, axis_w, None))
-                i += 1
-        p = pos + rot @ model.site_pos[self.site_id].astype(dtype)
-        R = rot @ jaxlie.SO3(model.site_quat[self.site_id].astype(dtype)).as_matrix()
-        return p, R, joints
-
-
-def _load_mjmodel(path_or_xml):
+def _load_mjmodel(path_or_model):
     import mujoco
 
-    if isinstance(path_or_xml, mujoco.MjModel):
-        return path_or_xml, "<MjModel>"
-    if isinstance(path_or_xml, (str, os.PathLike)) and not str(path_or_xml).lstrip().startswith("<"):
-        label = os.fspath(path_or_xml)
+    if isinstance(path_or_model, mujoco.MjModel):
+        return path_or_model, "<MjModel>"
+    if isinstance(path_or_model, (str, os.PathLike)) and not str(path_or_model).lstrip().startswith("<"):
+        label = os.fspath(path_or_model)
         try:
             return mujoco.MjModel.from_xml_path(label), label
         except Exception as e:  # noqa: BLE001 - mujoco raises ValueError/Exception
             raise ValueError(f"could not load MJCF file {label!r}: {e}") from e
-    if isinstance(path_or_xml, str):
+    if isinstance(path_or_model, str):
         try:
-            return mujoco.MjModel.from_xml_string(path_or_xml), "<xml string>"
+            return mujoco.MjModel.from_xml_string(path_or_model), "<xml string>"
         except Exception as e:  # noqa: BLE001
             raise ValueError(f"could not parse MJCF XML string: {e}") from e
-    raise ValueError(f"path_or_xml must be a path, an XML string or a mujoco.MjModel, got {type(path_or_xml)}")
+    raise ValueError(f"path_or_model must be a path, an XML string or a mujoco.MjModel, got {type(path_or_model)}")
+
+
+def _sampling_box(act, q_low, q_high, home, sample_half_width):
+    """``(low, high)`` ``(n,)``: ``home +- half-width`` clipped to ``[q_low, q_high]`` (see :func:`from_mjcf`)."""
+    n = len(act.qmap.names)
+    if home is None:
+        home = np.clip(act.home, q_low, q_high)
+    else:
+        home = vector("home", home, n)
+        if np.any(home < q_low) or np.any(home > q_high):
+            raise ValueError(f"home {home} must lie inside the limits [{q_low}, {q_high}]")
+    if sample_half_width is None:
+        width = np.where(act.hinge_only, HINGE_HALF_WIDTH, RANGE_FRACTION * (q_high - q_low))
+        bad = [f"{nm!r} ({d})" for nm, d, w in zip(act.qmap.names, act.descs, width) if not np.isfinite(w)]
+        if bad:
+            raise ValueError(
+                f"actuators {', '.join(bad)} move slides or tendons and have no finite range: pass "
+                "sample_half_width (actuator units) or sample_low/sample_high"
+            )
+    else:
+        width = vector("sample_half_width", sample_half_width, n)
+        if not np.all((width > 0) & np.isfinite(width)):
+            raise ValueError(f"sample_half_width must be positive and finite, got {width}")
+    return np.maximum(q_low, home - width), np.minimum(q_high, home + width)
 
 
 def from_mjcf(
-    path_or_xml,
+    path_or_model,
     site: str,
     *,
+    actuators=None,
+    joints_fixed=None,
     task_dim: int,
     m_a,
+    fk: str = "chain",
+    home=None,
+    sample_half_width=None,
     dq_max=0.1,
     q_low=None,
     q_high=None,
     sample_low=None,
     sample_high=None,
     min_sigma: float = 1e-3,
-    fk: str = "mjx",
     name: str | None = None,
 ) -> System:
-    """Build a :class:`System` from an MJCF model and the name of the POM site.
+    """A :class:`System` from an MJCF model: actuator coordinates ``q (n_act,)`` -> pose of site ``site``.
 
-    The actuators are the model's joints, which must all be hinge or slide
-    joints (``q = qpos``, ``n_act = nq``). Joint limits come from
-    ``jnt_range`` for limited joints, else +-inf (override with
-    ``q_low``/``q_high``); the sampling box defaults to the limits, with
-    ``[-pi, pi]`` for unlimited hinges (unlimited slides need an explicit box).
+    Actuation (:func:`~selfid_jax.systems.actuation.build_actuation`): ``q_i``
+    is actuator ``i``'s transmission length without gear (rad / m): its joint's
+    ``qpos`` for a joint transmission, its fixed tendon's length
+    ``sum_k coef_k qpos_k`` for a tendon transmission. ``qpos(q)`` is the
+    least-norm joint motion from ``qpos0`` (``joints_fixed`` applied) meeting
+    the actuator lengths and the active linear joint/tendon equalities: a
+    tendon alone moves joint ``k`` by ``coef_k (q - L0) / sum coef^2``, an
+    equality follower follows its driver, every other joint stays at
+    ``qpos0``/``joints_fixed``. Free and ball joints off the site's chain stay
+    at ``qpos0``; on the chain they are an error. Connect/weld/distance
+    equalities are ignored. ``System.jacobian`` is ``d task / d q`` (the joint
+    geometric Jacobian times the static map ``A = d qpos / d q``).
 
-    The ``mjx.Model`` is stored in ``params`` as a traced pytree: MJX marks its
-    ``jax.Array`` fields as data and its ints/numpy arrays/enums (``nq``,
-    ``jnt_type``, ``body_parentid``...) as hashable static metadata, so the
-    whole ``System`` passes through ``jit``/``vmap`` (checked with MJX 3.17),
-    and a sweep can batch model fields (e.g. ``body_pos``) with ``in_axes``.
+    Limits (default ``q_low``/``q_high``): the intersection of the ranges of
+    the limited joints an actuator moves, its tendon's range and, for position
+    servos (fixed gain, affine bias with ``biasprm[1] < 0``), its ``ctrlrange``
+    mapped to a length; +-inf where none applies (a motor's ``ctrlrange`` is a
+    force and is not used).
+
+    Sampling box (default): ``home +- sample_half_width`` clipped to the
+    limits, ``home`` = ``qpos0`` in actuator coordinates (clipped to the
+    limits), half-width :data:`HINGE_HALF_WIDTH` = 0.5 rad for actuators moving
+    hinges only, else :data:`RANGE_FRACTION` = 1/4 of the actuator's range.
+
+    Only kinematics are used: ``fk="chain"`` stores just the arrays the walk
+    needs (:class:`ChainModel`) and never calls ``mjx.put_model``; ``fk="mjx"``
+    puts a kinematics-only copy (:func:`~selfid_jax.systems.kinematics.kinematic_mjx_model`:
+    Euler integrator, Newton solver, pyramidal cones, dense Jacobian, no enable
+    flags, fluid or contacts, unsupported types replaced), so any integrator
+    (``implicit``...), solver or option loads.
 
     Args:
-      path_or_xml: MJCF file path, XML string, or a ``mujoco.MjModel``.
+      path_or_model: MJCF file path, XML string, or a ``mujoco.MjModel``.
       site: name of the POM site.
+      actuators: None (all actuators with a joint or fixed-tendon
+        transmission; others skipped with a warning), a list of actuator names
+        (in ``q`` order), or ``"joints"`` (every hinge/slide joint, ``q = qpos``).
+      joints_fixed: ``{joint name: value}`` (rad / m) for undriven hinge/slide joints.
       task_dim: 2, 3 or 6.
-      m_a: safe self-ID magnitude (scalar, rad / m).
-      dq_max: per-step actuator limit, scalar or ``(nq,)``.
-      q_low, q_high: override the limits from the file.
-      sample_low, sample_high: sampling box (default: the limits).
+      m_a: safe self-ID magnitude, scalar or ``(n_act,)`` (actuator units).
+      fk: ``"chain"`` (default, several times faster) or ``"mjx"``; equal to rounding.
+      home: ``(n_act,)`` centre of the default sampling box.
+      sample_half_width: scalar or ``(n_act,)`` half-width of the default box.
+      dq_max: per-step actuator limit, scalar or ``(n_act,)``.
+      q_low, q_high: override the limits, scalar or ``(n_act,)``.
+      sample_low, sample_high: explicit sampling box (replaces the default).
       min_sigma: singularity threshold for ``sample_configs``.
-      fk: ``"mjx"`` (``mjx.kinematics``, reads ``site_xpos``/``site_xmat``) or
-        ``"chain"`` (:class:`ChainSitePose`, the same kinematics as a plain-JAX
-        joint chain, faster; tested equal to ``"mjx"``).
-      name: label (default: the model's name).
+      name: label (default: the file's base name, or ``"mjcf"``).
 
     Returns:
-      A :class:`System` whose ``params`` is the ``mjx.Model``.
+      A :class:`System`; ``params`` is a :class:`ChainModel` (``fk="chain"``) or
+      an ``mjx.Model``; ``system.pose_fn.qmap`` holds the actuator names and map.
+
+    Raises:
+      ValueError: naming the site, actuator, joint or argument at fault.
     """
     import mujoco
-    mjx = _mjx()
 
-    mj, label = _load_mjmodel(path_or_xml)
+    if fk not in ("chain", "mjx"):
+        raise ValueError(f"fk must be 'mjx' or 'chain', got {fk!r}")
+    check_task_dim(task_dim)
+    mj, label = _load_mjmodel(path_or_model)
     if not isinstance(site, str):
         raise ValueError(f"site must be a site name (str), got {site!r}")
     site_id = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, site)
     if site_id < 0:
         names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(mj.nsite)]
         raise ValueError(f"site {site!r} not found in MJCF {label}; sites are {names}")
-    hinge, slide = int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE)
-    bad = [
-        (mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_JOINT, j), int(t))
-        for j, t in enumerate(mj.jnt_type)
-        if int(t) not in (hinge, slide)
-    ]
-    if bad or mj.njnt == 0:
-        raise ValueError(f"MJCF {label}: every joint must be a hinge or slide (one actuator per joint); bad: {bad}")
-    n = int(mj.nq)
 
-    limited = np.asarray(mj.jnt_limited, bool)
-    rng = np.asarray(mj.jnt_range, np.float64)
-    lo = np.where(limited, rng[:, 0], -np.inf)
-    hi = np.where(limited, rng[:, 1], np.inf)
-    adr = np.asarray(mj.jnt_qposadr)
-    file_low, file_high = np.empty(n), np.empty(n)
-    file_low[adr], file_high[adr] = lo, hi
-    q_low = file_low if q_low is None else q_low
-    q_high = file_high if q_high is None else q_high
-    is_hinge = np.empty(n, bool)
-    is_hinge[adr] = np.asarray(mj.jnt_type) == hinge
-    if sample_low is None:
-        ql = vector("q_low", q_low, n)
-        sample_low = np.where(np.isfinite(ql), ql, np.where(is_hinge, -np.pi, ql))
-    if sample_high is None:
-        qh = vector("q_high", q_high, n)
-        sample_high = np.where(np.isfinite(qh), qh, np.where(is_hinge, np.pi, qh))
-
-    if fk == "mjx":
-        pose_fn = MjxSitePose(int(site_id))
-    elif fk == "chain":
-        body = int(mj.site_bodyid[site_id])
-        path = []
-        while body != 0:
-            path.append(body)
-            body = int(mj.body_parentid[body])
-        path = path[::-1]
-        joints = []
-        for b in path:
-            start, num = int(mj.body_jntadr[b]), int(mj.body_jntnum[b])
-            joints.append(
-                tuple((j, int(mj.jnt_qposadr[j]), int(mj.jnt_type[j]) == hinge) for j in range(start, start + num))
-            )
-        pose_fn = ChainSitePose(int(site_id), tuple(path), tuple(joints))
-    else:
-        raise ValueError(f"fk must be 'mjx' or 'chain', got {fk!r}")
-
-    model = mjx.put_model(mj)
-    if name is None:
-        name = os.path.splitext(os.path.basename(label))[0] if label[0] != "<" else "mjcf"
-    return make_system(
-        name=name,
-        params=model,
-        pose_fn=pose_fn,
-        has_rotation=True,
-        n_act=n,
-        task_dim=task_dim,
-        q_low=q_low,
-        q_high=q_high,
-        dq_max=dq_max,
-        m_a=m_a,
-        sample_low=sample_low,
-        sample_high=sample_high,
-        min_sigma=min_sigma,
-    )
+    act = build_actuation(mj, actuators=actuators, joints_fixed=joints_fixed, label=label)
+    chain = chain_site_pose(mj, int(site_id), site, act.qmap)  # also rejects free/ball joints on the chain
+    n = len(act.qmap.names)
+    try:
+        q_low = vector("q_low", act.low if q_low is None else q_low, n)
+        q_high = vector("q_high", act.high if q_high is None else q_high, n)
+        if sample_low is None or sample_high is None:
+            box_low, box_high = _sampling_box(act, q_low, q_high, home, sample_half_width)
+            sample_low = box_low if sample_low is None else sample_low
+            sample_high = box_high if sample_high is None else sample_high
+        if fk == "chain":
+            pose_fn, params = chain, ChainModel.from_mjmodel(mj)
+        else:
+            pose_fn, params = MjxSitePose(int(site_id), act.qmap), kinematic_mjx_model(mj, label)
+        if name is None:
+            name = os.path.splitext(os.path.basename(label))[0] if label[0] != "<" else "mjcf"
+        return make_system(
+            name=name,
+            params=params,
+            pose_fn=pose_fn,
+            has_rotation=True,
+            n_act=n,
+            task_dim=task_dim,
+            q_low=q_low,
+            q_high=q_high,
+            dq_max=dq_max,
+            m_a=m_a,
+            sample_low=sample_low,
+            sample_high=sample_high,
+            min_sigma=min_sigma,
+        )
+    except ValueError as e:
+        raise ValueError(f"{e} [MJCF {label}: {n} actuators {list(act.qmap.names)}]") from e

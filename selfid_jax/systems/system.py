@@ -6,22 +6,22 @@ manipulation (POM), the actuator limits, a safe self-ID magnitude and a box of
 configurations to sample from. It is a frozen dataclass registered as a JAX
 pytree in the MJX manner (``mujoco/mjx/_src/types.py``):
 
-* traced (data) fields: ``params`` (any pytree, e.g. link lengths or an
-  ``mjx.Model``), ``q_low``, ``q_high``, ``dq_max``, ``m_a``, ``sample_low``,
-  ``sample_high``. A sweep can ``vmap`` over any of them and a ``System`` can
-  be passed to ``jax.jit`` as an ordinary argument.
+* traced (data) fields: ``params`` (any pytree, e.g. link lengths, an
+  ``mjx.Model`` or a :class:`~selfid_jax.systems.kinematics.ChainModel`),
+  ``q_low``, ``q_high``, ``dq_max``, ``m_a``, ``sample_low``, ``sample_high``
+  (all ``(n_act,)``). A sweep can ``vmap`` over any of them and a ``System``
+  can be passed to ``jax.jit`` as an ordinary argument.
 * static (meta) fields: ``name``, ``n_act``, ``task_dim``, ``pose_fn``,
   ``min_sigma``, ``has_rotation``. Changing one recompiles; ``pose_fn`` is
   hashed by identity (module-level pose functions and the frozen-dataclass
   pose maps, :class:`PositionOnlyPose` here and those of
-  :mod:`selfid_jax.systems.mjcf`, hash by value, so rebuilding a system does
-  not recompile).
+  :mod:`selfid_jax.systems.kinematics`, hash by value, so rebuilding a
+  system does not recompile).
 
 Build one with :func:`from_pose_fn` (a pure JAX pose function, this module)
-or :func:`selfid_jax.systems.mjcf.from_mjcf` (an MJCF file and a site name,
-forward kinematics by ``mjx.kinematics`` or by an equivalent plain-JAX joint
-chain read from the same ``mjx.Model``). Input checks live in
-:mod:`selfid_jax.systems.validation`.
+or :func:`selfid_jax.systems.mjcf.from_mjcf` (an MJCF model, its actuators and
+a site name; forward kinematics by a plain-JAX joint chain or by
+``mjx.kinematics``). Input checks live in :mod:`selfid_jax.systems.validation`.
 
 Dtypes: array fields take the default float dtype at construction time
 (float64 only if ``jax_enable_x64`` is on *when the system is built*); build
@@ -58,7 +58,7 @@ class System:
       params: pytree passed to ``pose_fn`` (link lengths, an ``mjx.Model``...).
       q_low, q_high: ``(n,)`` joint limits (may be +-inf).
       dq_max: ``(n,)`` largest actuator change per step (``apply`` clips to it).
-      m_a: scalar safe self-ID magnitude (per-actuator random step size).
+      m_a: ``(n,)`` safe self-ID magnitude per actuator (random step size; a scalar is broadcast at build).
       sample_low, sample_high: ``(n,)`` box that ``sample_configs`` draws from.
 
     Attributes (static):
@@ -333,7 +333,7 @@ def from_pose_fn(
       task_dim: 2 (planar xy), 3 (position) or 6 (position + rotation).
       q_low, q_high: joint limits, scalar or ``(n_act,)`` (rad or m; may be inf).
       dq_max: per-step actuator limit, scalar or ``(n_act,)``, > 0.
-      m_a: safe self-ID magnitude (scalar, > 0).
+      m_a: safe self-ID magnitude, scalar or ``(n_act,)``, > 0 (rad or m).
       params: pytree passed to ``fn`` (traced).
       sample_low, sample_high: sampling box, default the joint limits (must be
         finite and inside the limits).

@@ -37,7 +37,7 @@ def two_link(
     l1: float = 1.0,
     l2: float = 1.0,
     task_dim: int = 2,
-    m_a: float = 0.05,
+    m_a=0.05,
     dq_max: float = 0.1,
     q_low=(-np.pi, -np.pi),
     q_high=(np.pi, np.pi),
@@ -56,7 +56,7 @@ def two_link(
       l1, l2: link lengths (m).
       task_dim: 2 (xy position, default), 3 (position, z row is zero, so
         the Jacobian is rank 2) or 6.
-      m_a: safe self-ID magnitude (rad).
+      m_a: safe self-ID magnitude (rad), scalar or ``(2,)``.
       dq_max: per-step actuator limit (rad).
       q_low, q_high: joint limits (rad).
       sample_low, sample_high: sampling box (rad).

@@ -36,7 +36,7 @@ _MIN_SIGMA = {2: 0.05, 3: 0.1, 6: 0.1}
 def ur5e(
     *,
     task_dim: int = 3,
-    m_a: float = 0.03,
+    m_a=0.03,
     dq_max: float = 0.1,
     sample_low=_SAMPLE_LOW,
     sample_high=_SAMPLE_HIGH,
@@ -45,25 +45,29 @@ def ur5e(
 ) -> System:
     """UR5e arm: 6 hinge actuators, POM = tool flange (site ``"ee"``).
 
-    Joint limits +-2 pi rad (from the MJCF). Forward kinematics reproduce the
+    The actuators are the MJCF's six position servos ``act1..act6``, one per
+    joint (``q = qpos``). Joint limits +-2 pi rad (joint ranges and servo
+    ``ctrlrange`` of the MJCF). Forward kinematics reproduce the
     standard DH chain ``prod_i Rz(q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` exactly,
     world frame = DH base frame (no extra base transform).
 
     Args:
       task_dim: 3 (flange position, default), 6 (position + rotation vector)
         or 2 (xy only).
-      m_a: safe self-ID magnitude (rad).
+      m_a: safe self-ID magnitude (rad), scalar or ``(6,)``.
       dq_max: per-step actuator limit (rad).
       sample_low, sample_high: ``(6,)`` sampling box (rad), default a box of
         non-singular working configurations around :data:`UR5E_HOME`.
       min_sigma: ``sample_configs`` threshold on the Jacobian's smallest
         singular value; default 0.1 (task_dim 3: m/rad; task_dim 6: mixed
         m/rad and rad/rad units) or 0.05 m/rad (task_dim 2).
-      fk: ``"chain"`` (plain-JAX joint chain read from the ``mjx.Model``,
-        default, faster) or ``"mjx"`` (``mjx.kinematics``); equal to 1e-12.
+      fk: ``"chain"`` (plain-JAX joint chain, default, faster) or ``"mjx"``
+        (``mjx.kinematics``); equal to 1e-12.
 
     Returns:
-      A :class:`System` whose ``params`` is the ``mjx.Model``.
+      A :class:`System` whose ``params`` is a
+      :class:`~selfid_jax.systems.kinematics.ChainModel` (``fk="chain"``) or
+      an ``mjx.Model`` (``fk="mjx"``).
     """
     if min_sigma is None:
         min_sigma = _MIN_SIGMA.get(task_dim, 0.05)

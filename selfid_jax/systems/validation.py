@@ -35,7 +35,9 @@ def vector(name: str, value, n: int) -> np.ndarray:
     if arr.ndim == 0:
         arr = np.full((n,), float(arr))
     if arr.shape != (n,):
-        raise ValueError(f"{name} must have shape ({n},) (n_act={n}) or be a scalar, got shape {arr.shape}")
+        raise ValueError(
+            f"{name} must have shape ({n},) (one value per actuator, n_act={n}) or be a scalar, got shape {arr.shape}"
+        )
     if np.isnan(arr).any():
         raise ValueError(f"{name} contains NaN: {arr}")
     return arr
@@ -47,8 +49,8 @@ def validate(
     """Eager check of a system's sizes and limits; returns them normalised.
 
     Scalars are broadcast to ``(n_act,)`` float64 numpy arrays, the sampling
-    box defaults to the joint limits, and ``n_act``, ``task_dim``, ``m_a``
-    (0-d array) and ``min_sigma`` (float) come back as plain numbers. Raises a
+    box defaults to the joint limits (``m_a`` too: ``(n_act,)``), and
+    ``n_act``, ``task_dim`` and ``min_sigma`` come back as plain numbers. Raises a
     ``ValueError`` naming the first bad argument.
     """
     if isinstance(n_act, bool) or not isinstance(n_act, (int, np.integer)) or n_act < 1:
@@ -62,11 +64,9 @@ def validate(
     dq_max = vector("dq_max", dq_max, n_act)
     if not np.all((dq_max > 0) & np.isfinite(dq_max)):
         raise ValueError(f"dq_max must be positive and finite, got {dq_max}")
-    m_a_arr = np.asarray(m_a, dtype=np.float64) if np.ndim(m_a) == 0 else None
-    if m_a_arr is None:
-        raise ValueError(f"m_a must be a scalar, got shape {np.shape(m_a)}")
-    if not (np.isfinite(m_a_arr) and m_a_arr > 0):
-        raise ValueError(f"m_a must be positive and finite, got {m_a!r}")
+    m_a = vector("m_a", m_a, n_act)
+    if not np.all((m_a > 0) & np.isfinite(m_a)):
+        raise ValueError(f"m_a must be positive and finite, got {m_a}")
     if sample_low is None:
         sample_low = q_low
     if sample_high is None:
@@ -95,7 +95,7 @@ def validate(
         q_low=q_low,
         q_high=q_high,
         dq_max=dq_max,
-        m_a=m_a_arr,
+        m_a=m_a,
         sample_low=sample_low,
         sample_high=sample_high,
         min_sigma=min_sigma,
