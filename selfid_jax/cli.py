@@ -17,16 +17,21 @@ Several hosts: run the same ``sweep`` command on every host with
 ``--coordinator HOST:PORT --num-processes P --process-id I``; see
 ``selfid_jax.sweep`` for how the batch is sharded and who writes what.
 
-Bad input (missing file, invalid config, run directory of another config) is
-reported on stderr with exit code 2 and no traceback; an interrupted sweep
-exits with 130 (Ctrl-C) or 143 (SIGTERM). A first SIGTERM lets the chunk in
-flight finish and be saved; ``kill -9`` loses at most that chunk.
+Bad input (missing file, invalid config, run directory of another config or
+in use by another process, unreadable run files, unwritable or full disk) is
+reported on stderr as one line naming the path and what to do, with exit code
+2 and no traceback; an interrupted sweep exits with 130 (Ctrl-C) or 143
+(SIGTERM). A first SIGTERM lets the chunk in flight finish and be saved;
+``kill -9`` loses at most that chunk. ``sweep`` and ``demo`` hold the run
+directory's lock (:mod:`selfid_jax.lock`) from before anything in it is
+deleted or written until the figures are drawn.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import signal
 import sys
 import threading
@@ -126,14 +131,28 @@ def _graceful_sigterm() -> Iterator[list[int]]:
         clear_stop()
 
 
+def _saved_summary(exp, df, run_dir: Path) -> dict:
+    """``summary.json``, or when it is missing the summary recomputed from the table and ``config.yaml``."""
+    from selfid_jax.config import ConfigError, load_config
+    from selfid_jax.results import CONFIG_FILE, read_run_config, read_summary
+
+    summary = read_summary(run_dir, missing_ok=True)
+    if summary:
+        return summary
+    try:
+        return exp.summarize(df, load_config(run_dir / CONFIG_FILE, model=exp.config))
+    except ConfigError:  # a config.yaml this version cannot validate: keep at least the configured threshold
+        threshold = read_run_config(run_dir).get("completion_threshold")
+        return {"completion_threshold": threshold} if isinstance(threshold, (int, float)) else {}
+
+
 def _draw(exp, run_dir: Path) -> list[Path]:
-    from selfid_jax.results import FIGURES_DIR, load_results, read_summary
+    from selfid_jax.results import FIGURES_DIR, load_results
 
     if exp.plot is None:
         return []
     df = load_results(run_dir)
-    summary = read_summary(run_dir, missing_ok=True)
-    return [Path(p) for p in exp.plot(df, summary, run_dir / FIGURES_DIR)]
+    return [Path(p) for p in exp.plot(df, _saved_summary(exp, df, run_dir), run_dir / FIGURES_DIR)]
 
 
 def _init_distributed(args: argparse.Namespace) -> None:
@@ -149,17 +168,41 @@ def _init_distributed(args: argparse.Namespace) -> None:
     )
 
 
+def _build(exp, cfg, source: str):
+    """``exp.parts(cfg)``, before any run directory exists; a ``ValueError`` (infeasible path, bad robot) is a usage error."""
+    try:
+        return exp.parts(cfg)
+    except ValueError as err:
+        raise _UsageError(f"{source}: cannot set up experiment {exp.name!r}: {err}") from None
+
+
 def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progress: bool) -> int:
-    """Create the run directory, run the experiment under SIGTERM handling, print its report and figures."""
+    """Build the parts (every check before the run directory is made), then under the directory's lock:
+    create it, run the experiment under SIGTERM handling, report, draw."""
+    import jax
+
+    from selfid_jax.lock import hold
+
+    parts = _build(exp, cfg, str(config_path) if config_path is not None else exp.name)
+    with hold(run_dir) if jax.process_index() == 0 else contextlib.nullcontext():
+        return _run_locked(exp, cfg, run_dir, config_path=config_path, overrides=overrides, fresh=fresh,
+                           progress=progress, parts=parts)
+
+
+def _run_locked(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progress: bool, parts) -> int:
     from selfid_jax import experiment
-    from selfid_jax.results import create_run_dir
+    from selfid_jax.results import create_run_dir, record_refused
+    from selfid_jax.sweep import SweepResumeError
 
     create_run_dir(run_dir, cfg, config_path, overrides=overrides, fresh=fresh)
     received: list[int] = []
     t0 = time.perf_counter()
     try:
         with _graceful_sigterm() as received:
-            out = experiment.run(exp, cfg, run_dir, fresh=fresh, progress=progress)
+            out = experiment.run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts)
+    except SweepResumeError as err:
+        record_refused(run_dir, str(err), config_path=config_path, overrides=overrides)
+        raise
     except (KeyboardInterrupt, _Terminated):
         print(
             f"{_PROG}: interrupted; finished chunks are kept in {run_dir}. "
@@ -257,6 +300,28 @@ def _enable_compilation_cache() -> None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+_DENIED = (errno.EACCES, errno.EPERM, errno.EROFS)
+
+
+def _os_error(err: OSError, command: str) -> str:
+    """One line for an ``OSError``: the path, what went wrong, what to do."""
+    if err.errno is None:  # raised with a message of ours, e.g. FileNotFoundError("CONFIG: not found")
+        return " ".join(str(err).split())
+    where = f"{err.filename}: " if err.filename is not None else ""
+    if err.errno in _FULL:
+        todo = "free some disk space, then run the same command again" + (
+            " to resume (finished chunks are kept)" if command == "sweep" else "")
+    elif err.errno in _DENIED:
+        folder = Path(err.filename).parent if err.filename is not None else "it"
+        todo = f"make {folder} writable" + (", or choose another --out" if command != "plot" else "")
+    elif err.errno in (errno.ENOTDIR, errno.EISDIR, errno.EEXIST):
+        todo = "a file is in the way of a directory (or the reverse); choose another path"
+    else:
+        todo = "check the path, then run the same command again"
+    return f"{where}{err.strerror or err}; {todo}"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``selfid-jax`` console script; returns the exit code."""
     from selfid_jax.config import ConfigError
@@ -267,8 +332,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = {"sweep": _sweep, "plot": _plot, "demo": _demo, "list": _list}[args.command]
     try:
         return command(args)
-    except (_UsageError, ConfigError, FileNotFoundError) as err:
+    except (_UsageError, ConfigError) as err:
         print(f"{_PROG} {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"{_PROG} {args.command}: error: {_os_error(err, args.command)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"{_PROG}: interrupted", file=sys.stderr)

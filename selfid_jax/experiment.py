@@ -38,6 +38,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import pandas as pd
 
+from selfid_jax import lock
 from selfid_jax.config import BaseConfig, ConfigError, ControllerConfig
 
 __all__ = [
@@ -163,25 +164,37 @@ def run(
     *,
     fresh: bool = False,
     progress: bool = False,
+    parts: Sequence[Part] | None = None,
 ) -> tuple[pd.DataFrame, dict] | None:
     """Run ``experiment`` on ``cfg`` into the run directory ``out_dir``; returns ``(table, summary)``.
 
     Each part runs through :func:`selfid_jax.sweep.run_chunked` (resumable
     chunks under ``out_dir/parts/<name>/``), the parts' tables (after
     ``tabulate``) are concatenated into ``out_dir/results.parquet`` and the
-    summary is written to ``out_dir/summary.json``. Returns ``None`` on the
-    processes other than 0 of a ``jax.distributed`` run.
+    summary is written to ``out_dir/summary.json``. ``parts``: the result of
+    ``experiment.parts(cfg)`` if already built (the CLI builds them, and so
+    finds every bad input, before it creates the run directory). Returns
+    ``None`` on the processes other than 0 of a ``jax.distributed`` run.
     """
+    import jax
+
+    if not isinstance(cfg, experiment.config):
+        raise TypeError(f"experiment {experiment.name!r} needs a {experiment.config.__name__}, got {type(cfg).__name__}")
+    out_dir = Path(out_dir)
+    if jax.process_index() != 0:
+        return _run_parts(experiment, cfg, out_dir, fresh, progress, parts)
+    with lock.hold(out_dir):  # no other process may write or --fresh this directory meanwhile
+        return _run_parts(experiment, cfg, out_dir, fresh, progress, parts)
+
+
+def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress: bool, parts):
     import jax
 
     from selfid_jax.results import PARTS_DIR, write_results, write_summary
     from selfid_jax.sweep import run_chunked
 
-    if not isinstance(cfg, experiment.config):
-        raise TypeError(f"experiment {experiment.name!r} needs a {experiment.config.__name__}, got {type(cfg).__name__}")
-    out_dir = Path(out_dir)
     tables = []
-    for part in experiment.parts(cfg):
+    for part in experiment.parts(cfg) if parts is None else parts:
         wide = run_chunked(
             experiment.batched(part.static),
             part.params,

@@ -10,9 +10,14 @@ Layout of a run directory ``RUN``::
     RUN/results.parquet   tidy table, one row per batch element (rollout)
     RUN/summary.json      per-system summaries (e.g. valid-region bounds)
     RUN/figures/          PNG and PDF figures, redrawn by ``selfid-jax plot RUN``
+    RUN/.lock             lock of the process running in RUN (selfid_jax.lock); never removed
 
 Files are written atomically (temporary file + ``os.replace``), so a killed run
-never leaves a half-written file under its final name.
+never leaves a half-written file under its final name, with the permissions
+the user's umask gives. ``RUN/.lock`` is the lock of a running sweep
+(:mod:`selfid_jax.lock`). A file that cannot be read raises
+:class:`RunDirError` naming it and the command that rebuilds it; an ``OSError``
+while writing names the file it was writing.
 """
 
 from __future__ import annotations
@@ -20,22 +25,29 @@ from __future__ import annotations
 import datetime as _dt
 import importlib.metadata
 import json
-import math
-import os
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
 import yaml
 
-from selfid_jax.config import ConfigError, dump_config, flatten_dict, yaml_load
+from selfid_jax.config import dump_config, flatten_dict, yaml_load
+from selfid_jax.lock import (
+    RunDirError,
+    _jsonable,
+    atomic_write_bytes,
+    atomic_write_text,
+    hold,
+    write_json,
+)
 
 __all__ = [
     "RESULTS_FILE",
@@ -50,6 +62,7 @@ __all__ = [
     "load_results",
     "read_run_config",
     "read_summary",
+    "record_refused",
     "write_summary",
 ]
 
@@ -64,55 +77,6 @@ FIGURES_DIR = "figures"
 
 # Everything create_run_dir/run_chunked may write; --fresh removes exactly these.
 _OWNED = (CONFIG_FILE, VERSIONS_FILE, MANIFEST_FILE, CHUNKS_DIR, PARTS_DIR, RESULTS_FILE, SUMMARY_FILE, FIGURES_DIR)
-
-
-class RunDirError(ConfigError):
-    """A run directory that cannot be (re)used as asked; the message says why and what to do."""
-
-
-# --------------------------------------------------------------------------- atomic files
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same directory and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Text version of :func:`atomic_write_bytes` (UTF-8)."""
-    atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def _jsonable(x: Any) -> Any:
-    """Numpy scalars/arrays -> Python; NaN/inf -> None (strict JSON)."""
-    if isinstance(x, Mapping):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Path):
-        return str(x)
-    return x
-
-
-def write_json(path: str | Path, obj: Any) -> None:
-    """Atomically write ``obj`` as indented strict JSON (NaN/inf become null)."""
-    atomic_write_text(path, json.dumps(_jsonable(obj), indent=2, allow_nan=False) + "\n")
 
 
 # --------------------------------------------------------------------------- versions
@@ -162,14 +126,38 @@ def collect_versions(cwd: str | Path | None = None) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- run dir
 
+def _one_line(err: BaseException, limit: int = 200) -> str:
+    text = " ".join(str(err).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _rerun(run_dir: Path, *extra: str) -> str:
+    """The quoted ``selfid-jax sweep`` command that (re)builds ``run_dir``, from its versions.json if readable."""
+    try:
+        info = json.loads((run_dir / VERSIONS_FILE).read_text())
+        config, overrides = str(info["config_source"]), [str(o) for o in info.get("overrides", [])]
+    except (OSError, ValueError, TypeError, KeyError):
+        config, overrides = "CONFIG", []
+    args = ["selfid-jax", "sweep", config, *(a for o in overrides for a in ("--set", o)), "--out", str(run_dir)]
+    return "'" + " ".join([*map(shlex.quote, args), *extra]) + "'"
+
+
+def _unreadable(path: Path, err: BaseException, what_to_do: str) -> RunDirError:
+    return RunDirError(f"{path}: unreadable ({_one_line(err)}); {what_to_do}")
+
+
 def read_run_config(run_dir: str | Path) -> dict:
     """The resolved config saved in ``run_dir/config.yaml`` as a plain dict."""
-    path = Path(run_dir) / CONFIG_FILE
+    run_dir = Path(run_dir)
+    path = run_dir / CONFIG_FILE
     if not path.is_file():
         raise RunDirError(f"{path}: not found; is {run_dir} a run directory?")
-    data = yaml_load(path.read_text())
+    try:
+        data = yaml_load(path.read_text())
+    except (yaml.YAMLError, ValueError) as err:
+        raise _unreadable(path, err, f"restore it, or start over with {_rerun(run_dir, '--fresh')}") from None
     if not isinstance(data, dict):
-        raise RunDirError(f"{path}: expected a mapping")
+        raise _unreadable(path, TypeError("not a mapping"), f"restore it, or start over with {_rerun(run_dir, '--fresh')}")
     return data
 
 
@@ -197,6 +185,55 @@ def _diff_keys(old: Mapping, new: Mapping) -> list[str]:
     return out
 
 
+def _attempt(config_path, overrides) -> dict[str, Any]:
+    info = collect_versions()
+    info.update(
+        config_source=str(Path(config_path).resolve()) if config_path is not None else None,
+        overrides=list(overrides),
+        command=list(sys.argv),
+        created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    )
+    return _jsonable(info)
+
+
+_ATTEMPTS: dict[Path, dict] = {}  # resolved run dir -> this process's latest entry in its versions.json
+
+
+def _read_versions(vfile: Path) -> dict:
+    try:
+        data = json.loads(vfile.read_text())
+    except (OSError, ValueError) as err:
+        raise _unreadable(vfile, err, "restore it or delete it (the run's history is lost), or use --fresh") from None
+    if not isinstance(data, dict):
+        raise _unreadable(vfile, TypeError("not a mapping"), "restore it or delete it, or use --fresh")
+    return data
+
+
+def record_refused(run_dir: str | Path, reason: str, *, config_path=None, overrides: Sequence[str] = ()) -> None:
+    """Append a refused resumption (versions, command, ``reason``) to ``run_dir/versions.json["refused"]``.
+
+    If this process recorded the attempt as resumed (:func:`create_run_dir`),
+    that entry moves to ``refused``. Nothing else in ``run_dir`` changes; an
+    unreadable or unwritable versions.json is left as it is.
+    """
+    run_dir = Path(run_dir)
+    vfile = run_dir / VERSIONS_FILE
+    try:
+        data = _read_versions(vfile) if vfile.exists() else {}
+        mine = _ATTEMPTS.pop(run_dir.resolve(), None)
+        resumed = data.get("resumed")
+        if mine is not None and isinstance(resumed, list) and resumed and resumed[-1] == mine:
+            entry = resumed.pop()
+            if not resumed:
+                del data["resumed"]
+        else:
+            entry = _attempt(config_path, overrides)
+        data.setdefault("refused", []).append({**entry, "reason": reason})
+        write_json(vfile, data)
+    except (RunDirError, OSError):
+        pass
+
+
 def create_run_dir(
     out: str | Path,
     cfg: Any,
@@ -209,18 +246,25 @@ def create_run_dir(
 
     Writes ``config.yaml`` (the resolved config, from :func:`dump_config`) and
     ``versions.json`` (:func:`collect_versions`, plus the source config path,
-    the overrides, the command line and a UTC timestamp).
+    the overrides, the command line and a UTC timestamp), holding the
+    directory's lock (:func:`selfid_jax.lock.hold`) before anything is deleted
+    or written.
 
     Reopening a directory whose ``config.yaml`` equals the resolved config keeps
     its results (so a sweep can resume); the versions of each resumption are
     appended to ``versions.json["resumed"]``. A directory holding a different
-    config raises :class:`RunDirError` naming the differing keys, unless
-    ``fresh``, which first removes everything a run writes there.
+    config raises :class:`RunDirError` naming the differing keys (the attempt
+    is appended to ``versions.json["refused"]``), unless ``fresh``, which first
+    removes everything a run writes there.
 
     Under ``jax.distributed`` only process 0 touches the directory.
 
     Returns:
       ``Path(out)``.
+
+    Raises:
+      RunDirBusy: another process holds the directory.
+      RunDirError: a different config, unreadable files, or ``out`` is not a directory.
     """
     import jax
 
@@ -229,38 +273,31 @@ def create_run_dir(
         return run_dir
     resolved = dump_config(cfg) if not isinstance(cfg, Mapping) else dict(cfg)
     cfg_file = run_dir / CONFIG_FILE
-    if fresh:
-        clear_run_dir(run_dir)
-    elif cfg_file.exists():
-        old = read_run_config(run_dir)
-        diff = _diff_keys(old, resolved)
-        if diff:
+    with hold(run_dir):
+        if fresh:
+            clear_run_dir(run_dir)
+        elif cfg_file.exists():
+            diff = _diff_keys(read_run_config(run_dir), resolved)
+            if diff:
+                msg = (f"{run_dir}: holds results of a different config; differing keys: " + "; ".join(diff)
+                       + ". Use --fresh (fresh=True) to discard them, or choose another --out.")
+                record_refused(run_dir, msg, config_path=config_path, overrides=overrides)
+                raise RunDirError(msg)
+        elif any((run_dir / d).exists() for d in (CHUNKS_DIR, PARTS_DIR, RESULTS_FILE)):
             raise RunDirError(
-                f"{run_dir}: holds results of a different config; differing keys: "
-                + "; ".join(diff)
-                + ". Use --fresh (fresh=True) to discard them, or choose another --out."
+                f"{run_dir}: holds results but no {CONFIG_FILE}; use --fresh to discard them or another --out."
             )
-    elif any((run_dir / d).exists() for d in (CHUNKS_DIR, PARTS_DIR, RESULTS_FILE)):
-        raise RunDirError(
-            f"{run_dir}: holds results but no {CONFIG_FILE}; use --fresh to discard them or another --out."
-        )
-    run_dir.mkdir(parents=True, exist_ok=True)
 
-    info = collect_versions()
-    info.update(
-        config_source=str(Path(config_path).resolve()) if config_path is not None else None,
-        overrides=list(overrides),
-        command=list(sys.argv),
-        created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-    )
-    vfile = run_dir / VERSIONS_FILE
-    if cfg_file.exists() and vfile.exists():
-        first = json.loads(vfile.read_text())
-        first.setdefault("resumed", []).append(info)
-        write_json(vfile, first)
-    else:
-        atomic_write_text(cfg_file, yaml.safe_dump(resolved, sort_keys=False))
-        write_json(vfile, info)
+        info = _attempt(config_path, overrides)
+        vfile = run_dir / VERSIONS_FILE
+        if cfg_file.exists() and vfile.exists():
+            first = _read_versions(vfile)
+            first.setdefault("resumed", []).append(info)
+            write_json(vfile, first)
+        else:
+            atomic_write_text(cfg_file, yaml.safe_dump(resolved, sort_keys=False))
+            write_json(vfile, info)
+        _ATTEMPTS[run_dir.resolve()] = info
     return run_dir
 
 
@@ -271,19 +308,27 @@ def load_results(run_dir: str | Path, *, partial: bool = False) -> pd.DataFrame:
 
     With ``partial=True`` an unfinished run (no ``results.parquet`` yet) returns
     the rows of its finished chunks (one row per batch element, before any
-    experiment's ``tabulate``) instead of raising.
+    experiment's ``tabulate``; only chunks that match their manifest record)
+    instead of raising.
 
     Raises:
       FileNotFoundError: no results (naming the file looked for).
+      RunDirError: ``results.parquet`` is unreadable (naming the command that rebuilds it).
     """
+    from selfid_jax.chunks import finished_tables
+
     run_dir = Path(run_dir)
     path = run_dir / RESULTS_FILE
     if path.is_file():
-        return pd.read_parquet(path)
+        try:
+            return pd.read_parquet(path)
+        except (pa.ArrowException, OSError, ValueError) as err:
+            raise _unreadable(path, err, f"rerun {_rerun(run_dir)} to rebuild it") from None
     chunks = sorted((run_dir / CHUNKS_DIR).glob("chunk_*.parquet"))
     chunks += sorted((run_dir / PARTS_DIR).glob(f"*/{CHUNKS_DIR}/chunk_*.parquet"))
-    if partial and chunks:
-        df = pd.concat([pd.read_parquet(c) for c in chunks], ignore_index=True)
+    tables = [t for d in [run_dir, *sorted((run_dir / PARTS_DIR).glob("*/"))] for t in finished_tables(d)]
+    if partial and tables:
+        df = pd.concat([t.to_pandas() for t in tables], ignore_index=True)
         return df.sort_values("row", kind="stable").reset_index(drop=True)
     hint = f" ({len(chunks)} finished chunks; the sweep is unfinished, re-run it to resume)" if chunks else ""
     raise FileNotFoundError(f"{path}: no results table{hint}")
@@ -317,4 +362,10 @@ def read_summary(run_dir: str | Path, *, missing_ok: bool = False) -> dict[str, 
         if missing_ok:
             return {}
         raise FileNotFoundError(f"{path}: no summary")
-    return json.loads(path.read_text())
+    try:
+        data = json.loads(path.read_text())
+    except ValueError as err:
+        raise _unreadable(path, err, f"rerun {_rerun(Path(run_dir))} to rebuild it") from None
+    if not isinstance(data, dict):
+        raise _unreadable(path, TypeError("not a JSON object"), f"rerun {_rerun(Path(run_dir))} to rebuild it")
+    return data

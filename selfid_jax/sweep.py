@@ -8,8 +8,16 @@ chunks of ``chunk_size`` rows, runs every chunk through ONE compiled function
 whose batch axis is sharded over the devices, writes each finished chunk to
 ``out_dir/chunks/chunk_00012.parquet`` atomically, and finally writes the tidy
 ``out_dir/results.parquet`` (one row per batch element). Re-running the same
-call skips the chunk files that exist, so an interrupted sweep (Ctrl-C, kill,
-lost machine) resumes without recomputing, losing or duplicating rows.
+call skips the chunk files that match their record in the manifest (row
+range, SHA-256; :mod:`selfid_jax.chunks`) and recomputes the others, so an
+interrupted sweep (Ctrl-C, kill, lost machine) resumes without recomputing,
+losing or duplicating rows, and a damaged chunk file is recomputed, never used.
+
+One process at a time
+    The writing process holds the lock of the run directory (``out_dir``, or
+    ``RUN`` for ``out_dir = RUN/parts/<name>``: :mod:`selfid_jax.lock`) from
+    before it deletes or writes anything until the results are written; a
+    second process is refused with :class:`~selfid_jax.lock.RunDirBusy`.
 
 Devices and chunk size
     The compiled batch is ``chunk_size`` rounded up to a multiple of the number
@@ -42,7 +50,7 @@ Several hosts (``jax.distributed``)
 
 from __future__ import annotations
 
-import hashlib
+import contextlib
 import math
 import threading
 import time
@@ -53,14 +61,13 @@ from typing import Any
 import jax
 import numpy as np
 import pandas as pd
-import pyarrow as pa
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from selfid_jax import chunks
-from selfid_jax.chunks import MANIFEST_FORMAT, SweepResumeError
-from selfid_jax.results import CHUNKS_DIR, RESULTS_FILE, atomic_write_bytes
+from selfid_jax import chunks, lock
+from selfid_jax.chunks import SweepResumeError, params_hash
+from selfid_jax.results import CHUNKS_DIR, PARTS_DIR, RESULTS_FILE, atomic_write_bytes
 
 __all__ = [
     "SweepInterrupted",
@@ -152,27 +159,19 @@ def row_keys(seed: int, rows: int | np.ndarray) -> np.ndarray:
     return np.asarray(jax.random.key_data(keys))
 
 
-def params_hash(params: Mapping[str, np.ndarray], meta: pd.DataFrame | None = None) -> str:
-    """SHA-256 over the names, dtypes, shapes and bytes of ``params`` (and ``meta``'s values)."""
-    h = hashlib.sha256()
-    for name in sorted(params):
-        arr = np.ascontiguousarray(params[name])
-        h.update(f"{name}|{arr.dtype.str}|{arr.shape}|".encode())
-        h.update(arr.tobytes())
-    if meta is not None:
-        h.update(f"meta|{list(meta.columns)}|{[str(t) for t in meta.dtypes]}|".encode())
-        h.update(pd.util.hash_pandas_object(meta, index=False).to_numpy().tobytes())
-    return h.hexdigest()
-
-
 # --------------------------------------------------------------------------- files
 
-def _write_chunk(path: Path, table: pa.Table) -> None:
-    """Atomically write one finished chunk (module-level so tests can interrupt here)."""
-    atomic_write_bytes(path, chunks.table_bytes(table))
+def _write_chunk(path: Path, data: bytes) -> None:
+    """Atomically write one finished chunk's file bytes (module-level so tests can interrupt here)."""
+    atomic_write_bytes(path, data)
 
 
 # --------------------------------------------------------------------------- main loop
+
+def _run_root(out_dir: Path) -> Path:
+    """The run directory whose lock guards ``out_dir``: ``RUN`` for ``RUN/parts/<name>``, else ``out_dir``."""
+    return out_dir.parent.parent if out_dir.parent.name == PARTS_DIR else out_dir
+
 
 def _canonical(name: str, v: Any, n_rows: int | None) -> np.ndarray:
     arr = np.asarray(v)
@@ -227,7 +226,8 @@ def run_chunked(
       out_dir: run directory; chunks go to ``out_dir/chunks/``.
       meta: optional ``N``-row table (e.g. :func:`grid_table`) whose columns
         are copied into the results, row for row.
-      fresh: discard the chunks, manifest and results of ``out_dir`` first.
+      fresh: discard the chunks, manifest and results of ``out_dir`` first
+        (only once the run directory's lock is held).
       progress: show a tqdm bar over chunks with ETA (never when stderr is not a TTY).
       static_shapes: pad the last chunk to the full batch (one compilation);
         ``False`` runs it at its own size (a second compilation, less padding).
@@ -242,7 +242,9 @@ def run_chunked(
 
     Raises:
       SweepResumeError: ``out_dir`` holds chunks of a different sweep
-        (different N, chunk size, params or meta) and ``fresh`` is False.
+        (different N, chunk size, params, meta or float width) or of an older
+        manifest format, and ``fresh`` is False.
+      RunDirBusy: another process holds the run directory's lock.
     """
     out_dir = Path(out_dir)
     params, treedef = named_leaves(params)
@@ -266,43 +268,33 @@ def run_chunked(
     n_dev = len(devices)
     rows_per_chunk = min(int(chunk_size), n_rows)
     batch = -(-rows_per_chunk // n_dev) * n_dev
-    n_chunks = math.ceil(n_rows / rows_per_chunk)
-    manifest = {
-        "format": MANIFEST_FORMAT,
-        "n_rows": n_rows,
-        "chunk_size": rows_per_chunk,
-        "n_chunks": n_chunks,
-        "params_hash": params_hash(params),
-        "meta_hash": params_hash({}, meta) if meta is not None else None,
-        "params": {k: {"dtype": v.dtype.str, "row_shape": list(v.shape[1:])} for k, v in params.items()},
-        "meta_columns": list(meta.columns) if meta is not None else [],
-    }
+    n_chunks = math.ceil(n_rows / rows_per_chunk)  # = manifest["n_chunks"]
+    manifest = chunks.new_manifest(params, meta, rows_per_chunk, x64=bool(jax.config.jax_enable_x64))
 
     writer = jax.process_index() == 0
-    error: Exception | None = None
-    done = np.zeros(n_chunks, bool)
-    if writer:
-        try:
-            chunks.prepare_dir(out_dir, manifest, fresh)
-            done = np.array([chunks.chunk_path(out_dir, i, n_chunks).exists() for i in range(n_chunks)])
-        except Exception as err:  # broadcast before raising so other hosts do not hang
-            error = err
-    done, failed = _sync_done(done, error is not None)
-    if failed:
-        raise error if error is not None else SweepResumeError(f"{out_dir}: process 0 could not prepare the run")
+    with contextlib.ExitStack() as held:
+        error: Exception | None = None
+        done = np.zeros(n_chunks, bool)
+        if writer:
+            try:
+                held.enter_context(lock.hold(_run_root(out_dir)))
+                manifest = chunks.prepare_dir(out_dir, manifest, fresh)
+                done = chunks.verify(out_dir, manifest)
+            except Exception as err:  # broadcast before raising so other hosts do not hang
+                error = err
+        done, failed = _sync_done(done, error is not None)
+        if failed:
+            raise error if error is not None else SweepResumeError(f"{out_dir}: process 0 could not prepare the run")
 
-    todo = [i for i in range(n_chunks) if not done[i]]
-    skipped = [i for i in range(n_chunks) if done[i]]
-    if todo:
-        _compute_chunks(
-            lambda leaves: compute_fn(jax.tree.unflatten(treedef, [leaves[k] for k in params])), params, meta, todo, out_dir=out_dir, n_rows=n_rows, n_chunks=n_chunks,
-            rows_per_chunk=rows_per_chunk, batch=batch, devices=devices, writer=writer,
-            static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped),
-        )
-
-    result = None
-    if writer:
-        result = chunks.assemble(out_dir, n_rows, n_chunks, rows_per_chunk)
+        todo = [i for i in range(n_chunks) if not done[i]]
+        skipped = [i for i in range(n_chunks) if done[i]]
+        if todo:
+            _compute_chunks(
+                lambda leaves: compute_fn(jax.tree.unflatten(treedef, [leaves[k] for k in params])), params, meta,
+                todo, out_dir=out_dir, manifest=manifest, batch=batch, devices=devices, writer=writer,
+                static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped),
+            )
+        result = chunks.assemble(out_dir, manifest) if writer else None
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
@@ -318,9 +310,10 @@ def run_chunked(
 
 
 def _compute_chunks(
-    compute_fn, params, meta, todo, *, out_dir, n_rows, n_chunks, rows_per_chunk, batch,
-    devices, writer, static_shapes, progress, desc, n_done,
+    compute_fn, params, meta, todo, *, out_dir, manifest, batch, devices, writer, static_shapes, progress, desc,
+    n_done,
 ) -> None:
+    n_chunks = manifest["n_chunks"]
     mesh = Mesh(np.asarray(devices), (BATCH_AXIS,))
     in_sharding = NamedSharding(mesh, P(BATCH_AXIS))
     out_sharding = NamedSharding(mesh, P())  # replicated: every process can read all rows
@@ -339,8 +332,7 @@ def _compute_chunks(
         return compiled[size]
 
     def dispatch(i: int):
-        start = i * rows_per_chunk
-        rows = np.arange(start, min(start + rows_per_chunk, n_rows))
+        rows = np.arange(*chunks.chunk_rows(manifest, i))
         size = batch if static_shapes else -(-len(rows) // len(devices)) * len(devices)
         idx = np.concatenate([rows, np.full(size - len(rows), rows[-1])])
         args = {
@@ -365,7 +357,9 @@ def _compute_chunks(
                 j, rows, out = pending
                 host = {k: np.asarray(v)[: len(rows)] for k, v in named_leaves(out)[0].items()}
                 if writer:
-                    _write_chunk(chunks.chunk_path(out_dir, j, n_chunks), chunks.chunk_table(rows, meta, host))
+                    data = chunks.table_bytes(chunks.chunk_table(rows, meta, host))
+                    chunks.record_chunk(out_dir, manifest, j, data)  # before the file: a chunk file always has a record
+                    _write_chunk(chunks.chunk_path(out_dir, j, n_chunks), data)
                 rows_done += len(rows)
                 bar.set_postfix(rows_per_s=f"{rows_done / max(time.perf_counter() - t0, 1e-9):.3g}", refresh=False)
                 bar.update(1)

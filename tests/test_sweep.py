@@ -89,11 +89,11 @@ def test_resume_after_interrupt(tmp_path, monkeypatch):
     ref = reference(params)
     real_write, writes = sweep._write_chunk, []
 
-    def interrupted_write(path, table):
+    def interrupted_write(path, data):
         if len(writes) == 2:
             raise KeyboardInterrupt  # Ctrl-C while the 3rd chunk is being saved
         writes.append(path.name)
-        real_write(path, table)
+        real_write(path, data)
 
     monkeypatch.setattr(sweep, "_write_chunk", interrupted_write)
     with pytest.raises(KeyboardInterrupt):
@@ -300,9 +300,9 @@ def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
     real_write = sweep._write_chunk
     calls = []
 
-    def terminated_write(path, table):
+    def terminated_write(path, data):
         calls.append(path)
-        real_write(path, table)
+        real_write(path, data)
         if len(calls) == 1:
             os.kill(os.getpid(), signal.SIGTERM)
 
@@ -314,7 +314,7 @@ def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
     assert signal.getsignal(signal.SIGTERM) is not None and not sweep._STOP.is_set()
 
     # Ctrl-C while the last chunk is being saved: exit 130, nothing half-written
-    def interrupted_write(path, table):
+    def interrupted_write(path, data):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(sweep, "_write_chunk", interrupted_write)
