@@ -144,6 +144,7 @@ def _numpy_convergence_iteration(est, eps):
     return -1
 
 
+@pytest.mark.slow
 def test_convergence_iteration_matches_numpy_and_record():
     """One convergence test: convergence_iteration over a sequence == a numpy loop == record's converged_at."""
     rng = np.random.default_rng(0)

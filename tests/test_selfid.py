@@ -75,3 +75,24 @@ def test_bad_arguments():
         sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-3, n_act=3, task_dim=3, iters=2, method="slsqp")
     with pytest.raises(ValueError, match=r"V: expected shape \(2,\)"):
         sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-3, n_act=3, task_dim=2, iters=2)
+
+
+@pytest.mark.parametrize("observe", [
+    sj.stateless(lambda key, d: jnp.full((3,), jnp.nan)),  # a tracker that lost the tag
+    sj.stateless(lambda key, d: jnp.zeros(3)),  # no motion seen
+])
+def test_no_accepted_sample_never_converges(observe):
+    res = jax.jit(lambda k: sj.self_identify(observe, k, 0.05, 0.5, n_act=3, task_dim=3, iters=8))(jax.random.key(0))
+    assert int(res.converged_at) == -1 and int(res.state.rejected) == 8 and int(res.state.count) == 0
+    assert np.all(np.isfinite(res.estimates))
+
+
+def test_traced_nan_or_zero_m_a_gives_rejected_samples_not_convergence():
+    run = jax.jit(lambda a: sj.self_identify(OBSERVE, jax.random.key(0), a, 0.5, n_act=3, task_dim=3, iters=6))
+    for m_a in (0.0, jnp.nan, jnp.inf):
+        res = run(jnp.asarray(m_a))
+        assert int(res.converged_at) == -1 and int(res.state.count) == 0, m_a
+    with pytest.raises(ValueError, match="m_a: must be > 0"):
+        sj.self_identify(OBSERVE, jax.random.key(0), 0.0, 0.5, n_act=3, task_dim=3, iters=6)
+    with pytest.raises(ValueError, match=r"m_a: expected a scalar or shape \(3,\)"):
+        sj.self_identify(OBSERVE, jax.random.key(0), jnp.ones(2), 0.5, n_act=3, task_dim=3, iters=6)
