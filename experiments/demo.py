@@ -24,13 +24,15 @@ from selfid_jax import control, paths, selfid
 from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig
 from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.plots import save_figure
-from selfid_jax.systems import System, ur5e
+from selfid_jax.systems import System
+from selfid_jax.systems.spec import SystemSpec, build_system, system_name
 
 
 class DemoConfig(BaseConfig):
     """UR5e (position task) self-ID from ``n_configs`` start configurations, then a star with each estimate."""
 
     experiment: Literal["demo"] = "demo"
+    system: SystemSpec = Field("ur5e", description="a built-in name or {mjcf: ...} / {pose_fn: ...}")
     n_configs: int = Field(4, ge=1, le=10**4, description="start configurations")
     iters: int = Field(30, ge=2, le=10**4, description="self-ID iterations (Algorithm 1)")
     eps: float = Field(0.5, gt=0, le=1e6, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]")
@@ -53,14 +55,14 @@ class Static(NamedTuple):
 
 class Params(NamedTuple):
     key: jax.Array  # (2,) uint32 PRNG key data of the self-ID stream
-    q0: jax.Array  # (6,) start configuration [rad]
+    q0: jax.Array  # (n,) start configuration [rad]
     m_a: jax.Array  # () self-ID magnitude [rad]
     eps: jax.Array  # () Sec. IV-D threshold [rad/m]
     controller: control.ControllerParams
 
 
 class Outputs(NamedTuple):
-    q0: jax.Array  # (6,) start configuration of self-ID [rad]
+    q0: jax.Array  # (n,) start configuration of self-ID [rad]
     converged_at: jax.Array  # () int32 Sec. IV-D iteration, -1 if never
     relative_error: jax.Array  # () ||J_est - J_true||_F / ||J_true||_F at the start of the star
     task_error: jax.Array  # () ||J(q) J_est - I||_F: the part of the error the controller sees
@@ -68,8 +70,8 @@ class Outputs(NamedTuple):
     completion_true: jax.Array  # () ... with the true inverse Jacobian
     mean_error_estimated: jax.Array  # () mean distance to the path [m]
     mean_error_true: jax.Array  # () [m]
-    estimate: jax.Array  # (6, 3) final self-ID estimate [rad/m]
-    truth: jax.Array  # (6, 3) true inverse Jacobian where the star starts [rad/m]
+    estimate: jax.Array  # (n, m) final self-ID estimate [rad/m]
+    truth: jax.Array  # (n, m) true inverse Jacobian where the star starts [rad/m]
     deltas: jax.Array  # (iters,) ||J_t - J_{t-1}||_F per self-ID iteration [rad/m]
     positions_estimated: jax.Array  # (steps + 1, 3) end-effector positions [m]
     positions_true: jax.Array  # (steps + 1, 3) [m]
@@ -107,8 +109,8 @@ def compute(static: Static, p: Params) -> Outputs:
 
 def build(cfg: DemoConfig) -> Part:
     """``n_configs`` feasible UR5e starts (key ``seed``) and one self-ID stream each (keys from ``seed + 1``)."""
-    system = ur5e(task_dim=3)
-    path = paths.star(size=cfg.path.size, dim=3)
+    system = build_system(cfg.system)
+    path = paths.star(size=cfg.path.size, dim=system.task_dim)
     ctrl = control.ControllerParams(**cfg.controller.traced())
     q0 = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs, ctrl,
                                             steps=cfg.controller.steps))
@@ -117,7 +119,7 @@ def build(cfg: DemoConfig) -> Part:
     params = Params(key=keys, q0=q0, m_a=np.full((n,), cfg.m_a), eps=np.full((n,), cfg.eps),
                     controller=controller_rows(cfg.controller, n))
     meta = pd.DataFrame({"config_id": np.arange(n)})
-    return Part("ur5e", Static(system, path, cfg.iters, cfg.controller.steps), params, meta)
+    return Part(system_name(cfg.system), Static(system, path, cfg.iters, cfg.controller.steps), params, meta)
 
 
 def summarize(table: pd.DataFrame, cfg: DemoConfig) -> dict:
@@ -127,7 +129,9 @@ def summarize(table: pd.DataFrame, cfg: DemoConfig) -> dict:
         return table[name].to_numpy().tolist()
 
     return {
-        "system": "ur5e (position task, 3-D)",
+        "system": system_name(cfg.system),
+        "n_act": int(len(table["q0"].iloc[0])),
+        "task_dim": int(len(table["estimate"].iloc[0]) // len(table["q0"].iloc[0])),
         "self_id": {"iterations": cfg.iters, "m_a_rad": cfg.m_a, "eps": cfg.eps},
         "controller": cfg.controller.model_dump(),
         "path": f"star, outer radius {cfg.path.size} m",
@@ -146,8 +150,8 @@ def report(summary: dict) -> str:
     """The per-configuration table and what its error columns mean."""
     n = len(summary["converged_at"])
     lines = [
-        f"UR5e self-ID from {n} start configurations, then a 5 cm star (m_a {summary['self_id']['m_a_rad']} rad, "
-        f"eps {summary['self_id']['eps']} rad/m)",
+        f"{summary['system']} self-ID from {n} start configurations, then a star (m_a {summary['self_id']['m_a_rad']}"
+        f" rad, eps {summary['self_id']['eps']} rad/m)",
         f"{'config':>6s} {'converged at':>12s} {'rel. error':>10s} {'||J Jest - I||':>14s} {'completion est/true':>20s} "
         f"{'tracking error est/true [mm]':>29s}",
     ]
@@ -159,12 +163,13 @@ def report(summary: dict) -> str:
             f"{1e3 * summary['mean_tracking_error_estimated_m'][b]:16.3f} / "
             f"{1e3 * summary['mean_tracking_error_true_m'][b]:.3f}"
         )
-    lines += [
-        "rel. error = ||J_est - J_true^+||_F / ||J_true^+||_F. With 6 actuators and a 3-D task, any J_est with",
-        "J J_est = I tracks perfectly; J_est may differ from the minimum-norm J^+ by null-space rows the position",
-        "samples cannot pin down, so rel. error stays large while ||J J_est - I|| is what",
-        "the controller sees.",
-    ]
+    if summary["n_act"] > summary["task_dim"]:
+        lines += [
+            f"rel. error = ||J_est - J_true^+||_F / ||J_true^+||_F. With {summary['n_act']} actuators and a "
+            f"{summary['task_dim']}-D task, any J_est with",
+            "J J_est = I tracks perfectly; J_est may differ from the minimum-norm J^+ by null-space rows the task",
+            "samples cannot pin down, so rel. error stays large while ||J J_est - I|| is what the controller sees.",
+        ]
     return "\n".join(lines)
 
 
@@ -172,7 +177,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     """``demo``: estimated vs true inverse Jacobian (config 0), the traced stars, the convergence curves."""
     from matplotlib.figure import Figure
 
-    n_act, m = 6, 3
+    n_act, m = summary["n_act"], summary["task_dim"]
     est0 = np.asarray(table["estimate"].iloc[0]).reshape(n_act, m)
     true0 = np.asarray(table["truth"].iloc[0]).reshape(n_act, m)
     fig = Figure(figsize=(16, 4))
@@ -181,7 +186,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     for ax, mat, title in ((axes[0], est0, "estimated"), (axes[1], true0, "true")):
         im = ax.imshow(mat, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
         ax.set_title(f"{title} $J^+$, config 0")
-        ax.set_xticks(range(m), ["x", "y", "z"])
+        ax.set_xticks(range(m), ["x", "y", "z", "rx", "ry", "rz"][:m])
         ax.set_yticks(range(n_act), [f"q{i + 1}" for i in range(n_act)])
         for (i, j), v in np.ndenumerate(mat):
             ax.text(j, i, f"{v:.1f}", ha="center", va="center", fontsize=7)

@@ -90,3 +90,13 @@ def test_resume_gives_identical_table(run_dir, tmp_path):
     assert chunks[0].stat().st_mtime_ns == first_chunk_mtime  # finished work was not recomputed
     pd.testing.assert_frame_equal(resumed.reset_index(drop=True), full.reset_index(drop=True))
     pd.testing.assert_frame_equal(pd.read_parquet(part / "results.parquet"), full)
+
+
+def test_infeasible_path_is_a_usage_error_before_the_run_directory_exists(tmp_path, capsys):
+    cfg_path = tmp_path / "too_big.yaml"
+    cfg_path.write_text(yaml.safe_dump(dict(CONFIG, path={"kind": "star", "size": 5.0})))  # 2-link reach is 2 m
+    out = tmp_path / "run"
+    assert cli.main(["sweep", str(cfg_path), "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert str(cfg_path) in err and "cannot set up experiment 'valid_region'" in err and "complete" in err
+    assert "Traceback" not in err and not out.exists()
