@@ -80,7 +80,6 @@ class AblationConfig(BaseConfig):
 
     @model_validator(mode="after")
     def _noise_pairs(self):
-        self.path.check_controller(self.controller)
         if len(self.pose_noise) != len(self.rot_noise):
             raise ValueError(
                 f"pose_noise and rot_noise pair up level by level: lengths {len(self.pose_noise)} "

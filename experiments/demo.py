@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from selfid_jax import control, paths, selfid
 from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig
@@ -39,11 +39,6 @@ class DemoConfig(BaseConfig):
     m_a: float = Field(0.03, gt=0, le=0.1, description="self-ID magnitude [rad]")
     path: PathConfig = PathConfig(size=0.05)
     controller: ControllerConfig = ControllerConfig(steps=400)
-
-    @model_validator(mode="after")
-    def _tolerance_fits_path(self):
-        self.path.check_controller(self.controller)
-        return self
 
 
 class Static(NamedTuple):

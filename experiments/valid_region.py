@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator
 
 from selfid_jax import control, paths, plots
 from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig, unique
@@ -57,11 +57,6 @@ class ValidRegionConfig(BaseConfig):
     def _unique(cls, systems: list) -> list:
         unique([system_name(s) for s in systems], "system names")
         return systems
-
-    @model_validator(mode="after")
-    def _tolerance_fits_path(self):
-        self.path.check_controller(self.controller)
-        return self
 
 
 class Static(NamedTuple):

@@ -26,7 +26,7 @@ from typing import Annotated, Any, Literal
 import annotated_types
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 __all__ = [
     "BaseConfig",
@@ -85,6 +85,14 @@ class BaseConfig(BaseModel):
     seed: int = Field(0, ge=0, le=2**32 - 1, description="PRNG seed (JAX keys hold 32 bits)")
     chunk_size: int = Field(256, gt=0, le=10**7, description="rollouts per compiled chunk")
     name: str | None = None
+
+    @model_validator(mode="after")
+    def _controller_fits_path(self):
+        """Experiments with a ``path`` and a ``controller``: the tolerance must fit the path."""
+        path, controller = getattr(self, "path", None), getattr(self, "controller", None)
+        if isinstance(path, PathConfig) and isinstance(controller, ControllerConfig):
+            path.check_controller(controller)
+        return self
 
 
 class EpsLimits(BaseModel):
