@@ -17,6 +17,7 @@ iteration at which the method's estimate met the Sec. IV-D test
 
 from __future__ import annotations
 
+import contextlib
 from typing import Annotated, Any, Literal, NamedTuple
 
 import jax
@@ -30,7 +31,7 @@ from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, unique
 from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, system_name
+from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
 
 
 class MethodSpec(BaseModel):
@@ -147,7 +148,14 @@ def compute(static: Static, p: Params) -> Outputs:
     return jax.tree.map(lambda *x: jnp.stack(x), *rows)
 
 
-def build(cfg: AblationConfig) -> Part:
+def build(cfg):
+    """The one part, built (and later run) in float64 if the system needs it (closed-chain hands)."""
+    x64 = needs_x64(cfg.system)
+    with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+        return _build(cfg)._replace(x64=x64)
+
+
+def _build(cfg: AblationConfig) -> Part:
     """Configs x trials x noise levels x m_a streams on the configured system (UR5e position task by default)."""
     system = build_system(cfg.system)
     meta = grid_table(

@@ -11,6 +11,7 @@ with the defaults of :class:`DemoConfig` into ``runs/demo`` (``results.parquet``
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 from typing import Literal, NamedTuple
 
@@ -25,7 +26,7 @@ from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig
 from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.plots import save_figure
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, system_name
+from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
 
 
 class DemoConfig(BaseConfig):
@@ -102,7 +103,14 @@ def compute(static: Static, p: Params) -> Outputs:
     )
 
 
-def build(cfg: DemoConfig) -> Part:
+def build(cfg):
+    """The one part, built (and later run) in float64 if the system needs it (closed-chain hands)."""
+    x64 = needs_x64(cfg.system)
+    with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+        return _build(cfg)._replace(x64=x64)
+
+
+def _build(cfg: DemoConfig) -> Part:
     """``n_configs`` feasible UR5e starts (key ``seed``) and one self-ID stream each (keys from ``seed + 1``)."""
     system = build_system(cfg.system)
     path = paths.star(size=cfg.path.size, dim=system.task_dim)

@@ -19,6 +19,7 @@ From Python::
 
 from __future__ import annotations
 
+import contextlib
 from typing import Annotated, Literal, NamedTuple
 
 import jax
@@ -32,7 +33,7 @@ from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfi
 from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, system_name
+from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
 
 
 class ValidRegionConfig(BaseConfig):
@@ -106,29 +107,36 @@ def build(cfg: ValidRegionConfig) -> list[Part]:
     """One part per system: ``eps_limits x n_configs x n_trials`` rollouts from feasible start configurations."""
     parts = []
     for spec in cfg.systems:
-        name, system = system_name(spec), build_system(spec)
-        path = paths.star(size=cfg.path.size, dim=system.task_dim)
-        meta = grid_table(
-            {
-                "system": [name],
-                "eps_limit": cfg.eps_limits.values(),
-                "config_id": range(cfg.n_configs),
-                "trial": range(cfg.n_trials),
-            }
-        )
-        ctrl = controller_rows(cfg.controller, len(meta))
-        configs = np.asarray(
-            control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
-                                    control.ControllerParams(**cfg.controller.traced()), steps=cfg.controller.steps)
-        )
-        params = Params(
-            eps_limit=meta["eps_limit"].to_numpy(float),
-            key=row_keys(cfg.seed, len(meta)),
-            q0=configs[meta["config_id"].to_numpy()],
-            controller=ctrl,
-        )
-        parts.append(Part(name, Static(system, path, cfg.controller.steps), params, meta))
+        x64 = needs_x64(spec)
+        with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+            parts.append(_system_part(cfg, spec, x64))
     return parts
+
+
+def _system_part(cfg: ValidRegionConfig, spec, x64: bool) -> Part:
+    """One system's rollouts: the grid rows, feasible start configurations and the traced parameters."""
+    name, system = system_name(spec), build_system(spec)
+    path = paths.star(size=cfg.path.size, dim=system.task_dim)
+    meta = grid_table(
+        {
+            "system": [name],
+            "eps_limit": cfg.eps_limits.values(),
+            "config_id": range(cfg.n_configs),
+            "trial": range(cfg.n_trials),
+        }
+    )
+    ctrl = controller_rows(cfg.controller, len(meta))
+    configs = np.asarray(
+        control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
+                                control.ControllerParams(**cfg.controller.traced()), steps=cfg.controller.steps)
+    )
+    params = Params(
+        eps_limit=meta["eps_limit"].to_numpy(float),
+        key=row_keys(cfg.seed, len(meta)),
+        q0=configs[meta["config_id"].to_numpy()],
+        controller=ctrl,
+    )
+    return Part(name, Static(system, path, cfg.controller.steps), params, meta, x64)
 
 
 def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:

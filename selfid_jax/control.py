@@ -231,8 +231,10 @@ def follow(
       steps: static step budget.
       return_trajectory: also return the ``(steps + 1, 3)`` POM positions.
 
-    A rollout whose state turns non-finite or strays farther than
-    ``diverge_dist`` from the path is frozen and flagged ``failed``, so every
+    A rollout whose state or pose turns non-finite (a closed-chain hand's pose
+    map returns NaN where its solve fails or leaves the equilibrium branch) or
+    strays farther than ``diverge_dist`` from the path is frozen and flagged
+    ``failed``, so every
     metric stays finite (distances that cannot be computed, as from a traced
     NaN ``q0`` or waypoint, count as 0: read them only where ``failed`` is
     False). Concrete non-finite ``q0``/``path``, non-positive controller
@@ -258,7 +260,8 @@ def follow(
     if jinv_shape != (n, m):
         raise ValueError(f"jinv: the inverse Jacobian has shape {jinv_shape}, expected ({n}, {m}) = (n_act, task_dim)")
     W = path.shape[0]
-    task = _Task.make(path, system.pose(q0), m)
+    pose0 = system.pose(q0)
+    task = _Task.make(path, pose0, m)
     ctrl = controller
     if ctrl.diverge_dist is None:
         reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : task.targets.shape[1]] ** 2, axis=-1)))
@@ -269,7 +272,8 @@ def follow(
         dist = task.path_distance(pose[0])
         carry, active = _advance(task, carry, pose, ctrl)
         q_new = system.apply(carry.q, J @ task.twist(*task.error(pose, carry.waypoint), ctrl))
-        finite = jnp.all(jnp.isfinite(q_new)) & jnp.all(jnp.isfinite(J))
+        # a pose map returns NaN where its solve failed (closed-chain hands): that fails the rollout too
+        finite = jnp.all(jnp.isfinite(q_new)) & jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(pose[0]))
         failed = carry.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
         counted = jnp.where(active & jnp.isfinite(dist), dist, 0.0)
         carry = carry._replace(
@@ -284,7 +288,8 @@ def follow(
     init = _Carry(
         q=q0,
         waypoint=jnp.zeros((), jnp.int32),
-        failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path))),  # traced NaN input: failed, finite metrics
+        # traced NaN input or an unsolvable start pose: failed from the start, finite metrics
+        failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path)) & jnp.all(jnp.isfinite(pose0[0]))),
         err_sum=jnp.zeros((), dtype),
         err_max=jnp.zeros((), dtype),
         used=jnp.zeros((), jnp.int32),

@@ -28,6 +28,7 @@ imports an experiment module by name.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import importlib.metadata
@@ -62,6 +63,7 @@ class Part(NamedTuple):
     static: Any  # closed over by compute (systems, paths, estimators, static sizes); no config object
     params: Any  # NamedTuple (or dict) pytree of arrays, each with leading axis N
     meta: pd.DataFrame  # N rows of labels copied into the results table
+    x64: bool = False  # run this part in float64 (jax.enable_x64), e.g. a closed-chain hand; the others stay as set
 
 
 @dataclasses.dataclass(frozen=True)
@@ -195,16 +197,17 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
 
     tables = []
     for part in experiment.parts(cfg) if parts is None else parts:
-        wide = run_chunked(
-            experiment.batched(part.static),
-            part.params,
-            chunk_size=cfg.chunk_size,
-            out_dir=out_dir / PARTS_DIR / part.name,
-            meta=part.meta,
-            fresh=fresh,
-            progress=progress,
-            desc=part.name,
-        )
+        with jax.enable_x64(True) if part.x64 else contextlib.nullcontext():
+            wide = run_chunked(
+                experiment.batched(part.static),
+                part.params,
+                chunk_size=cfg.chunk_size,
+                out_dir=out_dir / PARTS_DIR / part.name,
+                meta=part.meta,
+                fresh=fresh,
+                progress=progress,
+                desc=part.name,
+            )
         if wide is None:  # another process of a jax.distributed run writes the files
             return None
         wide = wide.drop(columns=["row"])

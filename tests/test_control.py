@@ -230,3 +230,18 @@ def test_bad_follow_inputs_raise_or_fail_with_finite_metrics():
         assert bool(res.failed)
         for x in (res.completion, res.mean_error, res.max_error, res.waypoint_error):
             assert np.isfinite(float(x))
+
+
+def test_a_pose_map_that_returns_nan_fails_the_rollout():
+    """A closed-chain hand returns NaN where its solve fails: the rollout stops there, flagged, metrics finite."""
+    def fk(params, q):  # a planar identity arm whose "solve" fails beyond x = 0.05
+        return jnp.where(q[0] > 0.05, jnp.nan, jnp.stack([q[0], q[1], 0.0]))
+
+    arm = from_pose_fn(fk, 2, task_dim=2, q_low=-1, q_high=1, dq_max=0.1, m_a=0.01)
+    line = jnp.array([[0.1, 0.0]])
+    res = control.follow(arm, control.fixed(jnp.eye(2)), line, jnp.zeros(2), control.ControllerParams(max_step=0.01,
+                         tol=1e-3), steps=40)
+    assert bool(res.failed) and float(res.completion) == 0.0
+    assert 0.05 < float(res.final_q[0]) < 0.065  # frozen at the first configuration whose pose was lost
+    for x in (res.mean_error, res.max_error, res.waypoint_error):
+        assert np.isfinite(float(x))

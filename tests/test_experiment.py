@@ -169,3 +169,37 @@ def test_demo_takes_any_system_from_a_config(tmp_path, capsys):
     assert summary["n_act"] == 2 and summary["task_dim"] == 2
     assert summary["completion_estimated"] == [1.0, 1.0]
     assert (out / "figures" / "demo.png").stat().st_size > 1000
+
+
+def planar_two_link(params, q):
+    """Unit 2-link arm in the plane (for a pose_fn system spec)."""
+    a = jnp.cumsum(q)
+    return jnp.stack([jnp.sum(jnp.cos(a)), jnp.sum(jnp.sin(a))])
+
+
+@pytest.mark.slow
+def test_a_float64_system_beside_a_float32_one_in_one_sweep(tmp_path):
+    """x64: true on one system runs its part in float64; the other part keeps the default dtype and its numbers."""
+    import jax as _jax
+    import yaml
+
+    base = {"experiment": "valid_region", "eps_limits": {"start": 0.8, "stop": 1.2, "num": 3}, "n_configs": 2,
+            "n_trials": 2, "path": {"size": 0.2}, "controller": {"max_step": 0.01, "tol": 0.002, "steps": 300},
+            "chunk_size": 12}
+    spec = {"pose_fn": "test_experiment:planar_two_link", "n_act": 2, "task_dim": 2, "name": "two_link_f64",
+            "sample_box": {"low": [-1.0, 0.4], "high": [1.0, 2.4]}, "x64": True}
+    runs = {}
+    with _jax.enable_x64(False):
+        for label, systems in (("mixed", ["two_link", spec]), ("alone", ["two_link"])):
+            cfg = tmp_path / f"{label}.yaml"
+            cfg.write_text(yaml.safe_dump({**base, "systems": systems}))
+            assert cli.main(["sweep", str(cfg), "--out", str(tmp_path / label), "--no-progress"]) == 0
+            runs[label] = pd.read_parquet(tmp_path / label / "results.parquet")
+    manifests = {p: json.loads((tmp_path / "mixed" / "parts" / p / "manifest.json").read_text())
+                 for p in ("two_link", "two_link_f64")}
+    assert manifests["two_link_f64"]["x64"] is True and manifests["two_link"]["x64"] is False
+    mixed = runs["mixed"]
+    # same numbers (the combined table holds them in float64 beside the float64 part)
+    pd.testing.assert_frame_equal(mixed[mixed.system == "two_link"].reset_index(drop=True), runs["alone"],
+                                  check_dtype=False)
+    assert np.all(mixed[mixed.system == "two_link_f64"].completion.notna())

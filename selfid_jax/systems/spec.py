@@ -35,7 +35,8 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, Validatio
 
 from selfid_jax.systems.system import System
 
-__all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "system_name"]
+__all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "needs_x64",
+           "system_name"]
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
@@ -85,6 +86,7 @@ class MjcfSystem(BaseModel):
     sample_box: SampleBox | None = Field(None, description="explicit start box (instead of home +- half-width)")
     min_sigma: float = Field(1e-3, ge=0, description="start configurations need sigma_min(J) above this")
     name: str | None = Field(None, min_length=1, description="label (default: the file's stem)")
+    x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
     @field_validator("mjcf")
     @classmethod
@@ -123,6 +125,7 @@ class PoseFnSystem(BaseModel):
     sample_box: SampleBox | None = None
     min_sigma: float = Field(1e-3, ge=0)
     name: str | None = Field(None, min_length=1)
+    x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
 
 def _kind(value) -> str | None:
@@ -149,6 +152,15 @@ SystemSpec = Annotated[
     ),
 ]
 """What a config's ``system`` / ``systems`` entries accept (config errors drop the ``<tag>`` parts of keys)."""
+
+
+X64_BUILTINS: frozenset[str] = frozenset()
+"""Built-in systems that run in float64 whatever the global setting (closed-chain hands)."""
+
+
+def needs_x64(spec) -> bool:
+    """Whether a system spec is built and run in float64 (``jax.enable_x64``); arms stay in the default dtype."""
+    return spec in X64_BUILTINS if isinstance(spec, str) else spec.x64
 
 
 def system_name(spec) -> str:
