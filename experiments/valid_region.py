@@ -20,13 +20,13 @@ From Python::
 from __future__ import annotations
 
 import contextlib
-from typing import Annotated, Literal, NamedTuple
+from typing import Annotated, Literal, NamedTuple, Union
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import Field, field_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
 from selfid_jax import control, paths, plots
 from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig, unique
@@ -34,6 +34,31 @@ from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+
+
+class SystemRun(BaseModel):
+    """A system with its own protocol (hands need mm paths where an arm needs cm): overrides the top level."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+    system: SystemSpec
+    path: PathConfig | None = None
+    controller: ControllerConfig | None = None
+
+
+SystemEntry = Annotated[
+    Union[Annotated[SystemSpec, Tag("<spec>")], Annotated[SystemRun, Tag("<run>")]],
+    Discriminator(lambda v: "<run>" if isinstance(v, SystemRun) or (isinstance(v, dict) and "system" in v)
+                  else "<spec>"),
+]
+"""A ``systems`` entry: a system spec, or ``{system: spec, path: ..., controller: ...}``."""
+
+
+def protocol(cfg: "ValidRegionConfig", entry) -> tuple[object, PathConfig, ControllerConfig]:
+    """``(system spec, path, controller)`` of one ``systems`` entry, the top level filling what it leaves out."""
+    if isinstance(entry, SystemRun):
+        return entry.system, entry.path or cfg.path, entry.controller or cfg.controller
+    return entry, cfg.path, cfg.controller
 
 
 class ValidRegionConfig(BaseConfig):
@@ -45,7 +70,8 @@ class ValidRegionConfig(BaseConfig):
     """
 
     experiment: Literal["valid_region"] = "valid_region"
-    systems: Annotated[list[SystemSpec], Field(min_length=1, description="built-in names or {mjcf: ...} / {pose_fn: ...}")]
+    systems: Annotated[list[SystemEntry], Field(
+        min_length=1, description="built-in names, {mjcf: ...} / {pose_fn: ...}, or {system: ..., path: ..., controller: ...}")]
     eps_limits: EpsLimits
     n_configs: int = Field(ge=1, le=10**5)
     n_trials: int = Field(ge=1, le=10**5)
@@ -56,8 +82,15 @@ class ValidRegionConfig(BaseConfig):
     @field_validator("systems")
     @classmethod
     def _unique(cls, systems: list) -> list:
-        unique([system_name(s) for s in systems], "system names")
+        unique([system_name(s.system if isinstance(s, SystemRun) else s) for s in systems], "system names")
         return systems
+
+    @model_validator(mode="after")
+    def _protocols_fit(self):
+        for entry in self.systems:
+            _, path, controller = protocol(self, entry)
+            path.check_controller(controller)
+        return self
 
 
 class Static(NamedTuple):
@@ -106,17 +139,18 @@ def compute(static: Static, p: Params) -> Outputs:
 def build(cfg: ValidRegionConfig) -> list[Part]:
     """One part per system: ``eps_limits x n_configs x n_trials`` rollouts from feasible start configurations."""
     parts = []
-    for spec in cfg.systems:
+    for entry in cfg.systems:
+        spec, path, controller = protocol(cfg, entry)
         x64 = needs_x64(spec)
         with jax.enable_x64(True) if x64 else contextlib.nullcontext():
-            parts.append(_system_part(cfg, spec, x64))
+            parts.append(_system_part(cfg, spec, path, controller, x64))
     return parts
 
 
-def _system_part(cfg: ValidRegionConfig, spec, x64: bool) -> Part:
+def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller: ControllerConfig, x64: bool) -> Part:
     """One system's rollouts: the grid rows, feasible start configurations and the traced parameters."""
     name, system = system_name(spec), build_system(spec)
-    path = paths.star(size=cfg.path.size, dim=system.task_dim)
+    path = paths.star(size=path_cfg.size, dim=system.task_dim)
     meta = grid_table(
         {
             "system": [name],
@@ -125,10 +159,10 @@ def _system_part(cfg: ValidRegionConfig, spec, x64: bool) -> Part:
             "trial": range(cfg.n_trials),
         }
     )
-    ctrl = controller_rows(cfg.controller, len(meta))
+    ctrl = controller_rows(controller, len(meta))
     configs = np.asarray(
         control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
-                                control.ControllerParams(**cfg.controller.traced()), steps=cfg.controller.steps)
+                                control.ControllerParams(**controller.traced()), steps=controller.steps)
     )
     params = Params(
         eps_limit=meta["eps_limit"].to_numpy(float),
@@ -136,12 +170,12 @@ def _system_part(cfg: ValidRegionConfig, spec, x64: bool) -> Part:
         q0=configs[meta["config_id"].to_numpy()],
         controller=ctrl,
     )
-    return Part(name, Static(system, path, cfg.controller.steps), params, meta, x64)
+    return Part(name, Static(system, path, controller.steps), params, meta, x64)
 
 
 def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:
-    """Bounds per system with the protocol beside them."""
-    return plots.valid_region_summary(
+    """Bounds per system with the protocol beside them (per system where a ``systems`` entry sets its own)."""
+    summary = plots.valid_region_summary(
         table,
         cfg.completion_threshold,
         controller=cfg.controller.model_dump(),
@@ -149,6 +183,12 @@ def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:
         n_configs=cfg.n_configs,
         n_trials=cfg.n_trials,
     )
+    for entry in cfg.systems:
+        spec, path, controller = protocol(cfg, entry)
+        if isinstance(entry, SystemRun) and system_name(spec) in summary["systems"]:
+            summary["systems"][system_name(spec)]["protocol"] = {"path": path.model_dump(),
+                                                                 "controller": controller.model_dump()}
+    return summary
 
 
 def report(summary: dict) -> str:

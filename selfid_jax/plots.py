@@ -196,7 +196,12 @@ def valid_region_figure(
                     ax.axvline(v, color="C3", ls="--", lw=1.2)
             ax.grid(alpha=0.3)
         region = f"valid {lower:g} to {upper:g}" if lower is not None else "no valid region at 1"
-        ax_c.set_title(f"{system}\n{region}", fontsize=10)
+        own = saved.get(system, {}).get("protocol")
+        if isinstance(own, Mapping):  # a system with its own path and controller
+            ctrl, path = own.get("controller", {}), own.get("path", {})
+            region += (f"\nstar {1e3 * path.get('size', float('nan')):g} mm, step {1e3 * ctrl.get('max_step', float('nan')):g} mm,"
+                       f" tol {1e3 * ctrl.get('tol', float('nan')):g} mm, {ctrl.get('steps')} steps")
+        ax_c.set_title(f"{system}\n{region}", fontsize=10 if own is None else 8)
         ax_e.set_xlabel(r"$\epsilon_{limit}$")
         if c == 0:
             ax_c.set_ylabel("mean path completion [%]")

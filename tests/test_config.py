@@ -182,3 +182,16 @@ def test_system_specs_name_the_problem_and_resolve_paths(cfg_file, tmp_path):
     assert cfg.systems[1].mjcf == str((tmp_path / "robots" / "arm.xml").resolve())
     msg = _error(cfg_file, ["systems=[two_link, {mjcf: robots/arm.xml, site: tip, name: two_link}]"])
     assert "repeated: two_link" in msg
+
+
+def test_systems_entries_may_carry_their_own_protocol(cfg_file):
+    cfg = load_config(cfg_file, ["systems=[two_link, {system: ur5e, path: {size: 0.05}, "
+                                 "controller: {max_step: 0.0025, tol: 0.0005, steps: 435}}]"])
+    from experiments.valid_region import SystemRun, protocol
+
+    assert isinstance(cfg.systems[1], SystemRun)
+    spec, path, controller = protocol(cfg, cfg.systems[1])
+    assert spec == "ur5e" and path.size == 0.05 and controller.tol == 0.0005
+    assert protocol(cfg, cfg.systems[0])[1].size == 0.5  # the top level fills in
+    msg = _error(cfg_file, ["systems=[{system: ur5e, path: {size: 0.001}}]"])  # tol 1e-3 does not fit 1 mm
+    assert "controller.tol" in msg and "path.size" in msg
