@@ -13,33 +13,55 @@ from __future__ import annotations
 
 import contextlib
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Annotated, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from selfid_jax import control, paths, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig
+from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, unique
 from selfid_jax.experiment import Experiment, Part, controller_rows
 from selfid_jax.plots import save_figure
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
 
 
-class DemoConfig(BaseConfig):
-    """UR5e (position task) self-ID from ``n_configs`` start configurations, then a star with each estimate."""
+class DemoRun(BaseModel):
+    """One robot of the demo: self-ID from ``n_configs`` start configurations, then a star with each estimate."""
 
-    experiment: Literal["demo"] = "demo"
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
     system: SystemSpec = Field("ur5e", description="a built-in name or {mjcf: ...} / {pose_fn: ...}")
     n_configs: int = Field(4, ge=1, le=10**4, description="start configurations")
     iters: int = Field(30, ge=2, le=10**4, description="self-ID iterations (Algorithm 1)")
-    eps: float = Field(0.5, gt=0, le=1e6, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]")
-    m_a: float = Field(0.03, gt=0, le=0.1, description="self-ID magnitude [rad]")
+    eps: float = Field(0.5, ge=0, le=1e6, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]")
+    eps_rel: float = Field(0.0, ge=0, le=10, description="relative Sec. IV-D threshold (times ||J_t||_F)")
+    m_a: float = Field(0.03, gt=0, le=0.1, description="self-ID magnitude [rad or m]")
     path: PathConfig = PathConfig(size=0.05)
     controller: ControllerConfig = ControllerConfig(steps=400)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        self.path.check_controller(self.controller)
+        if self.eps == 0 and self.eps_rel == 0:
+            raise ValueError("eps and eps_rel are both 0: the Sec. IV-D test could never hold")
+        return self
+
+
+class DemoConfig(BaseConfig):
+    """The main job: each run self-identifies its robot and follows a star with the estimates and the truth."""
+
+    experiment: Literal["demo"] = "demo"
+    runs: Annotated[list[DemoRun], Field(min_length=1)] = [DemoRun()]
+
+    @field_validator("runs")
+    @classmethod
+    def _unique(cls, runs: list[DemoRun]) -> list[DemoRun]:
+        unique([system_name(r.system) for r in runs], "run systems")
+        return runs
 
 
 class Static(NamedTuple):
@@ -54,6 +76,7 @@ class Params(NamedTuple):
     q0: jax.Array  # (n,) start configuration [rad]
     m_a: jax.Array  # () self-ID magnitude [rad]
     eps: jax.Array  # () Sec. IV-D threshold [rad/m]
+    eps_rel: jax.Array  # () relative Sec. IV-D threshold
     controller: control.ControllerParams
 
 
@@ -76,7 +99,8 @@ class Outputs(NamedTuple):
 def compute(static: Static, p: Params) -> Outputs:
     """Self-ID from ``p.q0``, then the star from where self-ID ended, with the estimate and with the truth."""
     system = static.system
-    sid = selfid.run(system, jax.random.wrap_key_data(p.key), p.q0, iters=static.iters, eps=p.eps, m_a=p.m_a)
+    sid = selfid.run(system, jax.random.wrap_key_data(p.key), p.q0, iters=static.iters, eps=p.eps, eps_rel=p.eps_rel,
+                     m_a=p.m_a)
     q_start = sid.env  # follow from where self-ID left the arm
 
     def follow(jinv):
@@ -103,119 +127,136 @@ def compute(static: Static, p: Params) -> Outputs:
     )
 
 
-def build(cfg):
-    """The one part, built (and later run) in float64 if the system needs it (closed-chain hands)."""
-    x64 = needs_x64(cfg.system)
-    with jax.enable_x64(True) if x64 else contextlib.nullcontext():
-        return _build(cfg)._replace(x64=x64)
+def build(cfg: DemoConfig) -> list[Part]:
+    """One part per run, each built (and later run) in float64 if its system needs it (closed-chain hands)."""
+    parts = []
+    for i, run in enumerate(cfg.runs):
+        x64 = needs_x64(run.system)
+        with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+            parts.append(_run_part(run, cfg.seed + 2 * i, x64))
+    return parts
 
 
-def _build(cfg: DemoConfig) -> Part:
-    """``n_configs`` feasible UR5e starts (key ``seed``) and one self-ID stream each (keys from ``seed + 1``)."""
-    system = build_system(cfg.system)
-    path = paths.star(size=cfg.path.size, dim=system.task_dim)
-    ctrl = control.ControllerParams(**cfg.controller.traced())
-    q0 = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs, ctrl,
-                                            steps=cfg.controller.steps))
-    n = cfg.n_configs
-    keys = np.asarray(jax.random.key_data(jax.random.split(jax.random.key(cfg.seed + 1), n)))
-    params = Params(key=keys, q0=q0, m_a=np.full((n,), cfg.m_a), eps=np.full((n,), cfg.eps),
-                    controller=controller_rows(cfg.controller, n))
-    meta = pd.DataFrame({"config_id": np.arange(n)})
-    return Part(system_name(cfg.system), Static(system, path, cfg.iters, cfg.controller.steps), params, meta)
+def _run_part(run: DemoRun, seed: int, x64: bool) -> Part:
+    """``n_configs`` feasible starts (key ``seed``) and one self-ID stream each (keys from ``seed + 1``)."""
+    system = build_system(run.system)
+    path = paths.star(size=run.path.size, dim=system.task_dim)
+    ctrl = control.ControllerParams(**run.controller.traced())
+    q0 = np.asarray(control.feasible_starts(system, path, jax.random.key(seed), run.n_configs, ctrl,
+                                            steps=run.controller.steps))
+    n = run.n_configs
+    keys = np.asarray(jax.random.key_data(jax.random.split(jax.random.key(seed + 1), n)))
+    params = Params(key=keys, q0=q0, m_a=np.full((n,), run.m_a), eps=np.full((n,), run.eps),
+                    eps_rel=np.full((n,), run.eps_rel), controller=controller_rows(run.controller, n))
+    meta = pd.DataFrame({"system": system_name(run.system), "config_id": np.arange(n)})
+    return Part(system_name(run.system), Static(system, path, run.iters, run.controller.steps), params, meta, x64)
 
 
 def summarize(table: pd.DataFrame, cfg: DemoConfig) -> dict:
-    """Per start configuration: convergence iteration, errors, completions; the protocol beside them."""
+    """Per run and start configuration: convergence iteration, errors, completions; the protocol beside them."""
+    runs = {}
+    for run in cfg.runs:
+        name = system_name(run.system)
+        g = table[table["system"] == name]
 
-    def col(name):
-        return table[name].to_numpy().tolist()
+        def col(column, g=g):
+            return g[column].to_numpy().tolist()
 
-    return {
-        "system": system_name(cfg.system),
-        "n_act": int(len(table["q0"].iloc[0])),
-        "task_dim": int(len(table["estimate"].iloc[0]) // len(table["q0"].iloc[0])),
-        "self_id": {"iterations": cfg.iters, "m_a_rad": cfg.m_a, "eps": cfg.eps},
-        "controller": cfg.controller.model_dump(),
-        "path": f"star, outer radius {cfg.path.size} m",
-        "start_configs_rad": [np.asarray(q).tolist() for q in table["q0"]],
-        "converged_at": col("converged_at"),
-        "relative_error_vs_true_inverse": col("relative_error"),
-        "task_error_J_Jest_minus_I": col("task_error"),
-        "completion_estimated": col("completion_estimated"),
-        "completion_true": col("completion_true"),
-        "mean_tracking_error_estimated_m": col("mean_error_estimated"),
-        "mean_tracking_error_true_m": col("mean_error_true"),
-    }
+        n_act = int(len(g["q0"].iloc[0]))
+        runs[name] = {
+            "n_act": n_act,
+            "task_dim": int(len(g["estimate"].iloc[0]) // n_act),
+            "self_id": {"iterations": run.iters, "m_a": run.m_a, "eps": run.eps, "eps_rel": run.eps_rel},
+            "controller": run.controller.model_dump(),
+            "path": run.path.model_dump(),
+            "start_configs": [np.asarray(q).tolist() for q in g["q0"]],
+            "converged_at": col("converged_at"),
+            "relative_error_vs_true_inverse": col("relative_error"),
+            "task_error_J_Jest_minus_I": col("task_error"),
+            "completion_estimated": col("completion_estimated"),
+            "completion_true": col("completion_true"),
+            "mean_tracking_error_estimated_m": col("mean_error_estimated"),
+            "mean_tracking_error_true_m": col("mean_error_true"),
+        }
+    return {"runs": runs}
 
 
 def report(summary: dict) -> str:
-    """The per-configuration table and what its error columns mean."""
-    n = len(summary["converged_at"])
-    lines = [
-        f"{summary['system']} self-ID from {n} start configurations, then a star (m_a {summary['self_id']['m_a_rad']}"
-        f" rad, eps {summary['self_id']['eps']} rad/m)",
-        f"{'config':>6s} {'converged at':>12s} {'rel. error':>10s} {'||J Jest - I||':>14s} {'completion est/true':>20s} "
-        f"{'tracking error est/true [mm]':>29s}",
-    ]
-    for b in range(n):
-        lines.append(
-            f"{b:6d} {summary['converged_at'][b]:12d} {summary['relative_error_vs_true_inverse'][b]:10.3f} "
-            f"{summary['task_error_J_Jest_minus_I'][b]:14.3f} "
-            f"{summary['completion_estimated'][b]:9.0%} / {summary['completion_true'][b]:4.0%} "
-            f"{1e3 * summary['mean_tracking_error_estimated_m'][b]:16.3f} / "
-            f"{1e3 * summary['mean_tracking_error_true_m'][b]:.3f}"
-        )
-    if summary["n_act"] > summary["task_dim"]:
+    """Per run: the per-configuration table and what its error columns mean."""
+    lines = []
+    for name, r in summary["runs"].items():
+        n = len(r["converged_at"])
         lines += [
-            f"rel. error = ||J_est - J_true^+||_F / ||J_true^+||_F. With {summary['n_act']} actuators and a "
-            f"{summary['task_dim']}-D task, any J_est with",
-            "J J_est = I tracks perfectly; J_est may differ from the minimum-norm J^+ by null-space rows the task",
-            "samples cannot pin down, so rel. error stays large while ||J J_est - I|| is what the controller sees.",
+            f"{name} self-ID from {n} start configurations, then a {1e3 * r['path']['size']:g} mm star "
+            f"(m_a {r['self_id']['m_a']}, eps {r['self_id']['eps']}, eps_rel {r['self_id']['eps_rel']})",
+            f"{'config':>6s} {'converged at':>12s} {'rel. error':>10s} {'||J Jest - I||':>14s} "
+            f"{'completion est/true':>20s} {'tracking error est/true [mm]':>29s}",
         ]
+        for b in range(n):
+            lines.append(
+                f"{b:6d} {r['converged_at'][b]:12d} {r['relative_error_vs_true_inverse'][b]:10.3f} "
+                f"{r['task_error_J_Jest_minus_I'][b]:14.3f} "
+                f"{r['completion_estimated'][b]:9.0%} / {r['completion_true'][b]:4.0%} "
+                f"{1e3 * r['mean_tracking_error_estimated_m'][b]:16.3f} / "
+                f"{1e3 * r['mean_tracking_error_true_m'][b]:.3f}"
+            )
+        if r["n_act"] > r["task_dim"]:
+            lines += [
+                f"rel. error = ||J_est - J_true^+||_F / ||J_true^+||_F. With {r['n_act']} actuators and a "
+                f"{r['task_dim']}-D task, any J_est with",
+                "J J_est = I tracks perfectly; J_est may differ from the minimum-norm J^+ by null-space rows the task",
+                "samples cannot pin down, so rel. error stays large while ||J J_est - I|| is what the controller sees.",
+            ]
     return "\n".join(lines)
 
 
 def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
-    """``demo``: estimated vs true inverse Jacobian (config 0), the traced stars, the convergence curves."""
+    """``demo``: per run (a row each) estimated vs true inverse Jacobian (config 0), the traced stars, convergence."""
     from matplotlib.figure import Figure
 
-    n_act, m = summary["n_act"], summary["task_dim"]
-    est0 = np.asarray(table["estimate"].iloc[0]).reshape(n_act, m)
-    true0 = np.asarray(table["truth"].iloc[0]).reshape(n_act, m)
-    fig = Figure(figsize=(16, 4))
-    axes = fig.subplots(1, 4)
+    runs = summary["runs"]
+    fig = Figure(figsize=(16, 4 * len(runs)))
+    rows = fig.subplots(len(runs), 4, squeeze=False)
+    for axes, (name, r) in zip(rows, runs.items()):
+        _plot_run(fig, axes, table[table["system"] == name], name, r)
+    return save_figure(fig, out_dir, "demo", dpi=110)
+
+
+def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
+    n_act, m = r["n_act"], r["task_dim"]
+    est0 = np.asarray(g["estimate"].iloc[0]).reshape(n_act, m)
+    true0 = np.asarray(g["truth"].iloc[0]).reshape(n_act, m)
     vmax = float(np.abs(true0).max())
     for ax, mat, title in ((axes[0], est0, "estimated"), (axes[1], true0, "true")):
         im = ax.imshow(mat, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
-        ax.set_title(f"{title} $J^+$, config 0")
+        ax.set_title(f"{name}: {title} $J^+$, config 0")
         ax.set_xticks(range(m), ["x", "y", "z", "rx", "ry", "rz"][:m])
         ax.set_yticks(range(n_act), [f"q{i + 1}" for i in range(n_act)])
         for (i, j), v in np.ndenumerate(mat):
-            ax.text(j, i, f"{v:.1f}", ha="center", va="center", fontsize=7)
-    fig.colorbar(im, ax=axes[:2], shrink=0.8, label="rad/m")
+            ax.text(j, i, f"{v:.3g}", ha="center", va="center", fontsize=7)
+    fig.colorbar(im, ax=axes[:2], shrink=0.8, label="actuator unit per m")
     ax = axes[2]
-    for b in range(len(table)):
-        p_true = np.asarray(table["positions_true"].iloc[b]).reshape(-1, 3)
-        p_est = np.asarray(table["positions_estimated"].iloc[b]).reshape(-1, 3)
+    for b in range(len(g)):
+        p_true = np.asarray(g["positions_true"].iloc[b]).reshape(-1, 3)
+        p_est = np.asarray(g["positions_estimated"].iloc[b]).reshape(-1, 3)
         p_true, p_est = p_true - p_true[0], p_est - p_est[0]
         ax.plot(1e3 * p_true[:, 0], 1e3 * p_true[:, 1], color="0.6", lw=3, label="true inverse" if b == 0 else None)
         ax.plot(1e3 * p_est[:, 0], 1e3 * p_est[:, 1], lw=1, label=f"estimate, config {b}")
     ax.set_aspect("equal")
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
-    ax.set_title("star traced by the end effector")
+    ax.set_title("star traced by the POM")
     ax.legend(fontsize=7)
     ax = axes[3]
-    for b in range(len(table)):
-        d = np.asarray(table["deltas"].iloc[b])
+    for b in range(len(g)):
+        d = np.asarray(g["deltas"].iloc[b])
         ax.semilogy(np.arange(1, len(d) + 1)[d > 0], d[d > 0], marker=".", label=f"config {b}")
-    ax.axhline(summary["self_id"]["eps"], color="k", ls=":", label="eps")
+    if r["self_id"]["eps"] > 0:
+        ax.axhline(r["self_id"]["eps"], color="k", ls=":", label="eps")
     ax.set_xlabel("self-ID iteration")
     ax.set_ylabel(r"$\|J_t - J_{t-1}\|_F$")
     ax.set_title("convergence (Sec. IV-D)")
     ax.legend(fontsize=7)
-    return save_figure(fig, out_dir, "demo", dpi=110)
 
 
 EXPERIMENT = Experiment(
@@ -226,5 +267,5 @@ EXPERIMENT = Experiment(
     summarize=summarize,
     plot=plot,
     report=report,
-    description="the main job: UR5e self-ID from 4 starts, then a 5 cm star with the estimate and the truth",
+    description="the main job: self-ID of each robot from 4 starts, then a star with the estimate and the truth",
 )

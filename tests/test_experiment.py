@@ -159,13 +159,13 @@ def test_experiment_definition_errors():
 @pytest.mark.slow
 def test_demo_takes_any_system_from_a_config(tmp_path, capsys):
     cfg = tmp_path / "demo_two_link.yaml"
-    cfg.write_text("experiment: demo\nsystem: two_link\nn_configs: 2\niters: 20\nm_a: 0.02\neps: 0.05\n"
-                   "path: {size: 0.2}\ncontroller: {max_step: 0.01, tol: 0.002, steps: 300}\n")
+    cfg.write_text("experiment: demo\nruns:\n  - {system: two_link, n_configs: 2, iters: 20, m_a: 0.02, eps: 0.05,\n"
+                   "     path: {size: 0.2}, controller: {max_step: 0.01, tol: 0.002, steps: 300}}\n")
     out = tmp_path / "run"
     assert cli.main(["sweep", str(cfg), "--out", str(out), "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "two_link self-ID from 2 start configurations" in printed and "null-space" not in printed  # n == m
-    summary = json.loads((out / "summary.json").read_text())
+    summary = json.loads((out / "summary.json").read_text())["runs"]["two_link"]
     assert summary["n_act"] == 2 and summary["task_dim"] == 2
     assert summary["completion_estimated"] == [1.0, 1.0]
     assert (out / "figures" / "demo.png").stat().st_size > 1000
