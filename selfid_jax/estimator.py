@@ -97,11 +97,14 @@ def is_valid_sample(dtheta: jax.Array, V: jax.Array) -> jax.Array:
 
     Every entry finite and below ``sqrt`` of the dtype's largest value (so the
     ratios of Eq. 11 and the products of Eq. 14 cannot overflow: 1.8e19 in
-    float32), and neither ``dtheta`` nor ``V`` all zero.
+    float32), and neither ``dtheta`` nor ``V`` all zero (subnormal entries,
+    below ``finfo.tiny``, count as zero).
     """
-    big = float(np.sqrt(jnp.finfo(jnp.result_type(dtheta, V)).max))
+    info = jnp.finfo(jnp.result_type(dtheta, V))
+    big = float(np.sqrt(info.max))
     bounded = jnp.all(jnp.abs(dtheta) <= big) & jnp.all(jnp.abs(V) <= big)  # False for NaN too
-    return bounded & jnp.any(dtheta != 0) & jnp.any(V != 0)
+    # subnormal entries count as zero (CPUs may flush them to zero anyway)
+    return bounded & jnp.any(jnp.abs(dtheta) >= info.tiny) & jnp.any(jnp.abs(V) >= info.tiny)
 
 
 def sample_contribution(dtheta: jax.Array, V: jax.Array) -> tuple[jax.Array, jax.Array]:
