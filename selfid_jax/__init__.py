@@ -32,7 +32,7 @@ from selfid_jax.estimator import (  # noqa: E402
 from selfid_jax.refine import refine  # noqa: E402
 from selfid_jax.selfid import SelfIDResult, self_identify, stateless  # noqa: E402
 from selfid_jax.control import ControllerParams, FollowResult, follow  # noqa: E402
-from selfid_jax.systems import System, from_mjcf, from_pose_fn, two_link, ur5e  # noqa: E402
+from selfid_jax.systems import System, from_mjcf, from_pose_fn, model_o, stewart_hand, two_link, ur5e  # noqa: E402
 
 __version__ = "0.1.0"
 
@@ -49,6 +49,8 @@ __all__ = [
     "from_pose_fn",
     "geometry",
     "magnitude",
+    "model_o",
+    "stewart_hand",
     "systems",
     "two_link",
     "ur5e",

@@ -44,14 +44,20 @@ Numbers = Union[float, list[float]]
 
 
 def _builtin():
+    from selfid_jax.systems import hands
     from selfid_jax.systems.two_link import two_link
     from selfid_jax.systems.ur5e import ur5e
 
-    return {"two_link": lambda: two_link(), "ur5e": lambda: ur5e(task_dim=3)}
+    return {
+        "two_link": lambda: two_link(),
+        "ur5e": lambda: ur5e(task_dim=3),
+        "stewart_hand": lambda: hands.stewart_hand(),
+        "model_o": lambda: hands.model_o(),
+    }
 
 
-BUILTIN_FACTORIES = ("two_link", "ur5e")
-"""Names a config may use for the shipped robots (position tasks: 2-link xy, UR5e xyz)."""
+BUILTIN_FACTORIES = ("two_link", "ur5e", "stewart_hand", "model_o")
+"""Names a config may use for the shipped robots (2-link xy, UR5e xyz, Stewart Hand 6-D, Model O xyz)."""
 
 
 class SampleBox(BaseModel):
@@ -147,14 +153,14 @@ SystemSpec = Annotated[
     Discriminator(
         _kind,
         custom_error_type="system_spec",
-        custom_error_message="a system is a built-in name ('two_link', 'ur5e') or a mapping with an 'mjcf' or a "
-        "'pose_fn' key",
+        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'stewart_hand', 'model_o') or a "
+        "mapping with an 'mjcf' or a 'pose_fn' key",
     ),
 ]
 """What a config's ``system`` / ``systems`` entries accept (config errors drop the ``<tag>`` parts of keys)."""
 
 
-X64_BUILTINS: frozenset[str] = frozenset()
+X64_BUILTINS: frozenset[str] = frozenset({"stewart_hand", "model_o"})
 """Built-in systems that run in float64 whatever the global setting (closed-chain hands)."""
 
 

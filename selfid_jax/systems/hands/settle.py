@@ -1,0 +1,331 @@
+"""Settle an MJCF hand (position actuators, a POM site) at a command, in MJX or native MuJoCo.
+
+Generic over any MJCF hand whose actuators are position servos (``ctrl`` = the
+target actuator position, m or rad) and whose object carries a POM site. A
+hand's pose at command ``q`` is the site pose once the model, started from a
+reference state (``qpos0``, zero velocity), stops moving under ``ctrl = q``.
+Settled means: the largest ``|qpos_t - qpos_{t-1}|`` over one step (quaternion
+components included) stayed below ``tol`` for ``patience`` consecutive steps
+(default 3: one small step can be the turning point of an oscillation) within
+``max_steps`` steps. MJX keeps a residual velocity ~1e-7, so position change
+(not velocity) is the criterion, and its per-step ``qpos`` change at rest has
+a float64 noise floor (constraint-solver residual) that native MuJoCo does not:
+up to ~9e-10 on the Stewart Hand, ~5e-9 on a Model O probe (native: ~1e-11).
+Set ``tol`` above the floor of the hand's MJX model, or nothing settles.
+Run everything in float64 (``with jax.enable_x64(True):``, build the
+``mjx.Model`` inside it too).
+
+API:
+
+* ``mjx_settle(model, data0, ctrl, *, max_steps, tol, patience=3, loop="while") -> (data, settled)``:
+  ``model`` an ``mjx.Model``, ``data0`` an ``mjx.Data`` (start state),
+  ``ctrl (nu,)``; returns the settled ``mjx.Data`` (kinematics recomputed at
+  its final ``qpos``: ``data.site_xpos``/``site_xmat`` are the settled site
+  poses) and a bool scalar. Jit-able, vmappable; ``loop="while"`` exits early
+  and is forward-mode differentiable (``jax.jvp``/``jacfwd``);
+  ``loop="scan"`` always runs ``max_steps`` (a settled state stays frozen)
+  and is reverse-mode differentiable too.
+* ``native_settle(mj_model, site, ctrl (B, nu), *, qpos0=None, max_steps, tol, patience=3, chunk=25, nthread=None)
+  -> (p (B, 3), R (B, 3, 3), settled (B,))``: the same loop with
+  ``mujoco.rollout`` on CPU threads (NumPy in and out, not traceable). ``site``
+  is a name or an id; ``qpos0 (nq,)`` the start (default ``mj_model.qpos0``).
+* :class:`MjxSettlePose` (``pose_fn`` of a :class:`~selfid_jax.systems.system.System`)
+  with ``params`` a :class:`SettleParams` (``mjx.Model``, ``q_low``,
+  ``q_high``): ``(params, q (nu,)) -> (p (3,), R (3, 3))``; NaN where ``q`` is
+  outside ``[q_low, q_high]`` or the model did not settle.
+* :func:`mjx_model` puts an ``MjModel`` for MJX in the current default float dtype.
+* :func:`native_pose_batch` / :class:`NativeSettlePose`: ``native_settle`` with
+  the same NaN convention; the latter as a ``pose_fn`` through ``jax.pure_callback``
+  (jit/vmap work, no derivatives; ``System.jacobian`` needs finite differences).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "MjxSettlePose",
+    "NativeSettlePose",
+    "SettleParams",
+    "cast_like",
+    "mjx_model",
+    "mjx_settle",
+    "native_pose_batch",
+    "native_settle",
+]
+
+
+def _mjx():
+    with contextlib.redirect_stdout(io.StringIO()):  # silence optional-Warp notices
+        from mujoco import mjx
+    return mjx
+
+
+def mjx_model(mj):
+    """``mjx.put_model(mj)`` (JAX implementation), arrays in the current default float dtype."""
+    return _mjx().put_model(mj, impl="jax")
+
+
+def cast_like(tree, ref):
+    """``tree`` with every leaf cast to the dtype of the matching leaf of ``ref`` (arrays or ShapeDtypeStructs)."""
+    return jax.tree_util.tree_map(lambda x, r: jnp.asarray(x, r.dtype), tree, ref)
+
+
+def _max_change(a, b):
+    return jnp.max(jnp.abs(a - b))
+
+
+def mjx_settle(model, data0, ctrl, *, max_steps: int, tol: float, patience: int = 3, loop: str = "while"):
+    """Step ``data0`` under ``ctrl`` until ``max|dqpos| < tol`` for ``patience`` steps running: ``(data, settled)``.
+
+    Args:
+      model: ``mjx.Model``.
+      data0: ``mjx.Data`` start state (e.g. ``mjx.make_data(model)``: ``qpos0``, at rest).
+      ctrl: ``(nu,)`` actuator commands (position targets, m or rad).
+      max_steps: step budget (static).
+      tol: settle tolerance on the per-step ``qpos`` change (qpos units).
+      patience: consecutive steps below ``tol`` that count as settled (static).
+      loop: ``"while"`` (early exit; forward-mode differentiable) or ``"scan"``
+        (fixed ``max_steps``; reverse-mode differentiable).
+
+    Returns:
+      ``(data, settled)``: the state at the first settled step (or after
+      ``max_steps``) with positions/site poses recomputed from its ``qpos``,
+      and a bool scalar.
+    """
+    with jax.numpy_rank_promotion("allow"):  # MJX broadcasts implicitly; a caller's "raise" must not break it
+        return _mjx_settle(model, data0, ctrl, max_steps=max_steps, tol=tol, patience=patience, loop=loop)
+
+
+def _mjx_settle(model, data0, ctrl, *, max_steps, tol, patience, loop):
+    mjx = _mjx()
+    d0 = data0.replace(ctrl=jnp.asarray(ctrl, data0.ctrl.dtype))
+    # mjx.step may return other index dtypes (int64 under x64) than make_data/put_data (int32).
+    ref = jax.eval_shape(mjx.step, model, d0)
+    d0 = cast_like(d0, ref)
+    max_steps, tol, patience = int(max_steps), float(tol), int(patience)
+
+    def step(d, run):
+        """One step; ``run``: consecutive steps below ``tol`` so far (int32)."""
+        d1 = cast_like(mjx.step(model, d), ref)
+        run1 = jnp.where(_max_change(d1.qpos, d.qpos) < tol, run + 1, 0).astype(jnp.int32)
+        return d1, run1
+
+    zero = jnp.zeros((), jnp.int32)
+    if loop == "while":
+        def cond(c):
+            _, k, run = c
+            return jnp.logical_and(k < max_steps, run < patience)
+
+        def body(c):
+            d, k, run = c
+            d1, run1 = step(d, run)
+            return d1, k + 1, run1
+
+        d, _, run = jax.lax.while_loop(cond, body, (d0, zero, zero))
+    elif loop == "scan":
+        def body(c, _):
+            d, run = c
+            d1, run1 = step(d, run)
+            done = run >= patience
+            d1 = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), d, d1)
+            return (d1, jnp.where(done, run, run1)), None
+
+        (d, run), _ = jax.lax.scan(body, (d0, zero), None, length=max_steps)
+    else:
+        raise ValueError(f"loop must be 'while' or 'scan', got {loop!r}")
+    return mjx.kinematics(model, d), run >= patience
+
+
+@dataclasses.dataclass(frozen=True)
+class SettleParams:
+    """Traced parameters of :class:`MjxSettlePose`.
+
+    ``model`` (``mjx.Model``); ``q_low``, ``q_high`` ``(nu,)`` safe command
+    range; ``qpos0`` ``(nq,)`` start configuration (None: ``model.qpos0``).
+    """
+
+    model: object
+    q_low: jax.Array
+    q_high: jax.Array
+    qpos0: jax.Array | None = None
+
+
+jax.tree_util.register_dataclass(SettleParams, data_fields=["model", "q_low", "q_high", "qpos0"], meta_fields=[])
+
+
+def _nan_unless(ok, p, R):
+    nan = jnp.asarray(jnp.nan, p.dtype)
+    return jnp.where(ok, p, nan), jnp.where(ok, R, nan)
+
+
+@dataclasses.dataclass(frozen=True)
+class MjxSettlePose:
+    """Pose map ``(SettleParams, q (nu,)) -> (p (3,), R (3, 3))``: the POM site after MJX settling at ``ctrl = q``.
+
+    Starts from ``mjx.make_data(model)`` (``params.qpos0`` or the model's, at rest) every call, so the
+    pose is a function of ``q`` alone. NaN where ``q`` leaves
+    ``[q_low, q_high]`` or the model does not settle within ``max_steps``.
+    Hashable by value (static fields only).
+    """
+
+    site_id: int
+    max_steps: int = 400
+    tol: float = 1e-9
+    patience: int = 3
+    loop: str = "while"
+
+    def __call__(self, params, q):
+        model = params.model
+        q = jnp.asarray(q)
+        with jax.numpy_rank_promotion("allow"):
+            data0 = _mjx().make_data(model)
+        if params.qpos0 is not None:
+            data0 = data0.replace(qpos=jnp.asarray(params.qpos0, data0.qpos.dtype))
+        data, settled = mjx_settle(model, data0, q, max_steps=self.max_steps, tol=self.tol,
+                                   patience=self.patience, loop=self.loop)
+        ok = settled & jnp.all((q >= params.q_low) & (q <= params.q_high))
+        p = data.site_xpos[self.site_id].astype(q.dtype)
+        R = data.site_xmat[self.site_id].reshape(3, 3).astype(q.dtype)
+        return _nan_unless(ok, p, R)
+
+
+# ---------------------------------------------------------------------- native
+_POOLS: dict = {}
+
+
+def _rollout(nthread):
+    from mujoco import rollout
+
+    key = nthread
+    if key not in _POOLS:
+        _POOLS[key] = rollout.Rollout(nthread=nthread)
+    return _POOLS[key]
+
+
+def native_settle(mj_model, site, ctrl, *, qpos0=None, max_steps: int = 400, tol: float = 1e-9, patience: int = 3,
+                  chunk: int = 25, nthread: int | None = None):
+    """Settle ``B`` commands with ``mujoco.rollout`` (CPU threads): ``(p (B, 3), R (B, 3, 3), settled (B,))``.
+
+    Each element starts from ``qpos0`` at rest and steps under its ``ctrl``
+    until ``max|dqpos| < tol`` for ``patience`` steps running (the test of :func:`mjx_settle`),
+    rolled out ``chunk`` steps at a time; settled elements drop out. The pose is
+    the site's after ``mj_kinematics`` at the settled ``qpos`` (unsettled: the
+    pose after ``max_steps``, with ``settled`` False). NumPy float64, not traceable.
+
+    Args:
+      mj_model: ``mujoco.MjModel``.
+      site: POM site name or id.
+      ctrl: ``(B, nu)`` (or ``(nu,)``) commands.
+      qpos0: ``(nq,)`` start configuration (default ``mj_model.qpos0``).
+      max_steps, tol, patience: step budget, settle tolerance (qpos units), steps below it in a row.
+      chunk: steps per rollout call.
+      nthread: rollout threads (default: ``os.cpu_count()``).
+    """
+    import os
+
+    import mujoco
+
+    ctrl = np.atleast_2d(np.asarray(ctrl, np.float64))
+    B = ctrl.shape[0]
+    sid = site if isinstance(site, (int, np.integer)) else mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, site)
+    if sid < 0:
+        raise ValueError(f"site {site!r} not found")
+    nthread = int(nthread or os.cpu_count() or 1)
+    datas = [mujoco.MjData(mj_model) for _ in range(nthread)]
+    d = datas[0]
+    if qpos0 is not None:
+        d.qpos[:] = qpos0
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    nstate = mujoco.mj_stateSize(mj_model, spec)
+    s0 = np.empty(nstate)
+    mujoco.mj_getState(mj_model, d, s0, spec)
+    q_adr = 1  # FULLPHYSICS = time, qpos, qvel, act, ...
+    nq = mj_model.nq
+    state = np.tile(s0, (B, 1))
+    settled = np.zeros(B, bool)
+    run = np.zeros(B, int)  # consecutive steps below tol
+    final = state[:, q_adr:q_adr + nq].copy()
+    active = np.arange(B)
+    pool = _rollout(nthread)
+    steps = 0
+    while active.size and steps < max_steps:
+        n = min(int(chunk), max_steps - steps)
+        st, _ = pool.rollout(mj_model, datas, state[active], ctrl[active, None, :], nstep=n)
+        qs = np.concatenate([state[active, None, q_adr:q_adr + nq], st[:, :, q_adr:q_adr + nq]], axis=1)
+        delta = np.max(np.abs(np.diff(qs, axis=1)), axis=2)  # (b, n)
+        small = delta < tol
+        r = run[active].copy()
+        runs = np.empty_like(delta, dtype=int)
+        for t in range(n):  # running count of consecutive small steps
+            r = np.where(small[:, t], r + 1, 0)
+            runs[:, t] = r
+        hit = runs >= patience
+        done = hit.any(1)
+        first = np.where(done, hit.argmax(1), n - 1)
+        final[active] = st[np.arange(active.size), first, q_adr:q_adr + nq]
+        run[active] = r
+        settled[active[done]] = True
+        state[active] = st[:, -1]
+        active = active[~done]
+        steps += n
+    p = np.empty((B, 3))
+    R = np.empty((B, 3, 3))
+    for i in range(B):
+        d.qpos[:] = final[i]
+        mujoco.mj_kinematics(mj_model, d)
+        p[i] = d.site_xpos[sid]
+        R[i] = d.site_xmat[sid].reshape(3, 3)
+    return p, R, settled
+
+
+def native_pose_batch(mj_model, site, q, *, q_low=-np.inf, q_high=np.inf, **kw):
+    """:func:`native_settle` with NaN poses where unsettled or ``q`` is outside ``[q_low, q_high]``: ``(p, R, ok)``."""
+    q = np.atleast_2d(np.asarray(q, np.float64))
+    p, R, settled = native_settle(mj_model, site, q, **kw)
+    ok = settled & np.all((q >= q_low) & (q <= q_high), axis=1)
+    p[~ok] = np.nan
+    R[~ok] = np.nan
+    return p, R, ok
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class NativeSettlePose:
+    """Pose map ``(params, q (nu,)) -> (p (3,), R (3, 3))`` by native settling through ``jax.pure_callback``.
+
+    ``params`` is ``(q_low, q_high)``; the ``MjModel`` (and an optional start
+    ``qpos0 (nq,)``) is held here (hashed by identity). jit and vmap work (vmap
+    batches the callback into one :func:`native_settle`); no derivatives.
+    """
+
+    mj_model: object
+    site_id: int
+    max_steps: int = 400
+    tol: float = 1e-9
+    patience: int = 3
+    qpos0: object = None
+
+    def __call__(self, params, q):
+        q_low, q_high = params
+        q = jnp.asarray(q)
+        dt = q.dtype
+
+        def host(qb, lo, hi):
+            qb = np.asarray(qb, np.float64)
+            nu = qb.shape[-1]
+            flat = qb.reshape(-1, nu)
+            lo, hi = (np.broadcast_to(np.asarray(x, np.float64), qb.shape).reshape(-1, nu) for x in (lo, hi))
+            p, R, _ = native_pose_batch(self.mj_model, self.site_id, flat, q_low=lo, q_high=hi,
+                                        max_steps=self.max_steps, tol=self.tol, patience=self.patience,
+                                        qpos0=self.qpos0)
+            lead = qb.shape[:-1]
+            return p.reshape(lead + (3,)).astype(dt), R.reshape(lead + (3, 3)).astype(dt)
+
+        out = (jax.ShapeDtypeStruct(q.shape[:-1] + (3,), dt), jax.ShapeDtypeStruct(q.shape[:-1] + (3, 3), dt))
+        return jax.pure_callback(host, out, q, q_low, q_high, vmap_method="expand_dims")
