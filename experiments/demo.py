@@ -52,10 +52,20 @@ class DemoRun(BaseModel):
 
 
 class DemoConfig(BaseConfig):
-    """The main job: each run self-identifies its robot and follows a star with the estimates and the truth."""
+    """The main job: each run self-identifies its robot and follows a star with the estimates and the truth.
+
+    Default: the UR5e and the Model O hand (eps relative for the hand: its inverse Jacobian is dimensionless
+    with a norm near 3, so a 5% change between estimates is the scale-free test).
+    """
 
     experiment: Literal["demo"] = "demo"
-    runs: Annotated[list[DemoRun], Field(min_length=1)] = [DemoRun()]
+    runs: Annotated[list[DemoRun], Field(min_length=1)] = [
+        DemoRun(),  # the UR5e: m_a 0.03 rad, eps 0.5 rad/m, a 5 cm star in 2.5 mm steps
+        DemoRun(  # the Model O (float64): tendon steps of 0.3 mm, 5% relative eps, a 1.5 mm star in 0.2 mm steps
+            system="model_o", iters=20, m_a=0.0003, eps=0.0, eps_rel=0.05, path=PathConfig(size=0.0015),
+            controller=ControllerConfig(max_step=0.0002, tol=0.00005, steps=165),
+        ),
+    ]
 
     @field_validator("runs")
     @classmethod
@@ -233,7 +243,7 @@ def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
         ax.set_xticks(range(m), ["x", "y", "z", "rx", "ry", "rz"][:m])
         ax.set_yticks(range(n_act), [f"q{i + 1}" for i in range(n_act)])
         for (i, j), v in np.ndenumerate(mat):
-            ax.text(j, i, f"{v:.3g}", ha="center", va="center", fontsize=7)
+            ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7)
     fig.colorbar(im, ax=axes[:2], shrink=0.8, label="actuator unit per m")
     ax = axes[2]
     for b in range(len(g)):
