@@ -172,6 +172,7 @@ def test_kalman_with_zero_process_noise_is_rls():
     assert np.all(np.isfinite(kq)) and not np.allclose(kq, kal)
 
 
+@pytest.mark.slow
 def test_particle_filter_roughly_recovers_2x2():
     d, V, truth = linear_stream(0, 2, 40)
     est = run(B.particle(n_particles=2000), jax.random.key(0), d, V, truth)
@@ -199,6 +200,7 @@ def test_oracles_and_ours_without_refinement():
     np.testing.assert_allclose(raw, E.initial_guess(state), rtol=1e-14)
 
 
+@pytest.mark.slow
 def test_ours_versus_direct_initial_guess_effect():
     """Closed form: identical once K >= m, different below. Early-stopped refinement: different, worse than LS."""
     n, T = 3, 8

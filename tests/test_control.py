@@ -102,6 +102,7 @@ def test_steps_and_errors_match_closed_form_on_identity_system():
     assert max_err > 1e-3
 
 
+@pytest.mark.slow
 def test_divergent_and_singular_cases_fail_with_finite_metrics():
     arm = two_link()
     q0 = jnp.array([0.4, 1.2])
@@ -117,6 +118,7 @@ def test_divergent_and_singular_cases_fail_with_finite_metrics():
         assert float(res.completion) < 1.0
 
 
+@pytest.mark.slow
 def test_user_defined_three_link_arm_runs_through_selfid_and_control():
     def fk(params, q):
         a = jnp.cumsum(q)

@@ -73,6 +73,7 @@ def random_orthogonal(rng, n, min_abs=0.15):
 
 
 @pytest.mark.parametrize("n", [2, 3])
+@pytest.mark.slow
 def test_sign_recovery_on_sign_unambiguous_system(n):
     # For an orthogonal J, sign(J^-1) = sign(J^T): every element has a clear sign.
     rng = np.random.default_rng(n)

@@ -59,6 +59,7 @@ def test_bounds_grid_without_one_and_threshold_edge():
     assert valid_region_bounds(df, 0.98)["arm"]["lower"] is None
 
 
+@pytest.mark.slow
 def test_summary_and_figure_files(tmp_path):
     df = _table({"two_link": _curve({0.5, 0.75, 1.0, 1.25, 1.5}), "ur5e": _curve({0.75, 1.0, 1.25})})
     df.loc[df["eps_limit"] == 2.5, "mean_error"] = np.inf  # diverged rollouts must not break the plot

@@ -114,6 +114,7 @@ def test_slsqp_is_eager_only():
         jax.jit(lambda s: sj.refine(s, jnp.zeros((2, 2)), method="slsqp"))(state)
 
 
+@pytest.mark.slow
 def test_grad_through_refinement_wrt_samples_is_finite():
     rng = np.random.default_rng(11)
     d = jnp.asarray(rng.uniform(-0.05, 0.05, (4, 3)))

@@ -339,6 +339,7 @@ def test_corrupt_files_in_plot_exit_2(tmp_path, capsys):
     assert cli.main(["plot", str(out)]) == 0
 
 
+@pytest.mark.slow
 def test_full_disk_exits_2_and_resumes(tmp_path, capsys, monkeypatch):
     cfg, out = _config(tmp_path), tmp_path / "run"
     real_write, calls = sweep._write_chunk, []
@@ -432,6 +433,7 @@ experiment.register(experiment.Experiment(
 ))
 
 
+@pytest.mark.slow
 def test_plot_without_summary_uses_the_configured_threshold(tmp_path):
     cfg = tmp_path / "t.yaml"
     cfg.write_text("experiment: threshold_cli_test\nchunk_size: 8\ngains: [0.2, 0.6, 1.0, 1.45, 2.3]\n"
