@@ -16,7 +16,7 @@ from selfid_jax._xla import apply_default_xla_flags as _apply_default_xla_flags
 
 _apply_default_xla_flags()
 
-from selfid_jax import baselines, control, estimator, experiment, geometry, magnitude, paths, systems  # noqa: E402
+from selfid_jax import baselines, control, estimator, experiment, geometry, magnitude, metrics, paths, systems  # noqa: E402
 from selfid_jax import refine as refine_lib, selfid  # noqa: E402
 from selfid_jax.estimator import (  # noqa: E402
     EstimatorState,
@@ -49,6 +49,7 @@ __all__ = [
     "from_pose_fn",
     "geometry",
     "magnitude",
+    "metrics",
     "model_o",
     "stewart_hand",
     "systems",
