@@ -51,13 +51,14 @@ def _builtin():
     return {
         "two_link": lambda: two_link(),
         "ur5e": lambda: ur5e(task_dim=3),
+        "ur5e_6d": lambda: ur5e(task_dim=6),
         "stewart_hand": lambda: hands.stewart_hand(),
         "model_o": lambda: hands.model_o(),
     }
 
 
-BUILTIN_FACTORIES = ("two_link", "ur5e", "stewart_hand", "model_o")
-"""Names a config may use for the shipped robots (2-link xy, UR5e xyz, Stewart Hand 6-D, Model O xyz)."""
+BUILTIN_FACTORIES = ("two_link", "ur5e", "ur5e_6d", "stewart_hand", "model_o")
+"""Names a config may use for the shipped robots (2-link xy, UR5e xyz or 6-D, Stewart Hand 6-D, Model O xyz)."""
 
 
 class SampleBox(BaseModel):
@@ -153,7 +154,7 @@ SystemSpec = Annotated[
     Discriminator(
         _kind,
         custom_error_type="system_spec",
-        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'stewart_hand', 'model_o') or a "
+        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o') or a "
         "mapping with an 'mjcf' or a 'pose_fn' key",
     ),
 ]

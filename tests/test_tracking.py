@@ -1,0 +1,59 @@
+"""The tracking experiment at small size on the 2-link arm: letters with the truth and the estimate, and its
+per-axis error columns against an independent numpy distance to the path on the recorded trajectories."""
+
+import numpy as np
+import pytest
+
+from selfid_jax import experiment, paths
+from selfid_jax.config import ConfigError
+
+pytestmark = pytest.mark.slow  # an end-to-end experiment
+
+CONFIG = dict(system="two_link", path={"kind": "text", "text": "E", "height": 0.12},
+              controller={"max_step": 0.005, "tol": 0.001, "steps": 300}, n_configs=3, iters=20, m_a=0.02, eps=0.05,
+              pose_noise=[0.0, 0.0005], rot_noise=[0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    exp = experiment.get("tracking")
+    return experiment.run(exp, exp.config(**CONFIG), tmp_path_factory.mktemp("trk"))
+
+
+def numpy_axis_errors(points, vertices, samples=4001):
+    t = np.linspace(0.0, 1.0, samples)[:, None]
+    dense = np.concatenate([a + t * (b - a) for a, b in zip(vertices[:-1], vertices[1:])])
+    idx = np.argmin(((points[:, None, :] - dense[None]) ** 2).sum(-1), axis=1)
+    return np.abs(points - dense[idx])
+
+
+def test_truth_is_sub_tolerance_and_estimate_completes(result):
+    table, summary = result
+    truth = table[table.inverse == "analytical"]
+    assert np.all(truth.completion == 1.0) and np.all(truth.waypoint_error_mm < 1.0)  # tol 1 mm
+    est = table[table.inverse == "estimated"]
+    assert est.completion.mean() >= 0.9 and np.all(est.converged_at > 0)
+    clean = summary["systems"]["two_link"]["pose_noise_mm"]["0"]
+    assert set(clean) == {"estimated", "analytical"}
+    assert {"waypoint_error_mm", "error_x_mm", "error_y_mm", "error_z_mm", "completion", "converged_at"} <= set(
+        clean["estimated"])
+
+
+def test_axis_error_columns_equal_numpy_on_the_recorded_trajectories(result):
+    table, _ = result
+    offsets = np.asarray(paths.text("E", height=0.12, dim=2))
+    for _, row in table.iloc[:4].iterrows():
+        pos = np.asarray(row.positions).reshape(-1, 3)[: int(row.steps_used) + 1, :2]
+        vertices = np.vstack([pos[0], pos[0] + offsets])  # the path starts where the rollout starts
+        want = 1e3 * numpy_axis_errors(pos, vertices).mean(axis=0)
+        np.testing.assert_allclose([row.error_x_mm, row.error_y_mm], want, atol=0.02)  # mm; sampling resolution
+        assert row.error_z_mm == 0.0
+
+
+def test_bad_configs_name_the_key():
+    exp = experiment.get("tracking")
+    with pytest.raises(ValueError, match="controller.tol"):
+        exp.config(**{**CONFIG, "controller": {"max_step": 0.005, "tol": 0.02, "steps": 300}})
+    with pytest.raises(ValueError, match="pose_noise and rot_noise"):
+        exp.config(**{**CONFIG, "rot_noise": [0.0]})
+    assert issubclass(ConfigError, ValueError)
