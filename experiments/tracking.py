@@ -40,15 +40,28 @@ class TrackingPath(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
-    kind: Literal["text", "cube", "star"]
-    text: str = Field("E", min_length=1, description="letters for kind 'text' (A-Z, 0-9, '-', ' ')")
+    kind: Literal["text", "letters", "cube", "star"]
+    text: str = Field("E", min_length=1, description="letters for kinds 'text' (one path) and 'letters' "
+                      "(one path per letter, each from a fresh self-ID, as the paper re-runs self-ID per letter)")
     height: float = Field(0.012, gt=0, le=1, description="letter height [m] (kind 'text')")
     edge: float = Field(0.15, gt=0, le=2, description="cube edge [m] (kind 'cube')")
     size: float = Field(0.05, gt=0, le=10, description="star radius [m] (kind 'star')")
     plane: Literal["xy", "xz", "yz"] = "xy"
 
     def waypoints(self, dim: int) -> jax.Array:
-        """``(W, dim)`` waypoint offsets (rotation parts 0: constant orientation on 6-D tasks)."""
+        """``(L, W, dim)`` waypoint offsets, one path per letter for kind 'letters' (shorter letters padded by
+        repeating their last waypoint, reached at once), else ``L = 1``; rotation parts 0 (constant orientation)."""
+        if self.kind == "letters":
+            letters = [np.asarray(paths.text(c, height=self.height, plane=self.plane, dim=dim)) for c in self.text]
+            W = max(len(w) for w in letters)
+            return jnp.asarray(np.stack([np.concatenate([w, np.repeat(w[-1:], W - len(w), axis=0)]) for w in letters]))
+        return self._one(dim)[None]
+
+    def labels(self) -> list[str]:
+        """The path label of each of the ``L`` paths."""
+        return list(self.text) if self.kind == "letters" else [self.kind if self.kind != "text" else self.text]
+
+    def _one(self, dim: int) -> jax.Array:
         if self.kind == "text":
             return paths.text(self.text, height=self.height, plane=self.plane, dim=dim)
         if self.kind == "cube":
@@ -59,7 +72,7 @@ class TrackingPath(BaseModel):
 
     def scale(self) -> float:
         """The path's smallest feature [m], for the tolerance check."""
-        return {"text": self.height / 6.0, "cube": self.edge, "star": self.size}[self.kind]
+        return {"text": self.height / 6.0, "letters": self.height / 6.0, "cube": self.edge, "star": self.size}[self.kind]
 
 
 class TrackingConfig(BaseConfig):
@@ -93,12 +106,13 @@ class TrackingConfig(BaseConfig):
 
 class Static(NamedTuple):
     system: System
-    path: jax.Array  # (W, task_dim) waypoint offsets
+    path: jax.Array  # (L, W, task_dim) waypoint offsets, one path per letter (L = 1 unless kind 'letters')
     iters: int
     steps: int
 
 
 class Params(NamedTuple):
+    letter: jax.Array  # () int32 index into Static.path
     key: jax.Array  # (2,) uint32 PRNG key data
     q0: jax.Array  # (n,) start configuration
     pose_noise: jax.Array  # () tracker position noise sd [m]
@@ -128,13 +142,14 @@ def compute(static: Static, p: Params) -> Outputs:
     sid = selfid.run(system, jax.random.wrap_key_data(p.key), p.q0, iters=static.iters, eps=p.eps,
                      eps_rel=p.eps_rel, m_a=p.m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
     q_start = sid.env
+    path = static.path[p.letter]
     p0, R0 = system.pose(q_start)
     pos_dim = min(system.task_dim, 3)
-    vertices = jnp.concatenate([p0[None, :pos_dim], p0[None, :pos_dim] + static.path[:, :pos_dim]])
-    R_goal = (geometry.so3_exp(static.path[-1, 3:]) @ R0) if system.task_dim == 6 else R0
+    vertices = jnp.concatenate([p0[None, :pos_dim], p0[None, :pos_dim] + path[:, :pos_dim]])
+    R_goal = (geometry.so3_exp(path[-1, 3:]) @ R0) if system.task_dim == 6 else R0
 
     def track(jinv):
-        res = control.follow(system, jinv, static.path, q_start, p.controller, steps=static.steps,
+        res = control.follow(system, jinv, path, q_start, p.controller, steps=static.steps,
                              return_trajectory=True)
         used = jnp.arange(res.positions.shape[0]) <= res.steps_used  # the steps taken, and where they ended
         err = metrics.axis_errors(res.positions[:, :pos_dim], vertices)
@@ -159,17 +174,20 @@ def build(cfg: TrackingConfig) -> Part:
 def _build(cfg: TrackingConfig) -> Part:
     system = build_system(cfg.system)
     path = cfg.path.waypoints(system.task_dim)
-    meta = grid_table({"noise_level": range(len(cfg.pose_noise)), "config_id": range(cfg.n_configs),
-                       "trial": range(cfg.n_trials)})
-    meta.insert(1, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
-    meta.insert(2, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
+    labels = cfg.path.labels()
+    meta = grid_table({"letter_id": range(len(labels)), "noise_level": range(len(cfg.pose_noise)),
+                       "config_id": range(cfg.n_configs), "trial": range(cfg.n_trials)})
+    meta.insert(1, "path", np.asarray(labels, dtype=object)[meta["letter_id"]])
+    meta.insert(3, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
+    meta.insert(4, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
     meta.insert(0, "system", system_name(cfg.system))
-    q0 = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
+    longest = int(np.argmax([paths.path_length(w) for w in np.asarray(path)]))
+    q0 = np.asarray(control.feasible_starts(system, path[longest], jax.random.key(cfg.seed), cfg.n_configs,
                                             control.ControllerParams(**cfg.controller.traced()),
                                             steps=cfg.controller.steps))
     n = len(meta)
     params = Params(
-        key=row_keys(cfg.seed, n), q0=q0[meta["config_id"].to_numpy()],
+        letter=meta["letter_id"].to_numpy(np.int32), key=row_keys(cfg.seed, n), q0=q0[meta["config_id"].to_numpy()],
         pose_noise=meta["pose_noise"].to_numpy(float), rot_noise=meta["rot_noise"].to_numpy(float),
         m_a=np.full((n,), cfg.m_a), eps=np.full((n,), cfg.eps), eps_rel=np.full((n,), cfg.eps_rel),
         controller=controller_rows(cfg.controller, n),
@@ -179,7 +197,8 @@ def _build(cfg: TrackingConfig) -> Part:
 
 def tabulate(wide: pd.DataFrame, part: Part, cfg: TrackingConfig) -> pd.DataFrame:
     """One row per (rollout, inverse Jacobian) with scalar metric columns; trajectories stay as list columns."""
-    base = ["system", "noise_level", "pose_noise", "rot_noise", "config_id", "trial", "converged_at"]
+    base = ["system", "letter_id", "path", "noise_level", "pose_noise", "rot_noise", "config_id", "trial",
+            "converged_at"]
     frames = []
     for i, inverse in enumerate(INVERSES):
         df = wide[base].copy()
@@ -201,22 +220,32 @@ METRICS = ("waypoint_error_mm", "error_x_mm", "error_y_mm", "error_z_mm", "compl
            "rot_final_deg")
 
 
+def _stats(g: pd.DataFrame) -> dict[str, Any]:
+    """``{inverse: {metric: {mean, sd}}}`` over the rows ``g`` (failed rollouts left out of the error means)."""
+    level: dict[str, Any] = {}
+    for inverse, h in g.groupby("inverse", sort=False):
+        ok = h[~h["failed"]]
+        level[str(inverse)] = {
+            m: {"mean": float(ok[m].mean()) if len(ok) else None, "sd": float(ok[m].std(ddof=0)) if len(ok) else None}
+            for m in METRICS if m != "converged_at"
+        }
+        conv = h["converged_at"].to_numpy()
+        level[str(inverse)]["converged_at"] = {"mean": float(conv[conv > 0].mean()) if (conv > 0).any() else None,
+                                               "sd": float(conv[conv > 0].std()) if (conv > 0).any() else None}
+        level[str(inverse)]["failed_fraction"] = float(h["failed"].mean())
+    return level
+
+
 def summarize(table: pd.DataFrame, cfg: TrackingConfig) -> dict[str, Any]:
-    """Mean +- sd over rollouts per system, tracker-noise level and inverse Jacobian, with the protocol."""
+    """Mean +- sd per system, tracker-noise level and inverse Jacobian (and per letter for kind 'letters')."""
     systems: dict[str, Any] = {}
     for (system, noise), g in table.groupby(["system", "pose_noise"], sort=False):
-        entry = systems.setdefault(str(system), {"pose_noise_mm": {}})["pose_noise_mm"]
-        level = entry.setdefault(f"{1e3 * noise:g}", {})
-        for inverse, h in g.groupby("inverse", sort=False):
-            ok = h[~h["failed"]]
-            level[str(inverse)] = {
-                m: {"mean": float(ok[m].mean()) if len(ok) else None, "sd": float(ok[m].std(ddof=0)) if len(ok) else None}
-                for m in METRICS if not (m == "converged_at")
-            }
-            conv = h["converged_at"].to_numpy()
-            level[str(inverse)]["converged_at"] = {"mean": float(conv[conv > 0].mean()) if (conv > 0).any() else None,
-                                                   "sd": float(conv[conv > 0].std()) if (conv > 0).any() else None}
-            level[str(inverse)]["failed_fraction"] = float(h["failed"].mean())
+        entry = systems.setdefault(str(system), {"pose_noise_mm": {}})
+        entry["pose_noise_mm"][f"{1e3 * noise:g}"] = _stats(g)
+        if cfg.path.kind == "letters":
+            per = entry.setdefault("letters", {})
+            for letter, h in g.groupby("letter_id", sort=True):
+                per.setdefault(f"{int(letter)}:{h['path'].iloc[0]}", {})[f"{1e3 * noise:g}"] = _stats(h)
     return {
         "path": cfg.path.model_dump(),
         "controller": cfg.controller.model_dump(),
