@@ -59,6 +59,7 @@ class FollowResult(NamedTuple):
     failed: jax.Array  # () bool: non-finite state or divergence (> diverge_dist from the path)
     final_q: jax.Array  # (n,) actuator positions at the end
     positions: jax.Array | None  # (steps + 1, 3) POM positions if return_trajectory, else None
+    orientations: jax.Array | None = None  # (steps + 1, 3, 3) POM orientations if return_trajectory, else None
 
 
 # ------------------------------------------------------------------ inverse-Jacobian sources
@@ -229,7 +230,8 @@ def follow(
       q0: ``(n,)`` start actuator positions.
       controller: :class:`ControllerParams`; every field may be traced.
       steps: static step budget.
-      return_trajectory: also return the ``(steps + 1, 3)`` POM positions.
+      return_trajectory: also return the ``(steps + 1, 3)`` POM positions and
+        ``(steps + 1, 3, 3)`` orientations (at the start of each step, then at the end).
 
     A rollout whose state or pose turns non-finite (a closed-chain hand's pose
     map returns NaN where its solve fails or leaves the equilibrium branch) or
@@ -283,7 +285,7 @@ def follow(
             err_max=jnp.maximum(carry.err_max, counted),
             used=carry.used + active.astype(carry.used.dtype),
         )
-        return carry, (pose[0] if return_trajectory else None)
+        return carry, (pose if return_trajectory else None)
 
     init = _Carry(
         q=q0,
@@ -308,7 +310,8 @@ def follow(
         steps_used=carry.used,
         failed=carry.failed,
         final_q=carry.q,
-        positions=jnp.concatenate([traj, pose_end[0][None, :]], axis=0) if return_trajectory else None,
+        positions=jnp.concatenate([traj[0], pose_end[0][None, :]], axis=0) if return_trajectory else None,
+        orientations=jnp.concatenate([traj[1], pose_end[1][None]], axis=0) if return_trajectory else None,
     )
 
 
