@@ -57,3 +57,16 @@ def test_bad_configs_name_the_key():
     with pytest.raises(ValueError, match="pose_noise and rot_noise"):
         exp.config(**{**CONFIG, "rot_noise": [0.0]})
     assert issubclass(ConfigError, ValueError)
+
+
+def test_a_hand_writes_a_letter(tmp_path):
+    """The Stewart Hand (float64 part) writes a small 'L': the truth is sub-tolerance, the estimate completes."""
+    exp = experiment.get("tracking")
+    cfg = exp.config(system="stewart_hand", path={"kind": "letters", "text": "L", "height": 0.003},
+                     controller={"max_step": 0.0002, "tol": 0.0001, "steps": 150, "max_rot_step": 0.01,
+                                 "rot_tol": 0.005}, n_configs=1, iters=15, m_a=0.0005, eps=0.0, eps_rel=0.02)
+    table, summary = experiment.run(exp, cfg, tmp_path)
+    truth, est = (table[table.inverse == k].iloc[0] for k in ("analytical", "estimated"))
+    assert truth.completion == 1.0 and truth.waypoint_error_mm < 0.1
+    assert est.completion >= 0.9 and est.converged_at > 0
+    assert "0:L" in summary["systems"]["stewart_hand"]["letters"]
