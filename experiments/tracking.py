@@ -280,30 +280,36 @@ def report(summary: dict) -> str:
 
 
 def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
-    """Commanded path and executed paths (first start configuration, noise-free), estimated vs analytical."""
+    """Executed paths (first start configuration, noise-free), estimated vs analytical, in 3-D for a cube.
+
+    One figure per system, ``tracking_<system>.png|pdf``; the protocol is in the title.
+    """
     from matplotlib.figure import Figure
 
     written: list[Path] = []
+    three_d = summary["path"]["kind"] == "cube"
     for system, g in table.groupby("system", sort=False):
         first = g[(g["noise_level"] == 0) & (g["config_id"] == 0) & (g["trial"] == 0)]
-        fig = Figure(figsize=(10, 4.5), layout="constrained")
-        axes = fig.subplots(1, 2, squeeze=False)[0]
-        for ax, inverse in zip(axes, INVERSES):
-            row = first[first["inverse"] == inverse]
-            if not len(row):
-                continue
-            pts = np.asarray(row["positions"].iloc[0]).reshape(-1, 3)
-            pts = pts - pts[0]
-            ax.plot(1e3 * pts[:, 0], 1e3 * pts[:, 1], lw=1, color="C0" if inverse == "estimated" else "C2")
-            ax.set_aspect("equal")
+        fig = Figure(figsize=(10, 4.8), layout="constrained")
+        for k, inverse in enumerate(INVERSES):
+            ax = fig.add_subplot(1, 2, k + 1, projection="3d" if three_d else None)
+            color = "C0" if inverse == "estimated" else "C2"
+            for _, row in first[first["inverse"] == inverse].iterrows():  # one row per letter
+                pts = 1e3 * np.asarray(row["positions"]).reshape(-1, 3)[: int(row["steps_used"]) + 1]
+                pts = pts - pts[0]
+                if three_d:
+                    ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], lw=1, color=color)
+                    ax.set_zlabel("z [mm]")
+                else:
+                    ax.plot(pts[:, 0], pts[:, 1], lw=1, color=color)
+                    ax.set_aspect("equal")
             ax.set_xlabel("x [mm]")
             ax.set_ylabel("y [mm]")
             ax.set_title(f"{system}: {inverse} inverse Jacobian", fontsize=9)
-            ax.grid(alpha=0.3)
         c, s = summary["controller"], summary["self_id"]
         fig.suptitle(f"path {summary['path']['kind']}; step {1e3 * c['max_step']:g} mm, tol {1e3 * c['tol']:g} mm, "
                      f"{c['steps']} steps, gain {c['gain']:g}; self-ID m_a {s['m_a']:g}, eps {s['eps']:g}, "
-                     f"eps_rel {s['eps_rel']:g}; noise-free rows", fontsize=8)
+                     f"eps_rel {s['eps_rel']:g}; noise-free rows, first configuration", fontsize=8)
         written += save_figure(fig, out_dir, f"tracking_{system}")
     return written
 

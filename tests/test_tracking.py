@@ -70,3 +70,10 @@ def test_a_hand_writes_a_letter(tmp_path):
     assert truth.completion == 1.0 and truth.waypoint_error_mm < 0.1
     assert est.completion >= 0.9 and est.converged_at > 0
     assert "0:L" in summary["systems"]["stewart_hand"]["letters"]
+
+
+def test_figures_are_drawn_from_the_saved_table(result, tmp_path):
+    table, summary = result
+    written = experiment.get("tracking").plot(table, summary, tmp_path)
+    assert [p.name for p in written] == ["tracking_two_link.png", "tracking_two_link.pdf"]
+    assert all(p.stat().st_size > 1000 for p in written)
