@@ -17,7 +17,6 @@ iteration at which the method's estimate met the Sec. IV-D test
 
 from __future__ import annotations
 
-import contextlib
 from typing import Annotated, Any, Literal, NamedTuple
 
 import jax
@@ -27,8 +26,8 @@ import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax import baselines, control, estimator, paths, plots, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, unique
-from selfid_jax.experiment import Experiment, Part, controller_rows
+from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, check_noise_pairs, unique
+from selfid_jax.experiment import Experiment, Part, controller_rows, precision
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
@@ -81,11 +80,7 @@ class AblationConfig(BaseConfig):
 
     @model_validator(mode="after")
     def _noise_pairs(self):
-        if len(self.pose_noise) != len(self.rot_noise):
-            raise ValueError(
-                f"pose_noise and rot_noise pair up level by level: lengths {len(self.pose_noise)} "
-                f"and {len(self.rot_noise)} differ"
-            )
+        check_noise_pairs(self.pose_noise, self.rot_noise)
         return self
 
 
@@ -151,7 +146,7 @@ def compute(static: Static, p: Params) -> Outputs:
 def build(cfg):
     """The one part, built (and later run) in float64 if the system needs it (closed-chain hands)."""
     x64 = needs_x64(cfg.system)
-    with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+    with precision(x64):
         return _build(cfg)._replace(x64=x64)
 
 

@@ -11,7 +11,6 @@ with the defaults of :class:`DemoConfig` into ``runs/demo`` (``results.parquet``
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 from typing import Annotated, Literal, NamedTuple
 
@@ -21,9 +20,9 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from selfid_jax import control, paths, selfid
+from selfid_jax import control, estimator, paths, selfid
 from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, unique
-from selfid_jax.experiment import Experiment, Part, controller_rows
+from selfid_jax.experiment import Experiment, Part, controller_rows, precision
 from selfid_jax.plots import save_figure
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
@@ -46,8 +45,7 @@ class DemoRun(BaseModel):
     @model_validator(mode="after")
     def _consistent(self):
         self.path.check_controller(self.controller)
-        if self.eps == 0 and self.eps_rel == 0:
-            raise ValueError("eps and eps_rel are both 0: the Sec. IV-D test could never hold")
+        estimator.check_thresholds(self.eps, self.eps_rel)
         return self
 
 
@@ -142,7 +140,7 @@ def build(cfg: DemoConfig) -> list[Part]:
     parts = []
     for i, run in enumerate(cfg.runs):
         x64 = needs_x64(run.system)
-        with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+        with precision(x64):
             parts.append(_run_part(run, cfg.seed + 2 * i, x64))
     return parts
 

@@ -14,7 +14,6 @@ function per system.
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
@@ -24,9 +23,9 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from selfid_jax import control, geometry, metrics, paths, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig
-from selfid_jax.experiment import Experiment, Part, controller_rows
+from selfid_jax import control, estimator, geometry, metrics, paths, selfid
+from selfid_jax.config import BaseConfig, ControllerConfig, check_noise_pairs
+from selfid_jax.experiment import Experiment, Part, controller_rows, precision
 from selfid_jax.plots import save_figure
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
@@ -93,11 +92,8 @@ class TrackingConfig(BaseConfig):
 
     @model_validator(mode="after")
     def _consistent(self):
-        if len(self.pose_noise) != len(self.rot_noise):
-            raise ValueError(f"pose_noise and rot_noise pair up level by level: lengths {len(self.pose_noise)} "
-                             f"and {len(self.rot_noise)} differ")
-        if self.eps == 0 and self.eps_rel == 0:
-            raise ValueError("eps and eps_rel are both 0: the Sec. IV-D test could never hold")
+        check_noise_pairs(self.pose_noise, self.rot_noise)
+        estimator.check_thresholds(self.eps, self.eps_rel)
         if not self.controller.tol < self.path.scale() / 2:
             raise ValueError(f"controller.tol ({self.controller.tol}) must be below half the path's smallest "
                              f"feature ({self.path.scale()} m)")
@@ -172,7 +168,7 @@ def compute(static: Static, p: Params) -> Outputs:
 def build(cfg: TrackingConfig) -> Part:
     """Configs x trials x noise levels; float64 where the system needs it (closed-chain hands)."""
     x64 = needs_x64(cfg.system)
-    with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+    with precision(x64):
         return _build(cfg)._replace(x64=x64)
 
 

@@ -19,7 +19,6 @@ From Python::
 
 from __future__ import annotations
 
-import contextlib
 from typing import Annotated, Literal, NamedTuple, Union
 
 import jax
@@ -30,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_val
 
 from selfid_jax import control, paths, plots
 from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig, unique
-from selfid_jax.experiment import Experiment, Part, controller_rows
+from selfid_jax.experiment import Experiment, Part, controller_rows, precision
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
@@ -142,7 +141,7 @@ def build(cfg: ValidRegionConfig) -> list[Part]:
     for entry in cfg.systems:
         spec, path, controller = protocol(cfg, entry)
         x64 = needs_x64(spec)
-        with jax.enable_x64(True) if x64 else contextlib.nullcontext():
+        with precision(x64):
             parts.append(_system_part(cfg, spec, path, controller, x64))
     return parts
 

@@ -39,6 +39,7 @@ __all__ = [
     "flatten_dict",
     "load_config",
     "parse_override",
+    "check_noise_pairs",
     "unique",
     "yaml_load",
 ]
@@ -152,6 +153,13 @@ class PathConfig(BaseModel):
         if not controller.tol < self.size / 2:
             raise ValueError(f"controller.tol ({controller.tol}) must be below half of path.size ({self.size}): "
                              "waypoints would count as reached without moving")
+
+
+def check_noise_pairs(pose_noise: list, rot_noise: list) -> None:
+    """``ValueError`` unless the tracker-noise lists pair up level by level (equal lengths)."""
+    if len(pose_noise) != len(rot_noise):
+        raise ValueError(f"pose_noise and rot_noise pair up level by level: lengths {len(pose_noise)} "
+                         f"and {len(rot_noise)} differ")
 
 
 def unique(values: list, what: str) -> list:

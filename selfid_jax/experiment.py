@@ -49,6 +49,7 @@ __all__ = [
     "available",
     "controller_rows",
     "get",
+    "precision",
     "register",
     "run",
 ]
@@ -150,6 +151,13 @@ def get(name: str) -> Experiment:
 
 # --------------------------------------------------------------------------- helpers for build
 
+def precision(x64: bool):
+    """Context for building or running a part: ``jax.enable_x64(True)`` if ``x64``, else the current setting."""
+    import jax
+
+    return jax.enable_x64(True) if x64 else contextlib.nullcontext()
+
+
 def controller_rows(controller: ControllerConfig, n_rows: int):
     """The traced controller settings of ``controller`` repeated for ``n_rows`` rows: ``ControllerParams`` of ``(N,)``."""
     from selfid_jax.control import ControllerParams
@@ -197,7 +205,7 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
 
     tables = []
     for part in experiment.parts(cfg) if parts is None else parts:
-        with jax.enable_x64(True) if part.x64 else contextlib.nullcontext():
+        with precision(part.x64):
             wide = run_chunked(
                 experiment.batched(part.static),
                 part.params,

@@ -41,13 +41,13 @@ API:
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from selfid_jax.systems.kinematics import _mjx
 
 __all__ = [
     "MjxSettlePose",
@@ -59,12 +59,6 @@ __all__ = [
     "native_pose_batch",
     "native_settle",
 ]
-
-
-def _mjx():
-    with contextlib.redirect_stdout(io.StringIO()):  # silence optional-Warp notices
-        from mujoco import mjx
-    return mjx
 
 
 def mjx_model(mj):
