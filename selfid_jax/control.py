@@ -258,9 +258,6 @@ def follow(
     dtype = jnp.result_type(float)
     q0 = jnp.asarray(q0, dtype)
     path = jnp.asarray(path, dtype)
-    jinv_shape = jax.eval_shape(lambda q: source.pose_and_jinv(system, q)[1], q0).shape
-    if jinv_shape != (n, m):
-        raise ValueError(f"jinv: the inverse Jacobian has shape {jinv_shape}, expected ({n}, {m}) = (n_act, task_dim)")
     W = path.shape[0]
     pose0 = system.pose(q0)
     task = _Task.make(path, pose0, m)
@@ -271,6 +268,8 @@ def follow(
 
     def step(carry: _Carry, _):
         pose, J = source.pose_and_jinv(system, carry.q)
+        if J.shape != (n, m):  # static: raised while tracing, before any compute
+            raise ValueError(f"jinv: the inverse Jacobian has shape {J.shape}, expected ({n}, {m}) = (n_act, task_dim)")
         dist = task.path_distance(pose[0])
         carry, active = _advance(task, carry, pose, ctrl)
         q_new = system.apply(carry.q, J @ task.twist(*task.error(pose, carry.waypoint), ctrl))
