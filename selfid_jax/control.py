@@ -60,6 +60,7 @@ class FollowResult(NamedTuple):
     final_q: jax.Array  # (n,) actuator positions at the end
     positions: jax.Array | None  # (steps + 1, 3) POM positions if return_trajectory, else None
     orientations: jax.Array | None = None  # (steps + 1, 3, 3) POM orientations if return_trajectory, else None
+    targets: jax.Array | None = None  # (steps + 1,) int32 waypoint pursued at each of those poses (W when done)
 
 
 # ------------------------------------------------------------------ inverse-Jacobian sources
@@ -138,32 +139,47 @@ def _segment_distance(p, a, b):
     return jnp.sqrt(jnp.sum((p[None, :] - closest) ** 2, axis=-1))
 
 
-class _Task(NamedTuple):
-    """Waypoints in task space: ``pos_dim`` position components and, for 6-D tasks, target orientations."""
+def waypoint_poses(path, pose0, axes: tuple[int, ...]):
+    """Goal poses of waypoint offsets ``path (W, len(axes))`` taken from ``pose0 = (p0 (3,), R0 (3, 3))``.
 
-    targets: jax.Array  # (W, pos_dim) waypoint positions [m]
-    vertices: jax.Array  # (W + 1, pos_dim) path polyline, start pose first [m]
-    target_R: jax.Array  # (W, 3, 3) waypoint orientations; (W, 0, 0) without rotation
+    The offsets are the task components ``axes`` (indices into ``[dp, rotation
+    vector]``) of each waypoint; the others are 0 (held). Returns ``(p (W, 3),
+    R (W, 3, 3))``: ``p0 + dp`` and ``exp(r) R0`` [m, rotation matrices].
+    """
+    full = jnp.zeros((path.shape[0], 6), path.dtype).at[:, jnp.asarray(axes)].set(path)
+    p0, R0 = pose0
+    return p0[None, :] + full[:, :3], jnp.einsum("wij,jk->wik", geometry.so3_exp(full[:, 3:]), R0)
+
+
+class _Task(NamedTuple):
+    """Waypoints in task space: the task's position components and, where it has them, target orientations."""
+
+    targets: jax.Array  # (W, P) waypoint positions along the task's P position axes [m]
+    vertices: jax.Array  # (W + 1, P) path polyline, start pose first [m]
+    target_R: jax.Array  # (W, 3, 3) waypoint orientations; (W, 0, 0) without rotation in the task
+    pos_axes: tuple[int, ...]  # static: the task's position components (0-2)
+    rot_axes: tuple[int, ...]  # static: the task's rotation-vector components (0-2)
 
     @staticmethod
-    def make(path, pose0, task_dim: int) -> "_Task":
-        p0, R0 = pose0
-        pos_dim = min(task_dim, 3)
-        targets = p0[:pos_dim][None, :] + path[:, :pos_dim]
-        vertices = jnp.concatenate([p0[None, :pos_dim], targets], axis=0)
-        if task_dim == 6:
-            target_R = jnp.einsum("wij,jk->wik", geometry.so3_exp(path[:, 3:]), R0)
-        else:
-            target_R = jnp.zeros((path.shape[0], 0, 0), path.dtype)
-        return _Task(targets, vertices, target_R)
+    def make(path, pose0, system: System) -> "_Task":
+        pos, rot = system.position_axes, system.rotation_axes
+        p_goal, R_goal = waypoint_poses(path, pose0, system.axes)
+        targets = p_goal[:, list(pos)]
+        vertices = jnp.concatenate([pose0[0][None, list(pos)], targets], axis=0)
+        target_R = R_goal if rot else jnp.zeros((path.shape[0], 0, 0), path.dtype)
+        return _Task(targets, vertices, target_R, pos, rot)
 
     def error(self, pose, w):
-        """``(e_p (pos_dim,), e_r (0,) or (3,))`` from ``pose`` to waypoint ``w`` (clamped to the last)."""
+        """``(e_p (P,), e_r (R,))`` from ``pose`` to waypoint ``w`` (clamped to the last), task components only."""
         p, R = pose
         wc = jnp.minimum(w, self.targets.shape[0] - 1)
-        e_p = self.targets[wc] - p[: self.targets.shape[1]]
-        e_r = geometry.so3_log(self.target_R[wc] @ R.T) if self.target_R.shape[-1] else e_p[:0]
+        e_p = self.targets[wc] - self.positions(p)
+        e_r = geometry.so3_log(self.target_R[wc] @ R.T)[jnp.asarray(self.rot_axes)] if self.rot_axes else e_p[:0]
         return e_p, e_r
+
+    def positions(self, p):
+        """The task's position components of ``p (..., 3)``: ``(..., P)``."""
+        return p[..., list(self.pos_axes)]
 
     def reached(self, e_p, e_r, ctrl: ControllerParams):
         return (_norm(e_p) <= ctrl.tol) & (_norm(e_r) <= ctrl.rot_tol)
@@ -173,8 +189,10 @@ class _Task(NamedTuple):
         return jnp.concatenate([_clip_norm(ctrl.gain * e_p, ctrl.max_step), _clip_norm(ctrl.gain * e_r, ctrl.max_rot_step)])
 
     def path_distance(self, p):
-        """Distance of position ``p`` to the path polyline [m]."""
-        return jnp.min(_segment_distance(p[: self.targets.shape[1]], self.vertices[:-1], self.vertices[1:]))
+        """Distance of position ``p`` to the path polyline along the task's position axes [m] (0 without any)."""
+        if not self.pos_axes:
+            return jnp.zeros((), p.dtype)
+        return jnp.min(_segment_distance(self.positions(p), self.vertices[:-1], self.vertices[1:]))
 
 
 class _Carry(NamedTuple):
@@ -213,11 +231,15 @@ def follow(
 ) -> FollowResult:
     """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)`` with ``dtheta = Jinv @ V``.
 
+    The path's columns are the system's task components (:attr:`System.axes`:
+    position then rotation-vector offsets); components outside the task are
+    not controlled.
+
     Each step the desired twist ``V`` points from the current pose to the
     current waypoint, times ``controller.gain``, position part clipped to
     ``max_step`` [m], rotation part to ``max_rot_step`` [rad]; the actuators
     move by ``Jinv @ V`` (clipped by ``system.apply``), and the waypoint
-    advances within ``tol`` (and ``rot_tol`` for 6-D tasks).
+    advances within ``tol`` (and ``rot_tol`` for tasks with rotation).
 
     Args:
       system: the :class:`~selfid_jax.systems.System`.
@@ -230,8 +252,9 @@ def follow(
       q0: ``(n,)`` start actuator positions.
       controller: :class:`ControllerParams`; every field may be traced.
       steps: static step budget.
-      return_trajectory: also return the ``(steps + 1, 3)`` POM positions and
-        ``(steps + 1, 3, 3)`` orientations (at the start of each step, then at the end).
+      return_trajectory: also return the ``(steps + 1, 3)`` POM positions,
+        ``(steps + 1, 3, 3)`` orientations (at the start of each step, then at
+        the end) and the ``(steps + 1,)`` index of the waypoint pursued then.
 
     A rollout whose state or pose turns non-finite (a closed-chain hand's pose
     map returns NaN where its solve fails or leaves the equilibrium branch) or
@@ -260,10 +283,10 @@ def follow(
     path = jnp.asarray(path, dtype)
     W = path.shape[0]
     pose0 = system.pose(q0)
-    task = _Task.make(path, pose0, m)
+    task = _Task.make(path, pose0, system)
     ctrl = controller
     if ctrl.diverge_dist is None:
-        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : task.targets.shape[1]] ** 2, axis=-1)))
+        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(task.pos_axes)] ** 2, axis=-1)))
         ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
 
     def step(carry: _Carry, _):
@@ -284,7 +307,7 @@ def follow(
             err_max=jnp.maximum(carry.err_max, counted),
             used=carry.used + active.astype(carry.used.dtype),
         )
-        return carry, (pose if return_trajectory else None)
+        return carry, ((pose, carry.waypoint) if return_trajectory else None)
 
     init = _Carry(
         q=q0,
@@ -299,7 +322,7 @@ def follow(
     carry, traj = jax.lax.scan(step, init, None, length=steps)
     pose_end = system.pose(carry.q)
     carry, _ = _advance(task, carry, pose_end, ctrl)  # the last move may have reached a waypoint
-    end_dist = jnp.sqrt(jnp.sum((task.targets - pose_end[0][None, : task.targets.shape[1]]) ** 2, axis=-1))
+    end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(pose_end[0])[None]) ** 2, axis=-1))
     wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
     return FollowResult(
         completion=carry.waypoint.astype(dtype) / W,
@@ -309,8 +332,9 @@ def follow(
         steps_used=carry.used,
         failed=carry.failed,
         final_q=carry.q,
-        positions=jnp.concatenate([traj[0], pose_end[0][None, :]], axis=0) if return_trajectory else None,
-        orientations=jnp.concatenate([traj[1], pose_end[1][None]], axis=0) if return_trajectory else None,
+        positions=jnp.concatenate([traj[0][0], pose_end[0][None, :]], axis=0) if return_trajectory else None,
+        orientations=jnp.concatenate([traj[0][1], pose_end[1][None]], axis=0) if return_trajectory else None,
+        targets=jnp.concatenate([traj[1], carry.waypoint[None]]) if return_trajectory else None,
     )
 
 

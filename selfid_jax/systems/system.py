@@ -12,7 +12,7 @@ pytree in the MJX manner (``mujoco/mjx/_src/types.py``):
   (all ``(n_act,)``). A sweep can ``vmap`` over any of them and a ``System``
   can be passed to ``jax.jit`` as an ordinary argument.
 * static (meta) fields: ``name``, ``n_act``, ``task_dim``, ``pose_fn``,
-  ``min_sigma``, ``has_rotation``. Changing one recompiles; ``pose_fn`` is
+  ``min_sigma``, ``has_rotation``, ``task_axes``. Changing one recompiles; ``pose_fn`` is
   hashed by identity (module-level pose functions and the frozen-dataclass
   pose maps, :class:`PositionOnlyPose` here and those of
   :mod:`selfid_jax.systems.kinematics`, hash by value, so rebuilding a
@@ -40,7 +40,7 @@ import numpy as np
 
 from selfid_jax import geometry
 from selfid_jax.linalg import pseudo_inverse
-from selfid_jax.systems.validation import check_task_dim, validate
+from selfid_jax.systems.validation import check_task_axes, check_task_dim, default_axes, validate
 
 __all__ = ["System", "from_pose_fn", "PositionOnlyPose"]
 
@@ -64,12 +64,16 @@ class System:
     Attributes (static):
       name: label.
       n_act: number of actuators ``n``.
-      task_dim: ``m`` in ``{2, 3, 6}``.
+      task_dim: ``m``: 2, 3 or 6, or the number of ``task_axes``.
       pose_fn: ``pose_fn(params, q (n,)) -> (p (3,), R (3, 3))``.
       min_sigma: ``sample_configs`` keeps configurations whose Jacobian's
         smallest singular value exceeds this (task units per actuator unit).
       has_rotation: False if ``pose_fn`` only knows positions (``R`` is the
         identity); then ``task_dim`` must not be 6.
+      task_axes: ``None`` (the first ``task_dim`` components of
+        ``[dp, rotation vector]``) or a sorted tuple of indices into it
+        (0-2 position, 3-5 rotation), e.g. ``(2, 3, 4)`` for a hand that
+        controls its object's height and tilt; set by :meth:`with_task_axes`.
     """
 
     params: Any
@@ -87,6 +91,22 @@ class System:
     )
     min_sigma: float = dataclasses.field(default=0.0, metadata=dict(static=True))
     has_rotation: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    task_axes: tuple[int, ...] | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+    @property
+    def axes(self) -> tuple[int, ...]:
+        """Indices of the task's components in ``[x, y, z, rx, ry, rz]`` (static): ``(task_dim,)``."""
+        return default_axes(self.task_dim) if self.task_axes is None else self.task_axes
+
+    @property
+    def position_axes(self) -> tuple[int, ...]:
+        """The task's position components, as indices 0-2 into ``p``."""
+        return tuple(a for a in self.axes if a < 3)
+
+    @property
+    def rotation_axes(self) -> tuple[int, ...]:
+        """The task's rotation components, as indices 0-2 into the rotation vector."""
+        return tuple(a - 3 for a in self.axes if a >= 3)
 
     # ---------------------------------------------------------------- poses
     def pose(self, q):
@@ -103,9 +123,9 @@ class System:
     def task_difference(self, pose_t, pose_prev):
         """Task-space pose difference ``V`` (DESIGN: ``[p_t - p_prev, log(R_t R_prev^T)]``).
 
-        The first ``task_dim`` entries of :func:`geometry.pose_difference`:
+        The entries :attr:`axes` of :func:`geometry.pose_difference`:
         2 -> planar ``(dx, dy)``, 3 -> ``dp``, 6 -> ``(dp, rotation vector)``,
-        all in the world frame.
+        or the chosen ``task_axes``, all in the world frame.
 
         Args:
           pose_t: ``(p (3,), R (3, 3))`` current pose.
@@ -116,9 +136,10 @@ class System:
         """
         p_t, R_t = pose_t
         p_prev, R_prev = pose_prev
-        if self.task_dim == 6:
-            return geometry.pose_difference(p_t, R_t, p_prev, R_prev)
-        return (p_t - p_prev)[..., : self.task_dim]
+        if self.rotation_axes:
+            full = geometry.pose_difference(p_t, R_t, p_prev, R_prev)
+            return full if self.axes == default_axes(6) else full[..., self.axes]
+        return (p_t - p_prev)[..., self.axes]
 
     def task_vector(self, q, q_prev):
         """``task_difference(pose(q), pose(q_prev))``: ``(task_dim,)``."""
@@ -145,8 +166,7 @@ class System:
         q = jnp.asarray(q, dtype=jnp.result_type(q, float))
         analytic = getattr(self.pose_fn, "jacobian", None)
         if analytic is not None:
-            J6 = analytic(self.params, q)
-            return J6 if self.task_dim == 6 else J6[: self.task_dim]
+            return self._rows(analytic(self.params, q))
         ref = jax.lax.stop_gradient(self.pose(q))
         return jax.jacfwd(lambda q_: self.task_difference(self.pose(q_), ref))(q)
 
@@ -162,7 +182,11 @@ class System:
             return self.pose(q), self.jacobian(q)
         q = jnp.asarray(q, dtype=jnp.result_type(q, float))
         pose, J6 = fused(self.params, q)
-        return pose, (J6 if self.task_dim == 6 else J6[: self.task_dim])
+        return pose, self._rows(J6)
+
+    def _rows(self, J6):
+        """The task's rows ``(task_dim, n)`` of a geometric Jacobian ``(6, n)``."""
+        return J6 if self.axes == default_axes(6) else J6[jnp.asarray(self.axes)]
 
     def true_inverse_jacobian(self, q):
         """Pseudo-inverse of :meth:`jacobian` at ``q`` (the estimator's target).
@@ -238,7 +262,23 @@ class System:
     def with_task_dim(self, task_dim: int, *, min_sigma: float | None = None) -> "System":
         """Copy of this system with another task dimension (and optionally ``min_sigma``)."""
         check_task_dim(task_dim, self.has_rotation)
-        kw = dict(task_dim=int(task_dim))
+        kw = dict(task_dim=int(task_dim), task_axes=None)
+        if min_sigma is not None:
+            kw["min_sigma"] = float(min_sigma)
+        return dataclasses.replace(self, **kw)
+
+    def with_task_axes(self, axes, *, min_sigma: float | None = None) -> "System":
+        """Copy of this system whose task is the chosen components of ``[dp, rotation vector]``.
+
+        Args:
+          axes: names out of ``("x", "y", "z", "rx", "ry", "rz")`` or indices
+            0-5, e.g. ``("z", "rx", "ry")``; ``task_dim`` becomes ``len(axes)``.
+          min_sigma: optionally a new singularity threshold for ``sample_configs``.
+        """
+        axes = check_task_axes(axes, self.has_rotation)
+        if axes in (default_axes(2), default_axes(3), default_axes(6)):
+            return self.with_task_dim(len(axes), min_sigma=min_sigma)
+        kw = dict(task_dim=len(axes), task_axes=axes)
         if min_sigma is not None:
             kw["min_sigma"] = float(min_sigma)
         return dataclasses.replace(self, **kw)
@@ -251,7 +291,7 @@ class System:
 jax.tree_util.register_dataclass(
     System,
     data_fields=["params", "q_low", "q_high", "dq_max", "m_a", "sample_low", "sample_high"],
-    meta_fields=["name", "n_act", "task_dim", "pose_fn", "min_sigma", "has_rotation"],
+    meta_fields=["name", "n_act", "task_dim", "pose_fn", "min_sigma", "has_rotation", "task_axes"],
 )
 
 

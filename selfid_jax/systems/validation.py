@@ -12,10 +12,43 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TASK_DIMS", "check_task_dim", "vector", "validate"]
+__all__ = ["TASK_DIMS", "AXIS_NAMES", "check_task_dim", "check_task_axes", "default_axes", "vector", "validate"]
 
 #: Supported task dimensions: planar xy, position, position + rotation vector.
 TASK_DIMS = (2, 3, 6)
+#: Names of the six pose-difference components ``[dp (3), rotation vector (3)]``, in order.
+AXIS_NAMES = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def default_axes(task_dim: int) -> tuple[int, ...]:
+    """The pose-difference components of a ``task_dim`` task: 2 -> (x, y), 3 -> (x, y, z), 6 -> all six."""
+    return tuple(range(int(task_dim)))
+
+
+def check_task_axes(axes, has_rotation: bool = True) -> tuple[int, ...]:
+    """Eager check of a task made of chosen pose-difference components; returns them as sorted ints.
+
+    ``axes`` lists indices into ``[x, y, z, rx, ry, rz]`` (0-5) or their names
+    (:data:`AXIS_NAMES`), e.g. ``("z", "rx", "ry")``: at least one, no repeats;
+    rotation components need a pose map with an orientation.
+    """
+    try:
+        items = list(axes)
+    except TypeError:
+        raise ValueError(f"task_axes must be a list of axes out of {AXIS_NAMES} (or 0-5), got {axes!r}") from None
+    out = []
+    for a in items:
+        if isinstance(a, str) and a in AXIS_NAMES:
+            out.append(AXIS_NAMES.index(a))
+        elif isinstance(a, (int, np.integer)) and not isinstance(a, bool) and 0 <= a < 6:
+            out.append(int(a))
+        else:
+            raise ValueError(f"task_axes: {a!r} is not an axis; use names {AXIS_NAMES} or indices 0-5")
+    if not out or len(set(out)) != len(out):
+        raise ValueError(f"task_axes must name at least one axis, each once, got {items!r}")
+    if not has_rotation and any(a >= 3 for a in out):
+        raise ValueError(f"task_axes {items!r} include a rotation, but the pose function returns a position only")
+    return tuple(sorted(out))
 
 
 def check_task_dim(task_dim, has_rotation: bool = True) -> None:
