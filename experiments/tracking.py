@@ -8,8 +8,11 @@ true ("analytical") inverse Jacobian, recording the trajectory. Metrics per
 rollout and inverse Jacobian: the mean per-axis distance of the POM to the
 commanded path over the steps used (x, y, z, mm, Table I), the waypoint error
 (mm), completion, the final orientation error (deg, Table II; 0 for position
-tasks) and the self-ID convergence iteration. All of it is one compiled
-function per system.
+tasks) and the self-ID convergence iteration, and per-step traces of the
+per-axis and rotation errors (Fig. 6-9). A task may be any set of pose
+components (``task_axes``: e.g. a hand's object height and tilt ``[z, rx,
+ry]`` for the rotation experiment); rotation errors are measured within the
+task's rotation components. All of it is one compiled function per system.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from selfid_jax.plots import save_figure
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.systems.validation import AXIS_NAMES
 
 INVERSES = ("estimated", "analytical")
 
@@ -39,39 +43,58 @@ class TrackingPath(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
-    kind: Literal["text", "letters", "cube", "star"]
+    kind: Literal["text", "letters", "cube", "star", "rotation"]
     text: str = Field("E", min_length=1, description="letters for kinds 'text' (one path) and 'letters' "
                       "(one path per letter, each from a fresh self-ID, as the paper re-runs self-ID per letter)")
+    angle: float = Field(0.2, gt=-3.1, lt=3.1, description="rotation angle [rad] (kind 'rotation')")
+    about: Annotated[list[Literal["x", "y", "z"]], Field(min_length=1)] = ["x", "y"]  # world axes, one path each
+    rotation_steps: int = Field(10, ge=1, le=1000, description="waypoints along each rotation (kind 'rotation')")
     height: float = Field(0.012, gt=0, le=1, description="letter height [m] (kind 'text')")
     edge: float = Field(0.15, gt=0, le=2, description="cube edge [m] (kind 'cube')")
     size: float = Field(0.05, gt=0, le=10, description="star radius [m] (kind 'star')")
     plane: Literal["xy", "xz", "yz"] = "xy"
 
-    def waypoints(self, dim: int) -> jax.Array:
-        """``(L, W, dim)`` waypoint offsets, one path per letter for kind 'letters' (shorter letters padded by
-        repeating their last waypoint, reached at once), else ``L = 1``; rotation parts 0 (constant orientation)."""
-        if self.kind == "letters":
-            letters = [np.asarray(paths.text(c, height=self.height, plane=self.plane, dim=dim)) for c in self.text]
-            W = max(len(w) for w in letters)
-            return jnp.asarray(np.stack([np.concatenate([w, np.repeat(w[-1:], W - len(w), axis=0)]) for w in letters]))
-        return self._one(dim)[None]
+    def check_axes(self, axes: tuple[int, ...]) -> None:
+        """Raise ``ValueError`` if the path moves along a pose component outside the task ``axes``."""
+        moved = np.flatnonzero(np.any(np.abs(np.concatenate(self._paths())) > 0, axis=0))
+        missing = [AXIS_NAMES[a] for a in moved if a not in axes]
+        if missing:
+            raise ValueError(f"path ({self.kind}) moves along {missing}, which the task "
+                             f"{[AXIS_NAMES[a] for a in axes]} does not control; set task_axes or another system")
+
+    def waypoints(self, axes: tuple[int, ...]) -> jax.Array:
+        """``(L, W, len(axes))`` waypoint offsets in the task components ``axes`` (indices into ``[dp, rotation
+        vector]``): one path per letter (kind 'letters') or per rotation axis (kind 'rotation'), shorter ones padded
+        by repeating their last waypoint (reached at once), else ``L = 1``; components not given are 0 (held)."""
+        full = [np.asarray(w)[:, list(axes)] for w in self._paths()]
+        W = max(len(w) for w in full)
+        return jnp.asarray(np.stack([np.concatenate([w, np.repeat(w[-1:], W - len(w), axis=0)]) for w in full]))
 
     def labels(self) -> list[str]:
         """The path label of each of the ``L`` paths."""
-        return list(self.text) if self.kind == "letters" else [self.kind if self.kind != "text" else self.text]
+        if self.kind == "letters":
+            return list(self.text)
+        if self.kind == "rotation":
+            return [f"r{a}" for a in self.about]
+        return [self.kind if self.kind != "text" else self.text]
 
-    def _one(self, dim: int) -> jax.Array:
+    def _paths(self) -> list[np.ndarray]:
+        """Each path as ``(W, 6)`` offsets ``[dp, rotation vector]``."""
+        if self.kind == "letters":
+            return [paths.text(c, height=self.height, plane=self.plane, dim=6) for c in self.text]
+        if self.kind == "rotation":
+            unit = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
+            return [paths.rotation(axis=unit[a], angle=self.angle, steps=self.rotation_steps) for a in self.about]
         if self.kind == "text":
-            return paths.text(self.text, height=self.height, plane=self.plane, dim=dim)
+            return [paths.text(self.text, height=self.height, plane=self.plane, dim=6)]
         if self.kind == "cube":
-            if dim == 2:
-                raise ValueError("a cube needs a 3-D or 6-D task")
-            return paths.cube(edge=self.edge, dim=dim)
-        return paths.star(size=self.size, plane=self.plane, dim=dim)
+            return [paths.cube(edge=self.edge, dim=6)]
+        return [paths.star(size=self.size, plane=self.plane, dim=6)]
 
     def scale(self) -> float:
-        """The path's smallest feature [m], for the tolerance check."""
-        return {"text": self.height / 6.0, "letters": self.height / 6.0, "cube": self.edge, "star": self.size}[self.kind]
+        """The path's smallest positional feature [m], for the tolerance check (inf for a pure rotation)."""
+        return {"text": self.height / 6.0, "letters": self.height / 6.0, "cube": self.edge, "star": self.size,
+                "rotation": float("inf")}[self.kind]
 
 
 class TrackingConfig(BaseConfig):
@@ -79,6 +102,9 @@ class TrackingConfig(BaseConfig):
 
     experiment: Literal["tracking"] = "tracking"
     system: SystemSpec = Field("ur5e", description="a built-in name or {mjcf: ...} / {pose_fn: ...}")
+    task_axes: list[Literal["x", "y", "z", "rx", "ry", "rz"]] | None = Field(
+        None, min_length=1, description="the task's pose components (default: the system's task_dim); e.g. "
+        "[z, rx, ry] for a 3-actuator hand that tilts its object")
     path: TrackingPath
     controller: ControllerConfig = ControllerConfig()
     n_configs: int = Field(ge=1, le=10**5)
@@ -94,6 +120,10 @@ class TrackingConfig(BaseConfig):
     def _consistent(self):
         check_noise_pairs(self.pose_noise, self.rot_noise)
         estimator.check_thresholds(self.eps, self.eps_rel)
+        if self.path.kind == "rotation" and (self.task_axes is None or
+                                             not {f"r{a}" for a in self.path.about} <= set(self.task_axes)):
+            raise ValueError(f"task_axes must include the rotations of path.about {self.path.about} (e.g. "
+                             "task_axes: [z, rx, ry]); otherwise they are not controlled")
         if not self.controller.tol < self.path.scale() / 2:
             raise ValueError(f"controller.tol ({self.controller.tol}) must be below half the path's smallest "
                              f"feature ({self.path.scale()} m)")
@@ -126,11 +156,13 @@ class Outputs(NamedTuple):
     completion: jax.Array  # (2,) fraction of waypoints reached
     waypoint_error_mm: jax.Array  # (2,) mean position error when each waypoint was reached [mm]
     error_mm: jax.Array  # (2, 3) mean |distance to the path| along x, y, z over the steps used [mm]
-    rot_final_deg: jax.Array  # (2,) orientation error to the last waypoint at the end [deg]
-    rot_step_deg: jax.Array  # (2,) mean orientation error to the start orientation over the steps used [deg]
+    rot_final_deg: jax.Array  # (2,) orientation error to the last waypoint at the end [deg]; 0 without rotation
+    rot_step_deg: jax.Array  # (2,) mean orientation error to the pursued waypoint over the steps used [deg]
     failed: jax.Array  # (2,) bool
     steps_used: jax.Array  # (2,) int32 control steps taken
     positions: jax.Array  # (2, steps + 1, 3) POM positions [m]
+    error_trace_mm: jax.Array  # (2, steps + 1, 3) |distance to the path| along x, y, z at each step [mm]
+    rot_trace_deg: jax.Array  # (2, steps + 1) orientation error to the pursued waypoint at each step [deg]
 
 
 def compute(static: Static, p: Params) -> Outputs:
@@ -140,25 +172,33 @@ def compute(static: Static, p: Params) -> Outputs:
                      eps_rel=p.eps_rel, m_a=p.m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
     q_start = sid.env
     path = static.path[p.letter]
-    p0, R0 = system.pose(q_start)
-    pos_dim = min(system.task_dim, 3)
-    vertices = jnp.concatenate([p0[None, :pos_dim], p0[None, :pos_dim] + path[:, :pos_dim]])
-    R_goal = (geometry.so3_exp(path[-1, 3:]) @ R0) if system.task_dim == 6 else R0
+    pose0 = system.pose(q_start)
+    pos, rot = list(system.position_axes), system.rotation_axes
+    p_goal, R_goal = control.waypoint_poses(path, pose0, system.axes)
+    vertices = jnp.concatenate([pose0[0][None], p_goal])[:, pos]
+
+    def rot_error_deg(R_g, R):
+        """Angle of the rotation error within the task's rotation components [deg] (all three: the full angle)."""
+        w = geometry.so3_log(R_g @ jnp.swapaxes(R, -1, -2))[..., jnp.asarray(rot)]
+        return jnp.degrees(jnp.sqrt(jnp.sum(w * w, axis=-1)))
 
     def track(jinv):
         res = control.follow(system, jinv, path, q_start, p.controller, steps=static.steps,
                              return_trajectory=True)
         used = jnp.arange(res.positions.shape[0]) <= res.steps_used  # the steps taken, and where they ended
-        err = metrics.axis_errors(res.positions[:, :pos_dim], vertices)
-        err = jnp.sum(jnp.where(used[:, None], err, 0.0), axis=0) / jnp.sum(used)
-        err = jnp.concatenate([err, jnp.zeros((3 - pos_dim,), err.dtype)])
-        rot = metrics.rotation_errors_deg(R_goal, system.pose(res.final_q)[1]) if system.task_dim == 6 else 0.0
-        # the shipped paths hold the orientation constant, so the goal at every step is the start orientation
-        per_step = metrics.rotation_errors_deg(R0, res.orientations) if system.task_dim == 6 else \
-            jnp.zeros(res.positions.shape[0], err.dtype)
-        rot_step = jnp.sum(jnp.where(used, per_step, 0.0)) / jnp.sum(used)
-        return (res.completion, 1e3 * res.waypoint_error, 1e3 * err, jnp.asarray(rot, err.dtype),
-                jnp.asarray(rot_step, err.dtype), res.failed, res.steps_used, res.positions)
+        dtype = res.positions.dtype
+        err = jnp.zeros((res.positions.shape[0], 3), dtype)
+        if pos:
+            err = err.at[:, jnp.asarray(pos)].set(metrics.axis_errors(res.positions[:, pos], vertices))
+        zero = jnp.zeros(res.positions.shape[0], dtype)
+        # the goal orientation at each step is that of the waypoint then pursued (the last one once done)
+        goal = R_goal[jnp.minimum(res.targets, path.shape[0] - 1)]
+        per_step = rot_error_deg(goal, res.orientations) if rot else zero
+        final = rot_error_deg(R_goal[-1], res.orientations[-1]) if rot else zero[0]
+        mean = jnp.sum(used).astype(dtype)
+        return (res.completion, 1e3 * res.waypoint_error, 1e3 * jnp.sum(jnp.where(used[:, None], err, 0.0), 0) / mean,
+                final, jnp.sum(jnp.where(used, per_step, 0.0)) / mean, res.failed, res.steps_used, res.positions,
+                1e3 * err, per_step)
 
     est, true = track(control.fixed(sid.estimate)), track(control.true_inverse(system))
     stacked = [jnp.stack([a, b]) for a, b in zip(est, true)]
@@ -174,7 +214,10 @@ def build(cfg: TrackingConfig) -> Part:
 
 def _build(cfg: TrackingConfig) -> Part:
     system = build_system(cfg.system)
-    path = cfg.path.waypoints(system.task_dim)
+    if cfg.task_axes is not None:
+        system = system.with_task_axes(cfg.task_axes)
+    cfg.path.check_axes(system.axes)
+    path = cfg.path.waypoints(system.axes)
     labels = cfg.path.labels()
     meta = grid_table({"letter_id": range(len(labels)), "noise_level": range(len(cfg.pose_noise)),
                        "config_id": range(cfg.n_configs), "trial": range(cfg.n_trials)})
@@ -212,8 +255,8 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: TrackingConfig) -> pd.DataFram
         df["rot_step_deg"] = np.stack(wide["rot_step_deg"].to_numpy())[:, i]
         df["failed"] = np.stack(wide["failed"].to_numpy())[:, i].astype(bool)
         df["steps_used"] = np.stack(wide["steps_used"].to_numpy())[:, i]
-        positions = np.stack(wide["positions"].to_numpy()).reshape(len(wide), 2, -1)[:, i]
-        df["positions"] = list(positions)
+        for col in ("positions", "error_trace_mm", "rot_trace_deg"):
+            df[col] = list(np.stack(wide[col].to_numpy()).reshape(len(wide), 2, -1)[:, i])
         frames.append(df)
     return pd.concat(frames, ignore_index=True)
 
@@ -239,17 +282,18 @@ def _stats(g: pd.DataFrame) -> dict[str, Any]:
 
 
 def summarize(table: pd.DataFrame, cfg: TrackingConfig) -> dict[str, Any]:
-    """Mean +- sd per system, tracker-noise level and inverse Jacobian (and per letter for kind 'letters')."""
+    """Mean +- sd per system, tracker-noise level and inverse Jacobian (and per letter / rotation axis)."""
     systems: dict[str, Any] = {}
     for (system, noise), g in table.groupby(["system", "pose_noise"], sort=False):
         entry = systems.setdefault(str(system), {"pose_noise_mm": {}})
         entry["pose_noise_mm"][f"{1e3 * noise:g}"] = _stats(g)
-        if cfg.path.kind == "letters":
-            per = entry.setdefault("letters", {})
+        if cfg.path.kind in ("letters", "rotation"):  # per letter / per rotation axis, each from its own self-ID
+            per = entry.setdefault("letters" if cfg.path.kind == "letters" else "rotations", {})
             for letter, h in g.groupby("letter_id", sort=True):
                 per.setdefault(f"{int(letter)}:{h['path'].iloc[0]}", {})[f"{1e3 * noise:g}"] = _stats(h)
     return {
         "path": cfg.path.model_dump(),
+        "task_axes": cfg.task_axes,
         "controller": cfg.controller.model_dump(),
         "self_id": {"iterations": cfg.iters, "m_a": cfg.m_a, "eps": cfg.eps, "eps_rel": cfg.eps_rel},
         "systems": systems,
@@ -276,22 +320,34 @@ def report(summary: dict) -> str:
 
 
 def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
-    """Executed paths (first start configuration, noise-free), estimated vs analytical, in 3-D for a cube.
+    """Executed paths and per-step error traces, estimated vs analytical (Fig. 6-9 style).
 
-    One figure per system, ``tracking_<system>.png|pdf``; the protocol is in the title.
+    One figure per system, ``tracking_<system>.png|pdf``, from the noise-free
+    rows of the first start configuration: top row the executed paths (3-D for
+    a cube; for a rotation the orientation error along each rotation), bottom
+    row the per-step distance to the path along x, y, z [mm] and, where the
+    task has rotation, the orientation error [deg], the paths (letters) one
+    after another. The protocol is in the title.
     """
     from matplotlib.figure import Figure
 
     written: list[Path] = []
-    three_d = summary["path"]["kind"] == "cube"
+    kind = summary["path"]["kind"]
+    three_d = kind == "cube"
+    rotates = "rot_trace_deg" in table and bool(np.any(np.concatenate(table["rot_trace_deg"].to_list()) != 0))
     for system, g in table.groupby("system", sort=False):
         first = g[(g["noise_level"] == 0) & (g["config_id"] == 0) & (g["trial"] == 0)]
-        fig = Figure(figsize=(10, 4.8), layout="constrained")
+        fig = Figure(figsize=(10, 8), layout="constrained")
         for k, inverse in enumerate(INVERSES):
-            ax = fig.add_subplot(1, 2, k + 1, projection="3d" if three_d else None)
+            rows = first[first["inverse"] == inverse].sort_values("letter_id")  # one row per letter / rotation
             color = "C0" if inverse == "estimated" else "C2"
-            for _, row in first[first["inverse"] == inverse].iterrows():  # one row per letter
-                pts = 1e3 * np.asarray(row["positions"]).reshape(-1, 3)[: int(row["steps_used"]) + 1]
+            ax = fig.add_subplot(2, 2, k + 1, projection="3d" if three_d else None)
+            for _, row in rows.iterrows():
+                used = int(row["steps_used"]) + 1
+                if kind == "rotation":
+                    ax.plot(np.asarray(row["rot_trace_deg"])[:used], lw=1, label=str(row["path"]))
+                    continue
+                pts = 1e3 * np.asarray(row["positions"]).reshape(-1, 3)[:used]
                 pts = pts - pts[0]
                 if three_d:
                     ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], lw=1, color=color)
@@ -299,11 +355,35 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
                 else:
                     ax.plot(pts[:, 0], pts[:, 1], lw=1, color=color)
                     ax.set_aspect("equal")
-            ax.set_xlabel("x [mm]")
-            ax.set_ylabel("y [mm]")
+            if kind == "rotation":
+                ax.set_xlabel("control step")
+                ax.set_ylabel("orientation error to the pursued waypoint [deg]")
+                ax.legend(fontsize=7)
+            else:
+                ax.set_xlabel("x [mm]")
+                ax.set_ylabel("y [mm]")
             ax.set_title(f"{system}: {inverse} inverse Jacobian", fontsize=9)
+            tr = fig.add_subplot(2, 2, k + 3)
+            traces = [np.asarray(r["error_trace_mm"]).reshape(-1, 3)[: int(r["steps_used"]) + 1]
+                      for _, r in rows.iterrows()]
+            err = np.concatenate(traces) if traces else np.zeros((0, 3))
+            for j, axis in enumerate("xyz"):
+                tr.plot(err[:, j], lw=0.8, label=f"|e_{axis}|")
+            tr.set_xlabel("control step" + (" (paths one after another)" if len(traces) > 1 else ""))
+            tr.set_ylabel("distance to the path [mm]")
+            if rotates:
+                rot = np.concatenate([np.asarray(r["rot_trace_deg"])[: int(r["steps_used"]) + 1]
+                                      for _, r in rows.iterrows()])
+                tw = tr.twinx()
+                tw.plot(rot, lw=0.8, color="k", alpha=0.6, label="rotation")
+                tw.set_ylabel("orientation error [deg]")
+                tw.legend(fontsize=7, loc="upper right")
+            tr.legend(fontsize=7, loc="upper left")
+            tr.set_title(f"per-step error, {inverse}", fontsize=9)
         c, s = summary["controller"], summary["self_id"]
-        fig.suptitle(f"path {summary['path']['kind']}; step {1e3 * c['max_step']:g} mm, tol {1e3 * c['tol']:g} mm, "
+        axes = summary.get("task_axes")
+        fig.suptitle(f"path {kind}{'' if axes is None else f', task {axes}'}; step {1e3 * c['max_step']:g} mm "
+                     f"({c['max_rot_step']:g} rad), tol {1e3 * c['tol']:g} mm ({c['rot_tol']:g} rad), "
                      f"{c['steps']} steps, gain {c['gain']:g}; self-ID m_a {s['m_a']:g}, eps {s['eps']:g}, "
                      f"eps_rel {s['eps_rel']:g}; noise-free rows, first configuration", fontsize=8)
         written += save_figure(fig, out_dir, f"tracking_{system}")
@@ -319,5 +399,5 @@ EXPERIMENT = Experiment(
     tabulate=tabulate,
     plot=plot,
     report=report,
-    description="self-ID, then a path (letters, cube, star) with the estimate and the truth: Tables I-II",
+    description="self-ID, then a path (letters, cube, star, rotation) with the estimate and the truth: Tables I-II",
 )

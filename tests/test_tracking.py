@@ -77,3 +77,27 @@ def test_figures_are_drawn_from_the_saved_table(result, tmp_path):
     written = experiment.get("tracking").plot(table, summary, tmp_path)
     assert [p.name for p in written] == ["tracking_two_link.png", "tracking_two_link.pdf"]
     assert all(p.stat().st_size > 1000 for p in written)
+
+
+def test_rotation_task_on_chosen_axes(tmp_path):
+    """The UR5e rotates its flange 0.2 rad about world x and y on a rotation-only task ([rx, ry, rz]): the truth
+    ends within rot_tol of the goal, the estimate completes, per-step traces are recorded and summarised per axis."""
+    exp = experiment.get("tracking")
+    cfg = exp.config(system="ur5e_6d", task_axes=["rx", "ry", "rz"],
+                     path={"kind": "rotation", "angle": 0.2, "about": ["x", "y"], "rotation_steps": 4},
+                     controller={"steps": 60, "max_rot_step": 0.02, "rot_tol": 0.004}, n_configs=1, iters=20,
+                     m_a=0.03, eps=0.5)
+    table, summary = experiment.run(exp, cfg, tmp_path)
+    truth, est = table[table.inverse == "analytical"], table[table.inverse == "estimated"]
+    assert np.all(truth.completion == 1.0) and np.all(truth.rot_final_deg <= np.degrees(0.004))
+    assert np.all(est.completion >= 0.9)
+    assert np.all(table[["error_x_mm", "error_y_mm", "error_z_mm"]].to_numpy() == 0.0)  # no position in the task
+    for _, row in truth.iterrows():
+        trace = np.asarray(row.rot_trace_deg)[: int(row.steps_used) + 1]
+        assert trace[0] == pytest.approx(np.degrees(0.05), rel=1e-6)  # first waypoint: 0.2 / 4 rad away
+        assert row.rot_step_deg == pytest.approx(trace.mean(), rel=1e-9)
+    assert set(summary["systems"]["ur5e_6d"]["rotations"]) == {"0:rx", "1:ry"}
+    with pytest.raises(ValueError, match="task_axes must include"):
+        exp.config(**{**cfg.model_dump(), "task_axes": ["rz"]})
+    with pytest.raises(ValueError, match="does not control"):
+        exp.build(exp.config(system="two_link", path={"kind": "cube", "edge": 0.1}, n_configs=1, m_a=0.02))
