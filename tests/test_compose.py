@@ -1,0 +1,61 @@
+"""A Model O mounted on the UR5e (``systems.compose``): the composed Jacobian against central differences of its
+pose map, and each part (the other held) against the composed pose and Jacobian columns. float64."""
+
+import numpy as np
+import pytest
+
+from selfid_jax import geometry
+from selfid_jax.systems import compose, hands
+from selfid_jax.systems import from_pose_fn
+from selfid_jax.systems.ur5e import ur5e
+
+pytestmark = pytest.mark.slow  # compiles the closed-chain hand's implicit derivatives
+
+
+@pytest.fixture(scope="module")
+def mounted():
+    hand = hands.model_o(task_dim=6)
+    system = compose.mount(ur5e(task_dim=6), hand, offset=(0.01, -0.02, 0.03), rotation_vector=(0.1, -0.2, 0.3))
+    q_hand = np.asarray(hand.sample_low + hand.sample_high) / 2 + np.array([1e-3, -5e-4, 2e-4])
+    return system, np.concatenate([[0.3, -1.3, 1.8, -2.07, -1.57, 0.2], q_hand])
+
+
+def central_differences(system, q, h=1e-6):
+    cols = []
+    for i in range(len(q)):
+        e = np.zeros(len(q))
+        e[i] = h
+        (pa, Ra), (pb, Rb) = system.pose(q + e), system.pose(q - e)
+        cols.append(np.asarray(geometry.pose_difference(pa, Ra, pb, Rb)) / (2 * h))
+    return np.stack(cols, axis=1)
+
+
+def test_composed_jacobian_equals_central_differences(mounted):
+    system, q = mounted
+    J = np.asarray(system.jacobian(q))
+    assert J.shape == (6, 9)
+    np.testing.assert_allclose(J, central_differences(system, q), atol=1e-6 * np.abs(J).max())
+
+
+def test_parts_hold_the_other_and_match_the_composed_system(mounted):
+    system, q = mounted
+    arm, hand = compose.arm_part(system, q[6:]), compose.hand_part(system, q[:6], task_axes=("z", "rx", "ry"))
+    for part, qp in ((arm, q[:6]), (hand, q[6:])):
+        p, R = part.pose(qp)
+        p_full, R_full = system.pose(q)
+        np.testing.assert_allclose(p, p_full, atol=1e-12)
+        np.testing.assert_allclose(R, R_full, atol=1e-12)
+    J = np.asarray(system.jacobian(q))
+    np.testing.assert_allclose(arm.jacobian(q[:6]), J[:, :6], atol=1e-9)
+    np.testing.assert_allclose(hand.jacobian(q[6:]), J[[2, 3, 4], 6:], atol=1e-9)
+    assert (arm.n_act, hand.n_act, hand.task_dim) == (6, 3, 3)
+
+
+def test_mount_checks_its_inputs():
+    with pytest.raises(ValueError, match="no orientation"):
+        compose.mount(from_pose_fn(lambda params, q: q, 3, task_dim=3, q_low=-1, q_high=1, dq_max=0.1, m_a=0.01),
+                      ur5e(task_dim=6))
+    with pytest.raises(ValueError, match="3-vectors"):
+        compose.mount(ur5e(task_dim=6), ur5e(task_dim=6), offset=(0.0, 0.0))
+    with pytest.raises(TypeError, match="mount"):
+        compose.arm_part(ur5e(task_dim=6), np.zeros(3))
