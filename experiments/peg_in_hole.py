@@ -1,0 +1,355 @@
+"""Peg-in-hole (paper Sec. V-F, Table III): a Model O on a UR5e, both self-identified, in sequence.
+
+The system is one composed kinematic chain (:func:`selfid_jax.systems.compose.mount`):
+the UR5e's flange, a fixed mount, and the Model O holding the peg, whose POM
+is the controlled point. Per layout (start yaw of the arm, grasp waypoint,
+hole), trial and tracker-noise level, one compiled function runs:
+
+1. arm self-ID (6-D task, the hand held at its grasp command);
+2. the arm carries the peg to the grasp waypoint (6-D, constant orientation);
+3. hand self-ID on the held peg (task ``[z, rx, ry]`` in the world frame, the
+   arm held);
+4. the hand tilts the peg by ``rotation.angle`` about a world axis;
+5. the arm lifts, moves over the hole and lowers the peg to the insertion
+   pose: the hole's position at the grasp height, the orientation the hand
+   left (6-D, the arm's estimate from step 1 reused, as the paper self-IDs
+   the arm once).
+
+Once with the self-ID estimates ("estimated") and once with the true inverse
+Jacobians ("analytical"). Table III's columns: the final position [mm] and
+orientation [deg] error of the arm at the insertion pose, and the hand's
+final rotation error [deg] within its task's rotation components; plus the
+self-ID convergence iterations of both and whether the peg ended within the
+insertion tolerance.
+
+What is simulated: kinematics (the closed-chain Model O equilibrium, the
+UR5e chain), actuator limits, tracker noise. What is not: contact between the
+peg and the hole, the grasp itself (the peg is in the hand from the start),
+slip of the peg in the grasp, and the arm's dynamics. The paper rotates its
+peg to perpendicular; our Model O model's safe tilt range is 15 degrees, so
+the hand tilts the peg by ``rotation.angle`` (0.15 rad by default).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from selfid_jax import control, estimator, geometry, selfid
+from selfid_jax.config import BaseConfig, ControllerConfig, check_noise_pairs
+from selfid_jax.experiment import Experiment, Part, controller_rows, precision
+from selfid_jax.plots import save_figure
+from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax.systems import System, compose, hands
+from selfid_jax.systems.ur5e import ur5e
+
+INVERSES = ("estimated", "analytical")
+HAND_AXES = ("z", "rx", "ry")
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+Vec3 = Annotated[list[Annotated[float, Field(ge=-1.0, le=1.0)]], Field(min_length=3, max_length=3)]
+
+
+class Layout(BaseModel):
+    """One start / grasp / hole arrangement (world frame, metres and radians)."""
+
+    model_config = _STRICT
+
+    yaw: float = Field(0.0, ge=-1.0, le=1.0, description="added to the arm's base joint at the start [rad]")
+    grasp: Vec3 = Field(description="grasp waypoint, offset from the POM's start position [m]")
+    hole: Annotated[list[Annotated[float, Field(ge=-0.5, le=0.5)]], Field(min_length=2, max_length=2)] = Field(
+        description="hole (x, y), offset from the grasp waypoint, at the grasp height [m]")
+
+
+class PartSettings(BaseModel):
+    """Self-ID and control settings of one part (arm or hand)."""
+
+    model_config = _STRICT
+
+    iters: int = Field(ge=2, le=10**4, description="self-ID iterations")
+    m_a: float = Field(gt=0, le=0.1, description="self-ID magnitude [rad or m]")
+    eps: float = Field(0.0, ge=0, le=1e6)
+    eps_rel: float = Field(0.0, ge=0, le=10)
+    controller: ControllerConfig
+
+    @model_validator(mode="after")
+    def _thresholds(self):
+        estimator.check_thresholds(self.eps, self.eps_rel)
+        return self
+
+
+class Rotation(BaseModel):
+    model_config = _STRICT
+
+    angle: float = Field(0.15, gt=-0.26, lt=0.26, description="hand tilt of the peg [rad] (the model's safe range "
+                         "is 15 deg)")
+    about: Literal["x", "y"] = "x"
+    steps: int = Field(10, ge=1, le=1000, description="waypoints along the rotation")
+
+
+class PegConfig(BaseConfig):
+    """Peg-in-hole with a Model O on a UR5e, both self-identified (Table III)."""
+
+    experiment: Literal["peg_in_hole"] = "peg_in_hole"
+    arm_home: Annotated[list[Annotated[float, Field(ge=-6.3, le=6.3)]], Field(min_length=6, max_length=6)] = \
+        [0.0, -1.3, 1.8, -2.07, -1.57, 0.0]  # flange pointing down [rad]
+    mount_offset: Vec3 = [0.0, 0.0, 0.02]  # hand base in the flange frame [m]
+    layouts: Annotated[list[Layout], Field(min_length=1)]
+    n_trials: int = Field(1, ge=1, le=10**4)
+    lift: float = Field(0.05, gt=0, le=0.5, description="height above the hole before lowering [m]")
+    rotation: Rotation = Rotation()
+    arm: PartSettings
+    hand: PartSettings
+    insert_tol: float = Field(0.002, gt=0, le=0.1, description="insertion accepted within this position error [m]")
+    insert_rot_tol_deg: float = Field(1.0, gt=0, le=90, description="... and this orientation error [deg]")
+    pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)] = [0.0]  # m
+    rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)] = [0.0]  # rad
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        check_noise_pairs(self.pose_noise, self.rot_noise)
+        if not self.arm.controller.tol < self.insert_tol:
+            raise ValueError(f"arm.controller.tol ({self.arm.controller.tol}) must be below insert_tol "
+                             f"({self.insert_tol})")
+        return self
+
+
+class Static(NamedTuple):
+    system: System  # the mounted UR5e + Model O
+    rotation: jax.Array  # (S, 3) hand path: rotation-vector offsets in the hand task [z, rx, ry]
+    arm_iters: int
+    hand_iters: int
+    arm_steps: int
+    hand_steps: int
+    insert_tol_mm: float
+    insert_rot_tol_deg: float
+
+
+class Params(NamedTuple):
+    key: jax.Array  # (2,) uint32
+    q_arm: jax.Array  # (6,) start configuration [rad]
+    q_hand: jax.Array  # (3,) grasp command [m]
+    grasp: jax.Array  # (3,) grasp waypoint offset [m]
+    hole: jax.Array  # (2,) hole offset from the grasp waypoint [m]
+    lift: jax.Array  # () [m]
+    pose_noise: jax.Array  # () [m]
+    rot_noise: jax.Array  # () [rad]
+    arm_m_a: jax.Array
+    arm_eps: jax.Array
+    arm_eps_rel: jax.Array
+    hand_m_a: jax.Array
+    hand_eps: jax.Array
+    hand_eps_rel: jax.Array
+    arm_ctrl: control.ControllerParams
+    hand_ctrl: control.ControllerParams
+
+
+class Outputs(NamedTuple):
+    """Per row; axis 0 of the (2,) fields is (estimated, analytical)."""
+
+    arm_converged_at: jax.Array  # () int32, -1 if never
+    hand_converged_at: jax.Array  # (2,) int32 (the hand's self-ID runs where each pipeline's arm left it)
+    grasp_completion: jax.Array  # (2,)
+    hand_completion: jax.Array  # (2,)
+    insert_completion: jax.Array  # (2,)
+    hand_rot_deg: jax.Array  # (2,) hand's final rotation error within [rx, ry] [deg]
+    arm_pos_mm: jax.Array  # (2,) final distance to the insertion position [mm]
+    arm_rot_deg: jax.Array  # (2,) final orientation error to the insertion orientation [deg]
+    inserted: jax.Array  # (2,) bool: within insert_tol and insert_rot_tol_deg
+    failed: jax.Array  # (2,) bool: a phase failed (non-finite pose, divergence)
+    positions: jax.Array  # (2, 3, 3) POM position at the grasp waypoint, after the tilt, at the end [m]
+
+
+def compute(static: Static, p: Params) -> Outputs:
+    """The five phases from ``p.q_arm``, with the self-ID estimates and with the true inverse Jacobians."""
+    system = static.system
+    k_arm, k_est, k_true = jax.random.split(jax.random.wrap_key_data(p.key), 3)
+    arm0 = compose.arm_part(system, p.q_hand)
+    sid_arm = selfid.run(arm0, k_arm, p.q_arm, iters=static.arm_iters, eps=p.arm_eps, eps_rel=p.arm_eps_rel,
+                         m_a=p.arm_m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
+    zeros3 = jnp.zeros((3,), p.grasp.dtype)
+
+    def pipeline(estimated: bool, key):
+        arm_src = control.fixed(sid_arm.estimate) if estimated else control.true_inverse(arm0)
+        grasp = control.follow(arm0, arm_src, jnp.concatenate([p.grasp, zeros3])[None], sid_arm.env, p.arm_ctrl,
+                               steps=static.arm_steps)
+        grasp_pose = arm0.pose(grasp.final_q)
+        hand = compose.hand_part(system, grasp.final_q, task_axes=HAND_AXES)
+        sid_hand = selfid.run(hand, key, p.q_hand, iters=static.hand_iters, eps=p.hand_eps, eps_rel=p.hand_eps_rel,
+                              m_a=p.hand_m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
+        hand_src = control.fixed(sid_hand.estimate) if estimated else control.true_inverse(hand)
+        tilt = control.follow(hand, hand_src, static.rotation, sid_hand.env, p.hand_ctrl, steps=static.hand_steps)
+        R_goal = control.waypoint_poses(static.rotation, hand.pose(sid_hand.env), hand.axes)[1][-1]
+        R_now = hand.pose(tilt.final_q)[1]
+        w = geometry.so3_log(R_goal @ R_now.T)[:2]  # the hand task's rotation components (rx, ry)
+        hand_rot = jnp.degrees(jnp.sqrt(jnp.sum(w * w)))
+        arm1 = compose.arm_part(system, tilt.final_q)
+        p1, R1 = arm1.pose(grasp.final_q)
+        target = grasp_pose[0] + jnp.concatenate([p.hole, zeros3[:1]])  # the hole at the grasp height
+        up = jnp.stack([zeros3.at[2].set(p.lift), target - p1 + zeros3.at[2].set(p.lift), target - p1])
+        insert_path = jnp.concatenate([up, jnp.zeros_like(up)], axis=1)
+        arm_src1 = control.fixed(sid_arm.estimate) if estimated else control.true_inverse(arm1)
+        insert = control.follow(arm1, arm_src1, insert_path, grasp.final_q, p.arm_ctrl, steps=static.arm_steps)
+        p_end, R_end = arm1.pose(insert.final_q)
+        pos_mm = 1e3 * jnp.sqrt(jnp.sum((p_end - target) ** 2))
+        w_end = geometry.so3_log(R1 @ R_end.T)
+        rot_deg = jnp.degrees(jnp.sqrt(jnp.sum(w_end * w_end)))
+        failed = grasp.failed | tilt.failed | insert.failed
+        return (sid_hand.converged_at, grasp.completion, tilt.completion, insert.completion, hand_rot, pos_mm, rot_deg,
+                failed, jnp.stack([grasp_pose[0], p1, p_end]))
+
+    est, true = pipeline(True, k_est), pipeline(False, k_true)
+    (hand_conv, g, h, i, hr, pm, rd, failed, pos) = [jnp.stack([a, b]) for a, b in zip(est, true)]
+    safe = lambda x: jnp.where(failed, 0.0, x)  # noqa: E731 - metrics of failed pipelines are not read
+    return Outputs(sid_arm.converged_at, hand_conv, g, h, i, safe(hr), safe(pm), safe(rd),
+                   ~failed & (i >= 1.0) & (pm <= static.insert_tol_mm) & (rd <= static.insert_rot_tol_deg), failed, pos)
+
+
+def build(cfg: PegConfig) -> Part:
+    """Layouts x trials x noise levels; float64 (the closed-chain hand)."""
+    with precision(True):
+        return _build(cfg)._replace(x64=True)
+
+
+def _build(cfg: PegConfig) -> Part:
+    arm, hand = ur5e(task_dim=6), hands.model_o(task_dim=6)
+    system = compose.mount(arm, hand, offset=cfg.mount_offset, name="ur5e+model_o")
+    unit = {"x": 0, "y": 1}[cfg.rotation.about]
+    fractions = np.arange(1, cfg.rotation.steps + 1) / cfg.rotation.steps
+    rotation = np.zeros((cfg.rotation.steps, 3))  # hand task [z, rx, ry]
+    rotation[:, 1 + unit] = cfg.rotation.angle * fractions
+    meta = grid_table({"layout": range(len(cfg.layouts)), "noise_level": range(len(cfg.pose_noise)),
+                       "trial": range(cfg.n_trials)})
+    meta.insert(2, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
+    meta.insert(3, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
+    n = len(meta)
+    lay = [cfg.layouts[i] for i in meta["layout"]]
+    q_arm = np.asarray([np.asarray(cfg.arm_home) + np.array([lo.yaw, 0, 0, 0, 0, 0]) for lo in lay])
+    q_hand = np.asarray((hand.sample_low + hand.sample_high) / 2)  # the grasp command
+    for i, lo in enumerate(cfg.layouts):  # eager, before any compute: every start must be inside the limits
+        q = np.asarray(cfg.arm_home) + np.array([lo.yaw, 0, 0, 0, 0, 0])
+        if np.any(q < np.asarray(arm.q_low)) or np.any(q > np.asarray(arm.q_high)):
+            raise ValueError(f"layouts[{i}]: start configuration {q} is outside the UR5e's joint limits")
+    full = lambda v: np.full((n,), v)  # noqa: E731
+    params = Params(
+        key=row_keys(cfg.seed, n), q_arm=q_arm, q_hand=np.repeat(q_hand[None], n, axis=0),
+        grasp=np.asarray([lo.grasp for lo in lay]), hole=np.asarray([lo.hole for lo in lay]), lift=full(cfg.lift),
+        pose_noise=meta["pose_noise"].to_numpy(float), rot_noise=meta["rot_noise"].to_numpy(float),
+        arm_m_a=full(cfg.arm.m_a), arm_eps=full(cfg.arm.eps), arm_eps_rel=full(cfg.arm.eps_rel),
+        hand_m_a=full(cfg.hand.m_a), hand_eps=full(cfg.hand.eps), hand_eps_rel=full(cfg.hand.eps_rel),
+        arm_ctrl=controller_rows(cfg.arm.controller, n), hand_ctrl=controller_rows(cfg.hand.controller, n),
+    )
+    static = Static(system, jnp.asarray(rotation), cfg.arm.iters, cfg.hand.iters, cfg.arm.controller.steps,
+                    cfg.hand.controller.steps, 1e3 * cfg.insert_tol, cfg.insert_rot_tol_deg)
+    meta.insert(0, "system", system.name)
+    return Part(system.name, static, params, meta)
+
+
+def tabulate(wide: pd.DataFrame, part: Part, cfg: PegConfig) -> pd.DataFrame:
+    """One row per (layout, trial, noise level, inverse Jacobian)."""
+    base = ["system", "layout", "noise_level", "pose_noise", "rot_noise", "trial", "arm_converged_at"]
+    frames = []
+    for i, inverse in enumerate(INVERSES):
+        df = wide[base].copy()
+        df.insert(1, "inverse", inverse)
+        for col in ("hand_converged_at", "grasp_completion", "hand_completion", "insert_completion", "hand_rot_deg",
+                    "arm_pos_mm", "arm_rot_deg", "inserted", "failed"):
+            df[col] = np.stack(wide[col].to_numpy())[:, i]
+        df["inserted"] = df["inserted"].astype(bool)
+        df["failed"] = df["failed"].astype(bool)
+        df["positions"] = list(np.stack(wide["positions"].to_numpy()).reshape(len(wide), 2, -1)[:, i])
+        frames.append(df)
+    return pd.concat(frames, ignore_index=True)
+
+
+TABLE = ("arm_pos_mm", "arm_rot_deg", "hand_rot_deg")
+
+
+def _ms(x) -> dict[str, float | None]:
+    x = np.asarray(x, float)
+    return {"mean": float(x.mean()) if len(x) else None, "sd": float(x.std()) if len(x) else None}
+
+
+def summarize(table: pd.DataFrame, cfg: PegConfig) -> dict[str, Any]:
+    """Table III per layout, noise level and inverse Jacobian (mean +- sd over trials; failed rows left out)."""
+    out: dict[str, Any] = {}
+    for (noise, inverse), g in table.groupby(["pose_noise", "inverse"], sort=False):
+        level = out.setdefault(f"{1e3 * noise:g}", {}).setdefault(str(inverse), {"layouts": {}})
+        for layout, h in g.groupby("layout", sort=True):
+            ok = h[~h["failed"]]
+            level["layouts"][str(int(layout))] = {m: _ms(ok[m]) for m in TABLE} | {
+                "inserted": float(h["inserted"].mean()), "failed_fraction": float(h["failed"].mean())}
+        ok = g[~g["failed"]]
+        conv_a, conv_h = g["arm_converged_at"].to_numpy(), g["hand_converged_at"].to_numpy()
+        level["all"] = {m: _ms(ok[m]) for m in TABLE} | {
+            "inserted": float(g["inserted"].mean()), "failed_fraction": float(g["failed"].mean()),
+            "arm_converged_at": _ms(conv_a[conv_a > 0]), "hand_converged_at": _ms(conv_h[conv_h > 0])}
+    return {
+        "layouts": [lo.model_dump() for lo in cfg.layouts],
+        "protocol": {"arm": cfg.arm.model_dump(), "hand": cfg.hand.model_dump(), "rotation": cfg.rotation.model_dump(),
+                     "lift": cfg.lift, "insert_tol": cfg.insert_tol, "insert_rot_tol_deg": cfg.insert_rot_tol_deg,
+                     "mount_offset": cfg.mount_offset},
+        "pose_noise_mm": out,
+    }
+
+
+def report(summary: dict) -> str:
+    """Table III: per noise level, inverse Jacobian and layout."""
+    def f(m):
+        return "-" if m["mean"] is None else f"{m['mean']:.2f} +- {m['sd']:.2f}"
+
+    lines = [f"{'noise mm':>8s} {'inverse':>10s} {'layout':>6s} {'UR5e pos mm':>14s} {'UR5e rot deg':>14s} "
+             f"{'Model O rot deg':>15s} {'inserted':>8s}"]
+    for noise, levels in summary["pose_noise_mm"].items():
+        for inverse, level in levels.items():
+            for name, m in list(level["layouts"].items()) + [("all", level["all"])]:
+                lines.append(f"{noise:>8s} {inverse:>10s} {name:>6s} {f(m['arm_pos_mm']):>14s} "
+                             f"{f(m['arm_rot_deg']):>14s} {f(m['hand_rot_deg']):>15s} {100 * m['inserted']:>7.0f}%")
+            a = level["all"]
+            lines.append(f"{'':>8s} {'':>10s} self-ID iterations: arm {f(a['arm_converged_at'])}, "
+                         f"hand {f(a['hand_converged_at'])}")
+    return "\n".join(lines)
+
+
+def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
+    """Table III as bars per layout (estimated vs analytical, noise-free rows), protocol in the title."""
+    from matplotlib.figure import Figure
+
+    clean = table[table["noise_level"] == 0]
+    fig = Figure(figsize=(11, 3.6), layout="constrained")
+    labels = {"arm_pos_mm": "UR5e position error [mm]", "arm_rot_deg": "UR5e rotation error [deg]",
+              "hand_rot_deg": "Model O rotation error [deg]"}
+    for k, col in enumerate(TABLE):
+        ax = fig.add_subplot(1, 3, k + 1)
+        for j, inverse in enumerate(INVERSES):
+            g = clean[(clean["inverse"] == inverse) & ~clean["failed"]].groupby("layout")[col]
+            mean, sd = g.mean(), g.std(ddof=0).fillna(0.0)
+            ax.bar(mean.index + (j - 0.5) * 0.38, mean.to_numpy(), 0.38, yerr=sd.to_numpy(), label=inverse,
+                   color="C0" if inverse == "estimated" else "C2")
+        ax.set_xlabel("layout")
+        ax.set_ylabel(labels[col])
+        ax.legend(fontsize=7)
+    pr = summary["protocol"]
+    fig.suptitle(f"peg-in-hole, UR5e + Model O; arm m_a {pr['arm']['m_a']:g} rad, eps {pr['arm']['eps']:g}, "
+                 f"step {1e3 * pr['arm']['controller']['max_step']:g} mm, tol {1e3 * pr['arm']['controller']['tol']:g}"
+                 f" mm; hand m_a {pr['hand']['m_a']:g} m, eps_rel {pr['hand']['eps_rel']:g}, tilt "
+                 f"{pr['rotation']['angle']:g} rad about {pr['rotation']['about']}; noise-free rows", fontsize=8)
+    return save_figure(fig, out_dir, "peg_in_hole")
+
+
+EXPERIMENT = Experiment(
+    name="peg_in_hole",
+    config=PegConfig,
+    build=build,
+    compute=compute,
+    summarize=summarize,
+    tabulate=tabulate,
+    plot=plot,
+    report=report,
+    description="a Model O on a UR5e, both self-identified: grasp waypoint, tilt, insertion (Table III)",
+)
