@@ -364,6 +364,9 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
                 ax.set_ylabel("y [mm]")
             ax.set_title(f"{system}: {inverse} inverse Jacobian", fontsize=9)
             tr = fig.add_subplot(2, 2, k + 3)
+            if "error_trace_mm" not in rows:  # a run directory written before the traces were recorded
+                tr.set_axis_off()
+                continue
             traces = [np.asarray(r["error_trace_mm"]).reshape(-1, 3)[: int(r["steps_used"]) + 1]
                       for _, r in rows.iterrows()]
             err = np.concatenate(traces) if traces else np.zeros((0, 3))
