@@ -3,7 +3,8 @@
 ``import selfid_jax as sj`` gives the functional API: the estimator
 (``sj.init``/``sj.update``/``sj.initial_guess``/``sj.refine``/``sj.record``,
 Eq. 6-14 and Sec. IV-D), Algorithm 1 (``sj.self_identify``, ``sj.selfid.run``),
-systems (``sj.ur5e``, ``sj.two_link``, ``sj.from_pose_fn``, ``sj.from_mjcf``),
+systems (``sj.ur5e``, ``sj.two_link``, ``sj.arm5``, ``sj.from_pose_fn``, ``sj.from_mjcf``,
+``sj.from_ets``), kinematic metrics (``sj.manipulability``), damped least-squares IK (``sj.dls``),
 the controller (``sj.follow`` with ``sj.ControllerParams``), the estimation
 baselines (``sj.baselines``) and the experiment contract (``sj.experiment``).
 README.md has runnable examples.
@@ -17,6 +18,7 @@ from selfid_jax._xla import apply_default_xla_flags as _apply_default_xla_flags
 _apply_default_xla_flags()
 
 from selfid_jax import baselines, control, estimator, experiment, geometry, magnitude, metrics, paths, systems  # noqa: E402
+from selfid_jax import dls, manipulability  # noqa: E402
 from selfid_jax import refine as refine_lib, selfid  # noqa: E402
 from selfid_jax.estimator import (  # noqa: E402
     EstimatorState,
@@ -32,7 +34,9 @@ from selfid_jax.estimator import (  # noqa: E402
 from selfid_jax.refine import refine  # noqa: E402
 from selfid_jax.selfid import SelfIDResult, self_identify, stateless  # noqa: E402
 from selfid_jax.control import ControllerParams, FollowResult, follow  # noqa: E402
-from selfid_jax.systems import System, from_mjcf, from_pose_fn, model_o, stewart_hand, two_link, ur5e  # noqa: E402
+from selfid_jax.systems import (  # noqa: E402
+    System, arm5, from_ets, from_mjcf, from_pose_fn, model_o, stewart_hand, two_link, ur5e,
+)
 
 __version__ = "0.1.0"
 
@@ -42,7 +46,11 @@ __all__ = [
     "FollowResult",
     "SelfIDResult",
     "System",
+    "arm5",
     "baselines",
+    "dls",
+    "from_ets",
+    "manipulability",
     "control",
     "follow",
     "from_mjcf",

@@ -45,6 +45,7 @@ Numbers = Union[float, list[float]]
 
 def _builtin():
     from selfid_jax.systems import hands
+    from selfid_jax.systems.ets import arm5
     from selfid_jax.systems.two_link import two_link
     from selfid_jax.systems.ur5e import ur5e
 
@@ -54,10 +55,11 @@ def _builtin():
         "ur5e_6d": lambda: ur5e(task_dim=6),
         "stewart_hand": lambda: hands.stewart_hand(),
         "model_o": lambda: hands.model_o(),
+        "arm5": lambda: arm5(),
     }
 
 
-BUILTIN_FACTORIES = ("two_link", "ur5e", "ur5e_6d", "stewart_hand", "model_o")
+BUILTIN_FACTORIES = ("two_link", "ur5e", "ur5e_6d", "stewart_hand", "model_o", "arm5")
 """Names a config may use for the shipped robots (2-link xy, UR5e xyz or 6-D, Stewart Hand 6-D, Model O xyz)."""
 
 
@@ -154,7 +156,7 @@ SystemSpec = Annotated[
     Discriminator(
         _kind,
         custom_error_type="system_spec",
-        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o') or a "
+        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o', 'arm5') or a "
         "mapping with an 'mjcf' or a 'pose_fn' key",
     ),
 ]
