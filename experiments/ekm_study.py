@@ -1,0 +1,132 @@
+"""E-KM (seed 002) against model-free self-ID on a 2-link star: the probe of issue 16.
+
+How much does a wrong kinematic model plus a Sparse Online GP buy over
+model-free self-ID, and when? For each start configuration and trial one
+self-ID stream (``selfid.run``: uniform actuations of magnitude ``m_a``) is
+fed to every method; each method's model after the first ``k`` samples
+follows a star (``control.follow`` for the inverse-Jacobian estimates, the
+Eq. 10-11 QP controller of :mod:`selfid_jax.qp_control` for the E-KM):
+
+* ``true``: the true inverse Jacobian at every step;
+* ``ours``: the paper's estimate (signed x magnitude, refined; Eq. 6-14),
+  fixed, from the start configuration;
+* ``nominal``: the wrong model alone (E-KM with an empty GP);
+* ``ekm fixed`` / ``ekm online`` for each formulation (``incremental``: the
+  seed's ``[q, da] -> ds - J_m da`` with mirrored samples; ``incremental,
+  plain``: without the mirror, as the seed; ``absolute``: FK residual on
+  ``q``): GP learned from the ``k`` self-ID samples only, or also from every
+  control step.
+
+Nominal errors (true arm: links 1 m / 1 m): ``hard`` = links 1.5 / 0.6 m,
+joint offsets +0.6 / -0.6 rad (the issue's probe); ``easy`` = links 1.2 / 0.8 m
+(+-20 %), offsets +0.1 / -0.1 rad. Protocol (the 2-link valid-region one):
+0.2 m star, 10 mm steps, 2 mm tolerance, 435 steps, ``m_a = 0.05`` rad.
+
+    python -m experiments.ekm_study [--configs 10] [--trials 2] [--case hard|easy|both]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+
+from selfid_jax import baselines, control, paths, selfid
+from selfid_jax.baselines import ekm
+from selfid_jax.systems.two_link import two_link
+
+CASES = {
+    "hard": dict(scale=(1.5, 0.6), offset=(0.6, -0.6)),
+    "easy": dict(scale=(1.2, 0.8), offset=(0.1, -0.1)),
+}
+ITERATIONS = (1, 2, 5, 10, 20)
+CONTROLLER = dict(max_step=0.01, tol=0.002)
+STEPS = 435
+CAPACITY = 64  # GP basis size of every E-KM (>= 2 x 20 mirrored self-ID samples: no pruning during self-ID)
+
+
+def _rollouts(arm, nominal, path, ctrl, iterations, capacity, steps):
+    """``(key, q0) -> {method: ((C,) completion, (C,) mean path error [m])}`` for one stream, one traced function."""
+    checkpoints = jnp.asarray(iterations) - 1
+    models = {"incremental": ekm.model(nominal), "absolute": ekm.model(nominal, formulation="absolute"),
+              "incremental, plain": ekm.model(nominal, symmetric=False)}
+
+    def one(key, q0):
+        sid = selfid.run(arm, key, q0, iters=max(iterations), eps=1e-9, stop_at_convergence=False)
+        truth = arm.true_inverse_jacobian(q0)
+        out = {}
+        true = control.follow(arm, control.true_inverse(arm), path, q0, ctrl, steps=steps)
+        out["true"] = _metrics(true, checkpoints.shape)
+        est = baselines.run_stream(baselines.ours(), None, sid.dtheta, sid.V, truth)[checkpoints]
+        out["ours"] = _metrics(jax.vmap(lambda J: control.follow(arm, control.fixed(J), path, q0, ctrl, steps=steps))(est))
+        empty = ekm.init(models["incremental"], q0, capacity=capacity)
+        nom, _ = ekm.follow(models["incremental"], empty, arm, path, ctrl, steps=steps)
+        out["nominal"] = _metrics(nom, checkpoints.shape)
+        for f, mdl in models.items():
+            def body(s, x):
+                s = ekm.update(mdl, s, *x)
+                return s, s
+
+            _, states = jax.lax.scan(body, ekm.init(mdl, q0, capacity=capacity), (sid.dtheta, sid.V))
+            at = jax.tree.map(lambda a: a[checkpoints], states)
+            for mode in ekm.MODES:
+                res = jax.vmap(lambda st: ekm.follow(mdl, st, arm, path, ctrl, mode=mode, steps=steps)[0])(at)
+                out[f"ekm {mode} ({f})"] = _metrics(res)
+        return out
+
+    return one
+
+
+def _metrics(res, shape=None):
+    pair = (res.completion, res.mean_error)
+    return pair if shape is None else tuple(jnp.broadcast_to(x, shape) for x in pair)
+
+
+def study(case: str = "hard", *, n_configs: int = 10, n_trials: int = 2, iterations=ITERATIONS, seed: int = 0,
+          capacity: int = CAPACITY, steps: int = STEPS) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Mean completion and mean path error [mm] per method and self-ID iteration count on the 2-link star.
+
+    Two ``(method x iterations)`` tables.
+
+    Runs in float64 (the SOGP needs it). ``case``: a key of :data:`CASES`.
+    """
+    with jax.enable_x64(True):
+        arm = two_link()
+        nominal = ekm.nominal_system(arm, **CASES[case])
+        path = paths.star(size=0.2, dim=2)
+        ctrl = control.ControllerParams(**CONTROLLER)
+        starts = control.feasible_starts(arm, path, jax.random.key(seed), n_configs, ctrl, steps=steps)
+        q0 = jnp.repeat(starts, n_trials, axis=0)
+        keys = jax.random.split(jax.random.key(seed + 1), q0.shape[0])
+        fn = jax.jit(jax.vmap(_rollouts(arm, nominal, path, ctrl, tuple(iterations), capacity, steps)))
+        out = jax.device_get(fn(keys, q0))
+    tables = []
+    for i, scale in ((0, 1.0), (1, 1e3)):
+        t = pd.DataFrame({m: scale * np.asarray(v[i]).mean(axis=0) for m, v in out.items()}, index=list(iterations)).T
+        t.index.name, t.columns.name = "method", "self-ID iterations"
+        tables.append(t.sort_index())
+    return tuple(tables)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--configs", type=int, default=10)
+    ap.add_argument("--trials", type=int, default=2)
+    ap.add_argument("--case", choices=["hard", "easy", "both"], default="both")
+    args = ap.parse_args(argv)
+    for case in (["hard", "easy"] if args.case == "both" else [args.case]):
+        t0 = time.perf_counter()
+        completion, error = study(case, n_configs=args.configs, n_trials=args.trials)
+        print(f"\n{case} nominal {CASES[case]}: {args.configs} configurations x {args.trials} trials "
+              f"({time.perf_counter() - t0:.0f} s)\nmean completion:")
+        print(completion.to_string(float_format=lambda x: f"{x:.2f}"))
+        print("mean distance to the path [mm]:")
+        print(error.to_string(float_format=lambda x: f"{x:.2f}"))
+
+
+if __name__ == "__main__":
+    main()
