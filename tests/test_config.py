@@ -77,7 +77,7 @@ def test_wrong_type_names_key_value_and_type(cfg_file):
     assert str(cfg_file) in msg and "key 'n_configs'" in msg
     assert "valid integer" in msg and "'ten'" in msg and "allowed: integer >= 1" in msg
     msg = _error(cfg_file, text=VALID.replace("[two_link, ur5e]", "[two_link, panda]"))
-    assert "key 'systems[1]'" in msg and "'two_link', 'ur5e', 'ur5e_6d', 'stewart_hand' or 'model_o'" in msg and "'panda'" in msg
+    assert "key 'systems[1]'" in msg and "'two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o' or 'arm5'" in msg and "'panda'" in msg
 
 
 def test_out_of_range_value(cfg_file):
