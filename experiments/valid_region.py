@@ -5,10 +5,11 @@ scaling matrix ``m_eps (n, m)`` is drawn elementwise from
 ``uniform(1, eps_limit)`` (below 1 when ``eps_limit < 1``) and held for the
 trial; the controller follows the star path with ``m_eps * Jinv_true(q)`` at
 every step. Start configurations are drawn away from singularities and kept
-only if the true inverse Jacobian completes the path from them
-(:func:`selfid_jax.control.feasible_starts`). The valid region is the
-contiguous range of ``eps_limit`` around 1 where the mean path completion
-reaches the threshold.
+only if the true inverse Jacobian completes the path from them (the test of
+:func:`selfid_jax.control.feasible_starts`, run as rows of the study itself
+with ``eps_limit = 1``, so that the study's one compiled program serves both:
+:func:`feasible_configs`). The valid region is the contiguous range of
+``eps_limit`` around 1 where the mean path completion reaches the threshold.
 
 From Python::
 
@@ -27,10 +28,10 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
-from selfid_jax import control, paths, plots
+from selfid_jax import control, paths
 from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig, unique
 from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax.sweep import compiled_batch, compute_rows, grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
 
@@ -146,6 +147,46 @@ def build(cfg: ValidRegionConfig) -> list[Part]:
     return parts
 
 
+PAD_LIMIT = 4096
+"""Padding rollouts a shared compilation may cost: at ~0.35 ms per UR5e rollout on 2 cores, about one compile."""
+
+
+def feasible_configs(static: Static, key, k: int, controller: ControllerConfig, *, batch: int,
+                     oversample: int = 4) -> np.ndarray:
+    """``k`` start configurations ``(k, n)`` from which the true inverse Jacobian completes the path.
+
+    The test of :func:`selfid_jax.control.feasible_starts` with its sampling
+    (``k * oversample`` draws of ``system.sample_configs(key, ...)``, the first
+    ``k`` that complete the path without failing are kept), but each rollout
+    is a row of the study (``eps_limit = 1``: ``m_eps = 1`` exactly, the true
+    inverse Jacobian) run by :func:`selfid_jax.sweep.compute_rows` at the
+    study's compiled ``batch``, so the sweep reuses this compilation instead of
+    compiling a second rollout program (1.3-1.8 s for the UR5e), unless
+    padding the candidates to ``batch`` would waste more than
+    :data:`PAD_LIMIT` rollouts. Eager; ``ValueError`` if fewer than ``k`` qualify.
+    """
+    system = static.system
+    total = k * oversample
+    if batch - total > PAD_LIMIT:  # padding would cost more than compiling a program of its own
+        batch = compiled_batch(total, total)
+    cand, valid = system.sample_configs(key, total, return_valid=True)  # jitted in selfid_jax.systems
+    rows = Params(
+        eps_limit=np.ones((total,)),
+        key=row_keys(0, total),  # unused at eps_limit = 1
+        q0=np.asarray(cand),
+        controller=controller_rows(controller, total),
+    )
+    out = compute_rows(EXPERIMENT.batched(static), rows, batch=batch)
+    ok = np.asarray(valid) & (out["completion"] >= 1.0) & ~out["failed"].astype(bool)
+    idx = np.flatnonzero(ok)
+    if idx.shape[0] < k:
+        raise ValueError(
+            f"only {int(idx.shape[0])} of {total} sampled configurations of {system.name!r} complete "
+            f"the path with the true inverse Jacobian; need {k} (raise oversample, shrink the path or the box)"
+        )
+    return np.asarray(cand)[idx[:k]]
+
+
 def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller: ControllerConfig, x64: bool) -> Part:
     """One system's rollouts: the grid rows, feasible start configurations and the traced parameters."""
     name, system = system_name(spec), build_system(spec)
@@ -158,22 +199,22 @@ def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller:
             "trial": range(cfg.n_trials),
         }
     )
-    ctrl = controller_rows(controller, len(meta))
-    configs = np.asarray(
-        control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
-                                control.ControllerParams(**controller.traced()), steps=controller.steps)
-    )
+    static = Static(system, path, controller.steps)
+    configs = feasible_configs(static, jax.random.key(cfg.seed), cfg.n_configs, controller,
+                               batch=compiled_batch(len(meta), cfg.chunk_size))
     params = Params(
         eps_limit=meta["eps_limit"].to_numpy(float),
         key=row_keys(cfg.seed, len(meta)),
         q0=configs[meta["config_id"].to_numpy()],
-        controller=ctrl,
+        controller=controller_rows(controller, len(meta)),
     )
-    return Part(name, Static(system, path, controller.steps), params, meta, x64)
+    return Part(name, static, params, meta, x64)
 
 
 def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:
     """Bounds per system with the protocol beside them (per system where a ``systems`` entry sets its own)."""
+    from selfid_jax import plots  # matplotlib only when needed (0.3 s of import)
+
     summary = plots.valid_region_summary(
         table,
         cfg.completion_threshold,
@@ -202,13 +243,20 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def plot(table: pd.DataFrame, summary: dict, out_dir):
+    """Fig. 2 from the saved table (:func:`selfid_jax.plots.valid_region_figure`)."""
+    from selfid_jax import plots
+
+    return plots.valid_region_figure(table, summary, out_dir)
+
+
 EXPERIMENT = Experiment(
     name="valid_region",
     config=ValidRegionConfig,
     build=build,
     compute=compute,
     summarize=summarize,
-    plot=plots.valid_region_figure,
+    plot=plot,
     report=report,
     description="valid inverse-Jacobian region: completion vs elementwise scaling of the true inverse (Fig. 2)",
 )

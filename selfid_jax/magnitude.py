@@ -13,11 +13,13 @@ samples ``k`` that may enter column ``j`` (``|V_kj| > v_tol``):
 * :func:`kalman`: a scalar Kalman filter per element over the ratios, in sample
   order (the "Kalman magnitude" the paper names as future work, Sec. VI).
 
-``mean`` reads the running sums and so covers every accepted sample; the other
-three read the ring buffer and so cover the last ``capacity`` samples only (all
-of them when ``capacity`` >= the number of iterations). An element without any
-usable ratio is 0. All are NaN-free on empty states and degenerate samples, and
-jit and vmap (no Python control flow on values).
+``mean`` reads the running sums and so covers every accepted sample (weighted
+by the estimator's forgetting factor); the other three read the ring buffer and
+so cover the last ``capacity`` samples only (all of them when ``capacity`` >=
+the number of iterations), unweighted; they raise ``ValueError`` for a state
+without a buffer (``capacity=0``). An element without any usable ratio is 0.
+All are NaN-free on empty states and degenerate samples, and jit and vmap (no
+Python control flow on values).
 """
 
 from __future__ import annotations
@@ -29,6 +31,14 @@ from selfid_jax import estimator
 from selfid_jax.estimator import EstimatorState
 
 VARIANTS = ("mean", "median", "weighted", "kalman")
+BUFFERED = ("median", "weighted", "kalman")
+"""The variants that read the ring buffer (need ``capacity > 0``)."""
+
+
+def _need_buffer(state: EstimatorState, name: str) -> None:
+    if estimator.sizes(state)[2] == 0:
+        raise ValueError(f"magnitude {name!r} reads the sample buffer, but the state has none (capacity=0): "
+                         "init the estimator with capacity > 0, or use magnitude 'mean'")
 
 
 def ratios(state: EstimatorState) -> tuple[jax.Array, jax.Array]:
@@ -59,6 +69,7 @@ def median(state: EstimatorState) -> jax.Array:
     or the mean of entries ``c/2 - 1`` and ``c/2`` (even ``c``), as ``np.median``.
     0 where ``c = 0``.
     """
+    _need_buffer(state, "median")
     r, valid = ratios(state)
     srt = jnp.sort(jnp.where(valid, r, jnp.inf), axis=0)  # (K, n, m)
     c = jnp.sum(valid, axis=0)  # (n, m) int
@@ -78,6 +89,7 @@ def weighted(state: EstimatorState) -> jax.Array:
     ``|V_kj|``, which makes the ratio large and unreliable, gets a small weight.
     0 where the weights sum to 0 (no valid sample, or ``dtheta_i = 0`` in all).
     """
+    _need_buffer(state, "weighted")
     theta, V, _ = estimator.samples(state)
     r, valid = ratios(state)
     _, w = jax.vmap(estimator.sample_contribution)(theta, V)  # (K, n, m); zero rows give zero weight
@@ -122,6 +134,7 @@ def kalman(state: EstimatorState, *, q=1e-2, r=1.0) -> jax.Array:
     are skipped, process noise included. 0 where no valid ratio. Larger ``q / r``
     tracks recent samples faster; ``q = 0`` averages with decreasing gains.
     """
+    _need_buffer(state, "kalman")
     r_k, valid = ratios(state)
     capacity = r_k.shape[0]
     # Ring buffer order: once full, the oldest sample sits at count % capacity.

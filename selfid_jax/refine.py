@@ -1,27 +1,40 @@
-"""Refinement of an inverse-Jacobian guess on buffered self-ID samples (Eq. 14).
+"""Refinement of an inverse-Jacobian guess on self-ID samples (Eq. 14).
 
-``argmin_J sum_k rho(dtheta_k - J V_k) + ridge * ||J - J0||_F^2`` starting from
-``J0``, where ``rho`` is the squared L2 norm (the paper) or a Huber loss.
+``argmin_J sum_k w_k rho(dtheta_k - J V_k) + ridge * ||J - J0||_F^2`` starting
+from ``J0``, where ``rho`` is the squared L2 norm (the paper) or a Huber loss
+and ``w_k = forget^(K - k)`` (all 1 without forgetting).
+
+The L2 loss depends on the samples only through the statistics the estimator
+keeps, ``S_vv = sum w_k V_k V_k^T`` and ``S_tv = sum w_k dtheta_k V_k^T``, so
+its refinements cover every accepted sample in constant memory; the Huber
+loss and SLSQP need the samples and read the estimator's ring buffer.
 
 Three methods:
 
 * ``"closed_form"``: the minimum-norm correction ``J0 + (Theta - J0 V) pinv(V)``
-  (``Theta (n, K)``, ``V (m, K)`` the samples as columns), or the exact ridge
-  solution ``J0 + R V^T (V V^T + ridge I)^-1`` for ``ridge > 0``.
-  Gradient descent on the L2 loss keeps its iterates in ``J0 + A V^T``, so this
-  is also the exact limit of gradient descent from ``J0``, with fewer samples
-  than task dimensions too.
+  (``Theta (n, K)``, ``V (m, K)`` the samples as columns), which, because
+  ``pinv(V) = V^T pinv(V V^T)``, is
+  ``J0 + (S_tv - J0 S_vv) pinv(S_vv) = S_tv pinv(S_vv) + J0 N`` with ``N`` the
+  orthogonal projector onto the null space of ``S_vv``
+  (:func:`statistics_closed_form`, :func:`psd_pinv`): ``S_tv S_vv^-1`` once the
+  samples span the task space, ``J0`` filling only the directions no sample
+  has excited yet. For ``ridge > 0`` the exact ridge solution
+  ``(S_tv + ridge J0) (S_vv + ridge I)^-1``. Gradient descent on the L2 loss
+  keeps its iterates in ``J0 + A V^T``, so this is also the exact limit of
+  gradient descent from ``J0``, with fewer samples than task dimensions too.
+  :func:`closed_form` is the same formula on explicit samples (the buffered
+  reference).
 * ``"optax"``: gradient descent with optax, preconditioned on the right by
   ``(V V^T + ridge I)^-1`` (or, for the sign projection, Nesterov descent with
   step ``1/L`` from the largest eigenvalue of ``V V^T``); supports the Huber
-  loss, the ridge term and a projection onto the signs of the signed inverse
-  Jacobian. Both keep iterates in ``J0 + A V^T`` and so reach the minimum-norm
-  solution; per-element scaled optimizers (Adam & co.) would leave that space
-  and are not used. See :func:`gradient_refine`.
-* ``"slsqp"``: scipy's SLSQP as in the paper; eager only, the reference for
-  tests and benchmarks.
+  loss (on the buffer), the ridge term and a projection onto the signs of the
+  signed inverse Jacobian. Both keep iterates in ``J0 + A V^T`` and so reach
+  the minimum-norm solution; per-element scaled optimizers (Adam & co.) would
+  leave that space and are not used. See :func:`gradient_refine`.
+* ``"slsqp"``: scipy's SLSQP as in the paper, on the buffered samples; eager
+  only, the reference for tests and benchmarks.
 
-With no buffered samples every method returns ``J0``.
+With no samples every method returns ``J0``.
 """
 
 from __future__ import annotations
@@ -75,6 +88,122 @@ def closed_form(theta, V, J0, *, ridge=0.0):
     return J0 + jnp.where(ridge > 0, ridge_corr, R @ jnp.linalg.pinv(V.T))
 
 
+def default_rcond(m: int, dtype) -> float:
+    """Default relative eigenvalue cutoff of :func:`psd_pinv`: ``10 m eps`` of ``dtype`` (6.7e-15 in float64, 3.6e-6 in float32 for m = 3)."""
+    return 10.0 * m * float(jnp.finfo(dtype).eps)
+
+
+def _small_matmul(A, B):
+    """``A (p, k) @ B (k, q)`` as unrolled multiply-adds over the small static ``k`` (see ``estimator.small_sum``)."""
+    out = A[:, 0:1] * B[0:1, :]
+    for k in range(1, A.shape[1]):
+        out = out + A[:, k : k + 1] * B[k : k + 1, :]
+    return out
+
+
+def psd_pinv(S, *, rcond=None):
+    """Pseudo-inverse ``P (m, m)`` of a symmetric positive semi-definite ``S (m, m)`` and the projector ``N (m, m)`` onto its null space.
+
+    Rank-revealing ``L D L^T`` factorisation without pivoting, unrolled over the
+    static ``m`` (vmapped, it is elementwise work across the batch, with no
+    LAPACK call per matrix). The Schur complements of a PSD matrix are PSD, so
+    a zero pivot means a zero row and column. At step ``k`` the candidate null
+    vector ``z_k = L^-T e_k`` (it needs only the columns of ``L`` before ``k``)
+    has Rayleigh quotient ``z_k^T S z_k / ||z_k||^2 = d_k / ||z_k||^2``; pivot
+    ``k`` counts as zero, and its column of ``L`` is dropped, when that is at
+    most ``rcond * tr(S)`` (default :func:`default_rcond`): the eigenvalue
+    cutoff of a pseudo-inverse, relative to the sum of the eigenvalues. (The
+    pivot itself is a poor test without pivoting: after a small earlier pivot
+    the round-off of a null pivot reached 2e-10 of its diagonal entry, while
+    the Rayleigh quotient of round-off null directions stayed below 6e-16 of
+    the trace and that of excited ones above 6e-8, over 3,200 random rank-1
+    and rank-2 streams in 3-D.) Then ``W = L^-T D^+ L^-1`` satisfies
+    ``S W S = S``, the ``z_k`` of the dropped pivots span the null space,
+    orthonormalised by Gram-Schmidt into ``N = sum q q^T``, and
+    ``P = (I - N) W (I - N)`` is the Moore-Penrose inverse. With no pivot
+    dropped, ``N = 0`` exactly and ``P = S^-1``.
+
+    Because ``S = V V^T`` squares the condition number of the samples ``V``, a
+    direction whose singular value is below about ``sqrt(rcond)`` times the
+    largest counts as not excited (float32, m = 3: ``2e-3``; the buffered
+    ``pinv(V)`` keeps down to ``10 K eps``). ``rcond`` may be traced. Jit,
+    vmap and differentiate (NaN-safe where a pivot is dropped).
+    """
+    m = S.shape[-1]
+    dtype = S.dtype
+    rcond = default_rcond(m, dtype) if rcond is None else rcond
+    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
+    scale = rcond * sum((S[k, k] for k in range(1, m)), S[0, 0])  # rcond * tr(S)
+    L = [[zero] * m for _ in range(m)]  # unit lower triangular, L[i][k] for i > k
+    Li = [[one if i == c else zero for c in range(m)] for i in range(m)]  # L^-1, row k = z_k^T
+    d, dinv, keep = [zero] * m, [zero] * m, [None] * m
+    for k in range(m):
+        for c in range(k):  # row k of L^-1 from row k of L (columns < k, final) and earlier rows
+            Li[k][c] = -sum((L[k][j] * Li[j][c] for j in range(c + 1, k)), L[k][c])
+        piv = S[k, k]
+        for j in range(k):
+            piv = piv - L[k][j] * L[k][j] * d[j]
+        norm2 = sum((Li[k][c] * Li[k][c] for c in range(k)), one)  # ||z_k||^2 >= 1
+        keep[k] = piv > scale * norm2
+        d[k] = jnp.where(keep[k], piv, 0.0)
+        dinv[k] = jnp.where(keep[k], 1.0 / jnp.where(keep[k], piv, 1.0), 0.0)
+        for i in range(k + 1, m):
+            a = S[i, k]
+            for j in range(k):
+                a = a - L[i][j] * L[k][j] * d[j]
+            L[i][k] = a * dinv[k]
+    # W = Li^T D^+ Li (symmetric)
+    W = [[zero] * m for _ in range(m)]
+    for i in range(m):
+        for j in range(i, m):
+            w = zero
+            for k in range(j, m):
+                w = w + Li[k][i] * dinv[k] * Li[k][j]
+            W[i][j] = W[j][i] = w
+    # null space: z_k (row k of Li) for dropped k, orthonormalised
+    qs = []
+    for k in range(m):
+        z = list(Li[k])
+        for q in qs:
+            dot = sum((q[i] * z[i] for i in range(1, m)), q[0] * z[0])
+            z = [z[i] - dot * q[i] for i in range(m)]
+        norm2 = sum((zi * zi for zi in z[1:]), z[0] * z[0])
+        drop = ~keep[k]
+        inv_norm = jnp.where(drop, jax.lax.rsqrt(jnp.where(drop & (norm2 > 0), norm2, 1.0)), 0.0)
+        qs.append([zi * inv_norm for zi in z])
+    N = jnp.stack([jnp.stack([sum((q[i] * q[j] for q in qs[1:]), qs[0][i] * qs[0][j]) for j in range(m)])
+                   for i in range(m)])
+    W = jnp.stack([jnp.stack(row) for row in W])
+    R = jnp.eye(m, dtype=dtype) - N
+    return _small_matmul(_small_matmul(R, W), R), N
+
+
+def statistics_closed_form(S_vv, S_tv, J0, *, ridge=0.0, rcond=None):
+    """Eq. 14 in closed form from the sufficient statistics: ``(n, m)``.
+
+    ``S_vv (m, m) = sum V V^T``, ``S_tv (n, m) = sum dtheta V^T`` (over every
+    sample, possibly forgetting-weighted), ``J0 (n, m)`` the initial guess.
+    ``ridge = 0``: the minimum-norm correction of ``J0``,
+    ``J0 + (S_tv - J0 S_vv) pinv(S_vv)``, computed as ``S_tv P + J0 N`` with
+    ``(P, N) = psd_pinv(S_vv)`` so that a large ``J0`` does not cancel against
+    itself (in float32, ``J0 - J0 S_vv S_vv^-1`` leaves errors of ``eps |J0|
+    cond(S_vv)``); equal to :func:`closed_form` on the samples themselves, and
+    to ``S_tv S_vv^-1`` whatever ``J0`` is once ``S_vv`` has full rank.
+    ``ridge > 0``: ``(S_tv + ridge J0) (S_vv + ridge I)^-1``, the exact ridge
+    solution. ``ridge`` and ``rcond`` may be traced; a literal 0 skips the
+    ridge branch.
+    """
+    P, N = psd_pinv(S_vv, rcond=rcond)
+    J = _small_matmul(S_tv, P) + _small_matmul(J0, N)
+    if isinstance(ridge, (int, float)) and ridge == 0:
+        return J
+    m = S_vv.shape[0]
+    ridge = jnp.asarray(ridge, S_vv.dtype)
+    safe = jnp.where(ridge > 0, ridge, 1.0)
+    ridged = jnp.linalg.solve(S_vv + safe * jnp.eye(m, dtype=S_vv.dtype), (S_tv + safe * J0).T).T
+    return jnp.where(ridge > 0, ridged, J)
+
+
 def _project(J, S, sign_project: bool):
     return jnp.where(S * J < 0, 0.0, J) if sign_project else J
 
@@ -93,7 +222,7 @@ def gradient_refine(
     sign_project: bool = False,
     precondition: bool | None = None,
 ):
-    """Gradient descent with optax on :func:`refine_objective` from ``J0 (n, m)``.
+    """Gradient descent with optax on :func:`refine_objective` from ``J0 (n, m)``, on samples ``theta (K, n)``, ``V (K, m)``.
 
     ``precondition=True`` (default without ``sign_project``): each gradient
     ``G (n, m)`` is right-multiplied by ``P = (V^T V + ridge I)^+`` restricted to
@@ -116,13 +245,51 @@ def gradient_refine(
     ``steps`` is a static iteration count; with ``tol`` the loop stops early once
     ``||grad||_F <= tol`` (a ``while_loop``: not reverse-differentiable; leave
     ``tol=None`` to differentiate through the refinement).
+    :func:`statistics_gradient_refine` is the same descent for the L2 loss
+    from ``S_vv = V^T V`` and ``S_tv = theta^T V``.
     """
+
+    def loss_fn(J):
+        return refine_objective(J, theta, V, J0, loss=loss, huber_delta=huber_delta, ridge=ridge)
+
+    return _descend(loss_fn, V.T @ V, J0, S, steps=steps, tol=tol, ridge=ridge, sign_project=sign_project,
+                    precondition=precondition)
+
+
+def statistics_gradient_refine(
+    S_vv,
+    S_tv,
+    J0,
+    S=None,
+    *,
+    steps: int = 100,
+    tol: float | None = None,
+    ridge=0.0,
+    sign_project: bool = False,
+    precondition: bool | None = None,
+):
+    """:func:`gradient_refine` for the L2 loss from the statistics ``S_vv (m, m)``, ``S_tv (n, m)``: ``(n, m)``.
+
+    The objective ``sum ||dtheta_k - J V_k||^2 + ridge ||J - J0||_F^2`` is
+    ``s_tt - 2 <J, S_tv> + <J S_vv, J> + ridge ||J - J0||_F^2``; its gradient
+    ``-2 (S_tv - J S_vv) + 2 ridge (J - J0)`` needs no samples, and the constant
+    ``s_tt`` does not enter the descent.
+    """
+
+    def loss_fn(J):
+        return -2.0 * jnp.sum(J * S_tv) + jnp.sum((J @ S_vv) * J) + ridge * jnp.sum((J - J0) ** 2)
+
+    return _descend(loss_fn, S_vv, J0, S, steps=steps, tol=tol, ridge=ridge, sign_project=sign_project,
+                    precondition=precondition)
+
+
+def _descend(loss_fn, gram, J0, S, *, steps, tol, ridge, sign_project, precondition):
+    """The descent of :func:`gradient_refine` on ``loss_fn(J)`` with the Gram matrix ``gram (m, m)`` of the samples."""
     if precondition is None:
         precondition = not sign_project
-    dtype = V.dtype
-    m = V.shape[1]
+    dtype = gram.dtype
+    m = gram.shape[0]
     ridge = jnp.asarray(ridge, dtype)
-    gram = V.T @ V
     eig, U = jnp.linalg.eigh(gram)
     lam_max = eig[-1]
     has_data = lam_max > 0
@@ -150,10 +317,6 @@ def gradient_refine(
 
     if S is None:
         S = jnp.ones_like(J0)
-
-    def loss_fn(J):
-        return refine_objective(J, theta, V, J0, loss=loss, huber_delta=huber_delta, ridge=ridge)
-
     grad_fn = jax.grad(loss_fn)
 
     def step(carry):
@@ -207,6 +370,11 @@ def slsqp_refine(theta, V, J0, *, numeric_grad: bool = False, ftol: float = 1e-1
     return res.x.reshape(shape)
 
 
+def needs_samples(method: str, loss: str = "l2") -> bool:
+    """Whether :func:`refine` with ``method`` and ``loss`` reads the ring buffer (Huber loss, SLSQP) rather than the statistics."""
+    return method == "slsqp" or loss == "huber"
+
+
 def refine(
     state: EstimatorState,
     J0,
@@ -220,11 +388,17 @@ def refine(
     sign_project: bool = False,
     precondition: bool | None = None,
     numeric_grad: bool = False,
+    rcond=None,
 ):
-    """Refined inverse Jacobian ``(n, m)`` from ``J0 (n, m)`` on the state's buffered samples (Eq. 14).
+    """Refined inverse Jacobian ``(n, m)`` from ``J0 (n, m)`` (Eq. 14).
 
+    ``"closed_form"`` and ``"optax"`` with the L2 loss read the statistics
+    ``S_vv``, ``S_tv`` and so cover every accepted sample (forgetting-weighted);
+    the Huber loss and ``"slsqp"`` read the ring buffer (the last ``capacity``
+    samples; ``ValueError`` for a state without one, ``capacity=0``).
     ``method``, ``steps``, ``loss``, ``sign_project``, ``precondition`` and ``numeric_grad`` are
-    static; ``huber_delta`` (actuator units, > 0) and ``ridge`` (>= 0) may be
+    static; ``huber_delta`` (actuator units, > 0), ``ridge`` (>= 0) and ``rcond``
+    (the relative pivot tolerance of :func:`psd_pinv`, closed form only) may be
     traced (concrete values out of range raise ``ValueError``).
     ``"closed_form"`` honours ``ridge`` only (always the L2 loss);
     ``"slsqp"`` is eager only and plain L2. See the module docstring.
@@ -233,33 +407,32 @@ def refine(
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     if loss not in LOSSES:
         raise ValueError(f"loss: expected one of {LOSSES}, got {loss!r}")
-    n, m, _ = sizes(state)
+    n, m, capacity = sizes(state)
     check_array("J0", J0, (n, m))
     check_scalar("huber_delta", huber_delta, gt=0.0)
     check_scalar("ridge", ridge, ge=0.0)
-    J0 = jnp.asarray(J0, state.dtheta_buf.dtype)
-    theta, V, _ = _masked(state)
+    if rcond is not None:
+        check_scalar("rcond", rcond, ge=0.0)
+    if capacity == 0 and needs_samples(method, loss):
+        raise ValueError(
+            f"method={method!r} with loss={loss!r} refines on buffered samples, but the state has none "
+            "(capacity=0): init the estimator with capacity > 0"
+        )
+    J0 = jnp.asarray(J0, state.S_tv.dtype)
     if method == "closed_form":
         if loss != "l2" or sign_project:
             raise ValueError("method='closed_form' supports only loss='l2' without sign_project; use method='optax'")
-        return closed_form(theta, V, J0, ridge=ridge)
+        return statistics_closed_form(state.S_vv, state.S_tv, J0, ridge=ridge, rcond=rcond)
     if method == "optax":
         S = signed_inverse_jacobian(state)
-        return gradient_refine(
-            theta,
-            V,
-            J0,
-            S,
-            steps=steps,
-            tol=tol,
-            loss=loss,
-            huber_delta=huber_delta,
-            ridge=ridge,
-            sign_project=sign_project,
-            precondition=precondition,
-        )
+        options = dict(steps=steps, tol=tol, ridge=ridge, sign_project=sign_project, precondition=precondition)
+        if loss == "l2":
+            return statistics_gradient_refine(state.S_vv, state.S_tv, J0, S, **options)
+        theta, V, _ = _masked(state)
+        return gradient_refine(theta, V, J0, S, loss=loss, huber_delta=huber_delta, **options)
     if any(is_traced(x) for x in jax.tree.leaves((state, J0))):
         raise ValueError("method='slsqp' runs scipy eagerly and cannot be used under jit/vmap/grad")
     if loss != "l2" or sign_project or np.any(np.asarray(ridge) != 0):
         raise ValueError("method='slsqp' is the plain-L2 reference: no huber loss, ridge or sign_project")
+    theta, V, _ = _masked(state)
     return jnp.asarray(slsqp_refine(theta, V, J0, numeric_grad=numeric_grad), J0.dtype)

@@ -17,7 +17,7 @@ import numpy as np
 
 from selfid_jax import estimator
 from selfid_jax._checks import check_positive_int, check_scalar, float_dtype
-from selfid_jax.refine import refine
+from selfid_jax.refine import needs_samples, refine
 
 Observe = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array]]
 """``observe(env, key, dtheta (n,)) -> (env, V (m,))``: apply an actuation, return the pose change."""
@@ -61,6 +61,7 @@ def self_identify(
     stop_at_convergence: bool = True,
     refine_options: dict | None = None,
     eps_rel=0.0,
+    forget=1.0,
 ) -> SelfIDResult:
     """Run Algorithm 1 for ``iters`` self-ID iterations under ``lax.scan``.
 
@@ -73,14 +74,19 @@ def self_identify(
         eps + eps_rel ||J_t||_F`` twice in a row (see :func:`estimator.record`).
       n_act, task_dim, iters: static sizes.
       env: initial environment state passed to ``observe`` (any pytree).
-      capacity: samples kept for refinement (default ``iters``: all of them).
+      capacity: samples kept in the estimator's ring buffer (default: none
+        when the refinement reads the statistics, as the closed form and the
+        L2 gradient refinement do, else ``iters``: all of them, for the Huber
+        loss).
       v_tol: ``|V_j|`` threshold of the magnitude mean (Eq. 11).
+      forget: exponential forgetting factor in ``(0, 1]`` of the estimator's
+        sums (:func:`selfid_jax.estimator.init`); 1 (default) never forgets.
       method: refinement method of :func:`selfid_jax.refine.refine` (``"closed_form"`` or ``"optax"``).
       stop_at_convergence: static; if True the estimator stops updating once
         converged (Algorithm 1 returns there), later iterations repeat that estimate.
       refine_options: static keyword options for :func:`~selfid_jax.refine.refine`.
 
-    ``m_a``, ``eps``, ``eps_rel`` and ``v_tol`` may be traced, so one compilation
+    ``m_a``, ``eps``, ``eps_rel``, ``v_tol`` and ``forget`` may be traced, so one compilation
     serves a sweep over them; vmap over ``key``, ``m_a``, ``eps`` or ``env``.
     Concrete values are checked first (``m_a`` finite, > 0, scalar or
     ``(n_act,)``; thresholds as :func:`estimator.check_thresholds`); traced bad
@@ -92,15 +98,17 @@ def self_identify(
     iters = check_positive_int("iters", iters)
     if method == "slsqp":
         raise ValueError("self_identify runs under lax.scan: method must be 'closed_form' or 'optax', not 'slsqp'")
-    capacity = iters if capacity is None else check_positive_int("capacity", capacity)
     options = dict(refine_options or {})
+    if capacity is None:
+        capacity = iters if needs_samples(method, options.get("loss", "l2")) else 0
+    capacity = estimator.check_nonnegative_int("capacity", capacity)
     dtype = float_dtype()
     if np.ndim(m_a) not in (0, 1) or (np.ndim(m_a) == 1 and np.shape(m_a) != (n_act,)):
         raise ValueError(f"m_a: expected a scalar or shape ({n_act},) (one per actuator), got shape {np.shape(m_a)}")
     check_scalar("m_a", m_a, gt=0.0)
     estimator.check_thresholds(eps, eps_rel)
     m_a = jnp.broadcast_to(jnp.asarray(m_a, dtype), (n_act,))
-    state0 = estimator.init(n_act, task_dim, capacity=capacity, v_tol=v_tol, dtype=dtype)
+    state0 = estimator.init(n_act, task_dim, capacity=capacity, v_tol=v_tol, forget=forget, dtype=dtype)
 
     def body(carry, k):
         state, env, done = carry
@@ -160,6 +168,7 @@ def run(
     stop_at_convergence: bool = True,
     refine_options: dict | None = None,
     eps_rel=0.0,
+    forget=1.0,
 ) -> SelfIDResult:
     """Algorithm 1 on a simulated :class:`~selfid_jax.systems.System` starting at ``q0 (n,)``.
 
@@ -169,8 +178,8 @@ def run(
     moves the actuators (``system.apply``: clipped to the actuator limits),
     reads the pose again, and feeds ``V = task_difference(after, before)`` to
     the estimator. ``result.env`` is the configuration where self-ID ended.
-    ``m_a``, ``eps``, ``eps_rel``, ``pose_noise``, ``rot_noise`` and ``q0`` may
-    be traced: vmap over them and over ``key``. Concrete noise levels must be
+    ``m_a``, ``eps``, ``eps_rel``, ``pose_noise``, ``rot_noise``, ``forget`` and
+    ``q0`` may be traced: vmap over them and over ``key``. Concrete noise levels must be
     finite and >= 0.
     """
     from selfid_jax._checks import check_array
@@ -202,4 +211,5 @@ def run(
         stop_at_convergence=stop_at_convergence,
         refine_options=refine_options,
         eps_rel=eps_rel,
+        forget=forget,
     )

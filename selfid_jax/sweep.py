@@ -27,6 +27,11 @@ Devices and chunk size
     resumed on two with the same results. Pick ``chunk_size`` a multiple of
     the device count to waste nothing.
 
+One compilation per program
+    Compiled programs are kept in memory, keyed by the lowered program's text
+    and the devices: a repeated sweep, and :func:`compute_rows` (a pre-run of
+    the same function, e.g. a feasibility check), reuse them.
+
 Several hosts (``jax.distributed``)
     Start the same command on every host (``selfid-jax sweep CONFIG
     --distributed`` or ``--coordinator host0:1234 --num-processes P
@@ -50,7 +55,9 @@ Several hosts (``jax.distributed``)
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import hashlib
 import math
 import threading
 import time
@@ -73,6 +80,8 @@ __all__ = [
     "SweepInterrupted",
     "SweepResumeError",
     "clear_stop",
+    "compiled_batch",
+    "compute_rows",
     "grid_table",
     "named_leaves",
     "params_hash",
@@ -267,7 +276,7 @@ def run_chunked(
     devices = list(devices) if devices is not None else jax.devices()
     n_dev = len(devices)
     rows_per_chunk = min(int(chunk_size), n_rows)
-    batch = -(-rows_per_chunk // n_dev) * n_dev
+    batch = compiled_batch(n_rows, chunk_size, n_dev)
     n_chunks = math.ceil(n_rows / rows_per_chunk)  # = manifest["n_chunks"]
     manifest = chunks.new_manifest(params, meta, rows_per_chunk, x64=bool(jax.config.jax_enable_x64))
 
@@ -290,7 +299,7 @@ def run_chunked(
         skipped = [i for i in range(n_chunks) if done[i]]
         if todo:
             _compute_chunks(
-                lambda leaves: compute_fn(jax.tree.unflatten(treedef, [leaves[k] for k in params])), params, meta,
+                _row_function(compute_fn, treedef, list(params)), params, meta,
                 todo, out_dir=out_dir, manifest=manifest, batch=batch, devices=devices, writer=writer,
                 static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped),
             )
@@ -309,36 +318,84 @@ def run_chunked(
     return result
 
 
+_EXECUTABLES: collections.OrderedDict[tuple, Any] = collections.OrderedDict()
+_MAX_EXECUTABLES = 8
+
+
+def _row_function(compute_fn, treedef, names):
+    """The function every chunk runs: named leaves ``{name: (B, ...)}`` -> ``compute_fn(params pytree)``."""
+    return lambda leaves: compute_fn(jax.tree.unflatten(treedef, [leaves[k] for k in names]))
+
+
+def _executables(rows_fn, params: Mapping[str, np.ndarray], devices):
+    """``size -> compiled`` for ``rows_fn`` sharded over ``devices``; compilations are shared process-wide."""
+    mesh = Mesh(np.asarray(devices), (BATCH_AXIS,))
+    in_sharding = NamedSharding(mesh, P(BATCH_AXIS))
+    out_sharding = NamedSharding(mesh, P())  # replicated: every process can read all rows
+    jitted = jax.jit(rows_fn, in_shardings=(in_sharding,), out_shardings=out_sharding)
+    local: dict[int, Any] = {}
+
+    def executable(size: int):
+        if size not in local:
+            lowered = jitted.lower({k: jax.ShapeDtypeStruct((size, *v.shape[1:]), v.dtype, sharding=in_sharding)
+                                    for k, v in params.items()})
+            key = (hashlib.sha256(lowered.as_text().encode()).hexdigest(), tuple(d.id for d in devices))
+            if key not in _EXECUTABLES:
+                _EXECUTABLES[key] = lowered.compile()
+                _check_outputs(named_leaves(_EXECUTABLES[key].out_info)[0], size)
+                while len(_EXECUTABLES) > _MAX_EXECUTABLES:
+                    _EXECUTABLES.popitem(last=False)
+            _EXECUTABLES.move_to_end(key)
+            local[size] = _EXECUTABLES[key]
+        return local[size]
+
+    def place(v: np.ndarray, idx: np.ndarray, size: int):
+        return jax.make_array_from_callback((size, *v.shape[1:]), in_sharding, lambda s, h=v[idx]: h[s])
+
+    return executable, place
+
+
+def compiled_batch(n_rows: int, chunk_size: int, n_devices: int | None = None) -> int:
+    """The batch :func:`run_chunked` compiles: ``min(chunk_size, n_rows)`` rounded up to a multiple of the devices."""
+    n_dev = jax.device_count() if n_devices is None else int(n_devices)
+    rows = min(int(chunk_size), int(n_rows))
+    return -(-rows // n_dev) * n_dev
+
+
+def compute_rows(compute_fn: Callable[[Any], Any], params: Any, *, batch: int,
+                 devices: Sequence[jax.Device] | None = None) -> dict[str, np.ndarray]:
+    """``compute_fn`` over ``N`` parameter rows in memory, ``batch`` at a time: ``{output name: (N, ...) numpy}``.
+
+    The program :func:`run_chunked` compiles for the same ``compute_fn``,
+    parameter structure and ``batch`` (:func:`compiled_batch`), and shares its
+    compilation. For work an experiment finishes before it fixes its rows.
+    """
+    params, treedef = named_leaves(params)
+    n_rows = int(np.shape(next(iter(params.values())))[0])
+    params = {k: _canonical(k, v, n_rows) for k, v in params.items()}
+    devices = list(devices) if devices is not None else jax.devices()
+    executable, place = _executables(_row_function(compute_fn, treedef, list(params)), params, devices)
+    outs = []
+    for start in range(0, n_rows, batch):
+        rows = np.arange(start, min(start + batch, n_rows))
+        idx = np.concatenate([rows, np.full(batch - len(rows), rows[-1])])
+        out = executable(batch)({k: place(v, idx, batch) for k, v in params.items()})
+        outs.append({k: np.asarray(v)[: len(rows)] for k, v in named_leaves(out)[0].items()})
+    return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+
+
 def _compute_chunks(
     compute_fn, params, meta, todo, *, out_dir, manifest, batch, devices, writer, static_shapes, progress, desc,
     n_done,
 ) -> None:
     n_chunks = manifest["n_chunks"]
-    mesh = Mesh(np.asarray(devices), (BATCH_AXIS,))
-    in_sharding = NamedSharding(mesh, P(BATCH_AXIS))
-    out_sharding = NamedSharding(mesh, P())  # replicated: every process can read all rows
-    jitted = jax.jit(compute_fn, in_shardings=(in_sharding,), out_shardings=out_sharding)
-    compiled: dict[int, Any] = {}
-
-    def executable(size: int):
-        if size not in compiled:
-            spec = {
-                k: jax.ShapeDtypeStruct((size, *v.shape[1:]), v.dtype, sharding=in_sharding)
-                for k, v in params.items()
-            }
-            exe = jitted.lower(spec).compile()
-            _check_outputs(named_leaves(exe.out_info)[0], size)
-            compiled[size] = exe
-        return compiled[size]
+    executable, place = _executables(compute_fn, params, devices)
 
     def dispatch(i: int):
         rows = np.arange(*chunks.chunk_rows(manifest, i))
         size = batch if static_shapes else -(-len(rows) // len(devices)) * len(devices)
         idx = np.concatenate([rows, np.full(size - len(rows), rows[-1])])
-        args = {
-            k: jax.make_array_from_callback((size, *v.shape[1:]), in_sharding, lambda s, h=v[idx]: h[s])
-            for k, v in params.items()
-        }
+        args = {k: place(v, idx, size) for k, v in params.items()}
         return rows, executable(size)(args)
 
     bar = tqdm(

@@ -117,8 +117,11 @@ def test_wrong_shapes_raise_value_error():
         sj.refine(state, jnp.zeros((2, 3)))
     with pytest.raises(ValueError, match="dtype"):
         E.update(state, jnp.zeros(3, bool), jnp.zeros(2))
-    with pytest.raises(ValueError, match="capacity"):
-        E.init(3, 2, capacity=0)
+    with pytest.raises(ValueError, match="capacity: expected a non-negative integer"):
+        E.init(3, 2, capacity=-1)
+    for forget in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="forget"):
+            E.init(3, 2, forget=forget)
     with pytest.raises(ValueError, match="method"):
         sj.refine(state, jnp.zeros((3, 2)), method="adam")
 

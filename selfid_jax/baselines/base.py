@@ -6,8 +6,10 @@ optax's ``GradientTransformation(init, update)``:
 * ``init(n, m, key=None, *, capacity=64, dtype=None) -> state``: a
   ``NamedTuple`` of fixed-shape arrays. ``key`` feeds the methods that draw
   random numbers (the others ignore it and accept ``None``; those raise on
-  ``None``); ``capacity`` is the sample-buffer size of the buffer-based methods
-  (the others ignore it); ``dtype`` defaults to JAX's default float.
+  ``None``); ``capacity`` is the sample-buffer size of the methods that need
+  samples (the others, the paper's estimator with its default options
+  included, keep constant-size statistics and ignore it); ``dtype`` defaults
+  to JAX's default float.
 * ``update(state, dtheta (n,), V (m,)) -> state``: one self-ID sample (actuator
   units, task units). A sample with a non-finite entry, or an all-zero
   ``dtheta`` or ``V``, is rejected: only the state's ``rejected`` counter
@@ -70,6 +72,8 @@ def assemble(
     read: Callable[[Any, jax.Array], jax.Array],
     ref: Callable[[Any], jax.Array],
     tally: Callable[[Any, jax.Array], Any] = _estimator.tally,
+    admit: Callable[[Any, jax.Array, jax.Array], jax.Array] | None = None,
+    zero_is_identity: bool = False,
 ) -> Estimator:
     """An :class:`Estimator` from one method's parts, with the checks and the sample screen shared by all.
 
@@ -85,6 +89,11 @@ def assemble(
         dtype the checks and casts use.
       tally: ``(state, ok) -> state`` counting the sample where the state keeps
         its counters (default: its own ``count``/``rejected`` fields).
+      admit, zero_is_identity: passed to
+        :func:`~selfid_jax.estimator.guarded_update`: an extra acceptance test
+        ``(state, dtheta, V) -> () bool`` (e.g. that sums stay finite), and
+        whether ``fold`` leaves the state unchanged for the all-zero sample
+        (which saves selecting between the old and the folded state).
     """
 
     def init_fn(n: int, m: int, key=None, *, capacity: int = 64, dtype=None):
@@ -95,7 +104,8 @@ def assemble(
 
     def update_fn(state, dtheta, V):
         r = ref(state)
-        return _estimator.guarded_update(fold, state, dtheta, V, shape=r.shape[-2:], dtype=r.dtype, tally=tally)
+        return _estimator.guarded_update(fold, state, dtheta, V, shape=r.shape[-2:], dtype=r.dtype, tally=tally,
+                                         admit=admit, zero_is_identity=zero_is_identity)
 
     def estimate_fn(state, truth):
         r = ref(state)

@@ -6,9 +6,13 @@ selectable. :func:`direct`: Eq. 14 from a fixed start (zero or random) instead
 of the signed x magnitude guess, the first baseline of Sec. V-A.
 
 Both fold samples with :func:`selfid_jax.estimator.accumulate` (sign weights,
-magnitude sums and a ring buffer of the last ``capacity`` samples); the state
-of ``ours`` is the :class:`~selfid_jax.estimator.EstimatorState` itself, and
-``direct`` adds its start ``J_init`` next to one. With ``>= m`` independent
+magnitude sums and the statistics ``S_vv``, ``S_tv`` of Eq. 14, in constant
+memory); the state of ``ours`` is the
+:class:`~selfid_jax.estimator.EstimatorState` itself, and ``direct`` adds its
+start ``J_init`` next to one. Their refinements (closed form, gradient steps,
+sign projection) read the statistics and so cover every accepted sample; only
+the buffered magnitude variants of ``ours`` (median, weighted, Kalman) keep a
+ring buffer of the last ``capacity`` samples. With ``>= m`` independent
 samples and a converged refinement, Eq. 14 has one solution whatever the start
 is, so ``ours`` equals ``direct``; they differ with fewer samples than task
 dimensions or under an early-stopped refinement (``refine_steps``).
@@ -42,12 +46,12 @@ INITS = ("zero", "random")
 class DirectState(NamedTuple):
     """State of :func:`direct`: the paper's estimator state (buffer and counters) and a fixed start."""
 
-    est: EstimatorState  # sample ring buffer (Eq. 14 data); its count/rejected count the samples
+    est: EstimatorState  # statistics of Eq. 14 (no buffer); its count/rejected count the samples
     J_init: jax.Array  # (n, m) float: start of the refinement, actuator per task unit (fixed for the stream)
 
 
 def refine_from(est: EstimatorState, J0, *, refine_method: str, refine_steps: int | None, sign_project: bool):
-    """Eq. 14 refinement ``(n, m)`` of the start ``J0 (n, m)`` on the samples buffered in ``est``.
+    """Eq. 14 refinement ``(n, m)`` of the start ``J0 (n, m)`` on the statistics of ``est`` (every accepted sample).
 
     ``refine_steps = k``: ``k`` steps of plain Nesterov gradient descent
     (``refine(method="optax", precondition=False)``); otherwise
@@ -77,6 +81,10 @@ def _tally_est(state: DirectState, ok) -> DirectState:
     return state._replace(est=estimator.tally(state.est, ok))
 
 
+def _fits_est(state: DirectState, dtheta, V):
+    return estimator.fits(state.est, dtheta, V)
+
+
 def ours(
     *,
     magnitude: Literal["mean", "median", "weighted", "kalman"] = "mean",
@@ -87,12 +95,16 @@ def ours(
     v_tol: ArrayLike = 1e-9,
     magnitude_q: ArrayLike = 1e-2,
     magnitude_r: ArrayLike = 1.0,
+    forget: ArrayLike = 1.0,
 ) -> Estimator:
     """The paper's estimator: ``refine(signed * magnitude)`` ``(n, m)`` (Eq. 6-14).
 
-    State: the :class:`~selfid_jax.estimator.EstimatorState` (``capacity``
-    samples buffered for Eq. 14). Estimate: ``J0 = signed * magnitude``
-    (Eq. 13), then refined on the buffer (Eq. 14).
+    State: the :class:`~selfid_jax.estimator.EstimatorState`, constant-size
+    (no sample buffer, whatever ``capacity`` ``init`` is given) unless the
+    magnitude variant reads samples (median, weighted, Kalman: the last
+    ``capacity`` samples). Estimate: ``J0 = signed * magnitude`` (Eq. 13), then
+    refined by least squares over every accepted sample (Eq. 14, from the
+    statistics ``S_vv``, ``S_tv``).
 
     Args:
       magnitude: the magnitude inverse Jacobian: ``"mean"`` (the paper's
@@ -113,6 +125,9 @@ def ours(
       magnitude_q, magnitude_r: dimensionless process and measurement noise
         variances of the ``"kalman"`` magnitude, relative to the running
         estimate (:func:`selfid_jax.magnitude.kalman`). May be traced.
+      forget: exponential forgetting factor in ``(0, 1]`` of the sums
+        (:func:`selfid_jax.estimator.init`); 1 (default) never forgets. May be
+        traced.
     """
     name = "ours"
     magnitude = check_choice(name, "magnitude", magnitude, _magnitude.VARIANTS)
@@ -124,11 +139,13 @@ def ours(
             f"{name}: sign_project: True needs a gradient refinement: refine_method='optax' or refine_steps, "
             f"got refine_method={refine_method!r}, refine_steps=None"
         )
-    for option, value in (("v_tol", v_tol), ("magnitude_q", magnitude_q), ("magnitude_r", magnitude_r)):
+    for option, value in (("v_tol", v_tol), ("magnitude_q", magnitude_q), ("magnitude_r", magnitude_r),
+                          ("forget", forget)):
         check_number(name, option, value)
+    buffered = magnitude in _magnitude.BUFFERED
 
     def init(n, m, key, capacity, dtype):
-        return estimator.init(n, m, capacity=capacity, v_tol=v_tol, dtype=dtype)
+        return estimator.init(n, m, capacity=capacity if buffered else 0, v_tol=v_tol, forget=forget, dtype=dtype)
 
     def read(state: EstimatorState, truth):
         if magnitude == "kalman":
@@ -142,7 +159,8 @@ def ours(
             state, J0, refine_method=refine_method, refine_steps=refine_steps, sign_project=sign_project
         )
 
-    return assemble(name, init=init, fold=estimator.accumulate, read=read, ref=lambda s: s.sign_pos)
+    return assemble(name, init=init, fold=estimator.accumulate, read=read, ref=lambda s: s.sign_pos,
+                    admit=estimator.fits, zero_is_identity=True)
 
 
 def direct(
@@ -152,11 +170,12 @@ def direct(
     refine_method: Literal["closed_form", "optax"] = "closed_form",
     refine_steps: int | None = None,
     v_tol: ArrayLike = 1e-9,
+    forget: ArrayLike = 1.0,
 ) -> Estimator:
     """Direct optimisation: ``argmin_J sum_k ||dtheta_k - J V_k||^2`` ``(n, m)`` from a fixed start (Eq. 14).
 
-    State: :class:`DirectState` (the estimator's sample buffer and the start
-    ``J_init (n, m)``). From zero, the closed form is the minimum-norm
+    State: :class:`DirectState` (the estimator's constant-size statistics, no
+    sample buffer, and the start ``J_init (n, m)``). From zero, the closed form is the minimum-norm
     least-squares solution ``Theta pinv(V)``: the same as :func:`ours` whenever
     Eq. 14 has one solution (``>= m`` independent samples).
 
@@ -167,14 +186,17 @@ def direct(
       init_scale: actuator per task unit; the random start's standard
         deviation. May be traced.
       refine_method, refine_steps: as for :func:`ours`.
-      v_tol: task units; the estimator buffer's Eq. 11 threshold. It does not
+      v_tol: task units; the estimator's Eq. 11 threshold. It does not
         change this method's estimate (kept for configurations that set it).
+      forget: exponential forgetting factor in ``(0, 1]`` of the statistics, as
+        for :func:`ours`. May be traced.
     """
     name = "direct"
     start = check_choice(name, "init", init, INITS)
     refine_method, refine_steps = _check_refine(name, refine_method, refine_steps)
     check_number(name, "init_scale", init_scale)
     check_number(name, "v_tol", v_tol)
+    check_number(name, "forget", forget)
 
     def init_fn(n, m, key, capacity, dtype):
         if start == "random":
@@ -183,11 +205,13 @@ def direct(
             J_init = jnp.asarray(init_scale, dtype) * jax.random.normal(key, (n, m), dtype)
         else:
             J_init = jnp.zeros((n, m), dtype)
-        return DirectState(est=estimator.init(n, m, capacity=capacity, v_tol=v_tol, dtype=dtype), J_init=J_init)
+        est = estimator.init(n, m, capacity=0, v_tol=v_tol, forget=forget, dtype=dtype)
+        return DirectState(est=est, J_init=J_init)
 
     def read(state: DirectState, truth):
         return refine_from(
             state.est, state.J_init, refine_method=refine_method, refine_steps=refine_steps, sign_project=False
         )
 
-    return assemble(name, init=init_fn, fold=_accumulate_est, read=read, ref=lambda s: s.J_init, tally=_tally_est)
+    return assemble(name, init=init_fn, fold=_accumulate_est, read=read, ref=lambda s: s.J_init, tally=_tally_est,
+                    admit=_fits_est, zero_is_identity=True)

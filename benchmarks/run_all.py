@@ -1,0 +1,187 @@
+"""Every benchmark at a small size, one table of ratios and goals, written as JSON.
+
+Runs each benchmark script in a fresh Python process (so each import and
+compile is cold and none shares memory with another) with ``--json``, then
+prints one table: the measured value, the issue-14 goal and whether this run
+met it, and writes everything (the table and each script's full record) to
+``--out``. Timings are medians of a few repetitions but still move with the
+load of the machine; ratios measured in one process (``x RLS``, ``x SLSQP``)
+are the robust numbers. About 4-5 minutes on 2 CPU cores.
+
+    python benchmarks/run_all.py [--out benchmarks/results.json] [--markdown] [--skip ablation ...]
+
+On a machine with a GPU the same command measures there (the scripts use
+JAX's default device); ``--gpu-scale`` raises the sizes to 100,000 rollouts
+and 1,000,000 estimators.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+BENCHMARKS = ("estimator", "estimator_2dev", "rollouts", "refine", "valid_region", "ablation")
+
+
+def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 900) -> tuple[dict, float]:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out.json"
+        cmd = [sys.executable, str(HERE / f"{name}.py"), *args, "--json", str(out)]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, **(env or {})}, capture_output=True, text=True,
+                              timeout=timeout)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+        print(proc.stdout.rstrip(), flush=True)
+        return json.loads(out.read_text()), wall
+
+
+def collect(skip=(), gpu_scale=False) -> dict:
+    batch_est, batch_roll = (1_000_000, 100_000) if gpu_scale else (10_000, 10_000)
+    plans = {
+        "estimator": ("estimator", ["--batch", str(batch_est), "--steps", "50", "--reps", "3", "--rounds", "2"], None),
+        "estimator_2dev": ("estimator", ["--batch", str(batch_est), "--steps", "50", "--reps", "3", "--rounds", "2",
+                                         "--shard"],
+                           {"XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") +
+                                          " --xla_force_host_platform_device_count=2").strip()}),
+        "rollouts": ("rollouts", ["--batches", str(batch_roll), "--loops", "20"], None),
+        "refine": ("refine", ["--batch", "2000", "--slsqp", "20"], None),
+        "valid_region": ("valid_region", ["--full-chunks", "1"], None),
+        "ablation": ("ablation", ["--full-chunks", "1"], None),
+    }
+    if gpu_scale:
+        plans.pop("estimator_2dev")
+    res = {}
+    for key, (script, args, env) in plans.items():
+        if key in skip:
+            continue
+        print(f"== {key}", flush=True)
+        data, wall = _script(script, args, env)
+        res[key] = {"result": data, "script_wall_s": wall}
+    return res
+
+
+def _row(rows, what, value, unit, goal, met, note=""):
+    rows.append({"benchmark": what, "value": value, "unit": unit, "goal": goal, "met": met, "note": note})
+
+
+def table(res: dict) -> list[dict]:
+    rows: list[dict] = []
+    for key in ("estimator", "estimator_2dev"):
+        if key not in res:
+            continue
+        r = res[key]["result"]
+        ours, rls = r["rows"]["ours"], r["rows"]["rls"]
+        where = f"{r['batch']} estimators, n=6, m=3, float32, {r['device']}"
+        _row(rows, f"self-ID step ({where})", ours["steps_per_s"], "steps/s", ">= 1000", ours["steps_per_s"] >= 1000)
+        _row(rows, "  ... against RLS in the same run", ours["ratio_to_rls"], "x RLS", ">= 0.5",
+             ours["ratio_to_rls"] >= 0.5, f"RLS {rls['steps_per_s']:.0f} steps/s")
+        _row(rows, "  ... error vs float64 least squares", ours["rel_err_vs_float64_lstsq"], "relative", "<= 1e-4",
+             ours["rel_err_vs_float64_lstsq"] <= 1e-4)
+        before = r["rows"].get("ours, 64-sample buffer (before)")
+        if before:
+            _row(rows, "  ... against the 64-sample buffer (before)", ours["steps_per_s"] / before["steps_per_s"],
+                 "x before", "", None, f"before {before['steps_per_s']:.1f} steps/s = {before['ratio_to_rls']:.3f}x RLS")
+    if "rollouts" in res:
+        r = res["rollouts"]["result"]
+        jax_rows = {k: v for k, v in r.items() if k.startswith("JAX")}
+        name, best = max(jax_rows.items(), key=lambda kv: int(kv[0].split()[-1]))
+        _row(rows, f"UR5e 200-step rollout, {name}", best["ms_per_rollout"], "ms/rollout", "<= 0.1",
+             best["ms_per_rollout"] <= 0.1, f"{best['vs_numpy']:.0f}x the numpy loop, compile {best['compile_s']:.1f} s")
+    if "refine" in res:
+        r = res["refine"]["result"]["rows"]
+        _row(rows, "closed-form refinement vs SLSQP (analytic grad)", r["closed_form"]["vs_slsqp_analytic"], "x SLSQP",
+             ">= 100", r["closed_form"]["vs_slsqp_analytic"] >= 100)
+        _row(rows, "optax refinement vs SLSQP (analytic grad)", r["optax"]["vs_slsqp_analytic"], "x SLSQP", ">= 10",
+             r["optax"]["vs_slsqp_analytic"] >= 10)
+    if "valid_region" in res:
+        r = res["valid_region"]["result"]
+        paper, full = r.get("valid_region_ur5e.yaml"), r.get("valid_region_ur5e_full.yaml")
+        if paper:
+            _row(rows, f"UR5e valid-region map, paper protocol ({paper['cold']['rows']} rollouts), cold",
+                 paper["cold"]["wall_s"], "s whole process", "<= 8", paper["cold"]["wall_s"] <= 8,
+                 f"warm {paper['warm']['wall_s']:.1f} s; import {paper['cold']['import_s']:.1f}, build "
+                 f"{paper['cold']['build_s']:.1f}, run {paper['cold']['run_s']:.1f}")
+        if full:
+            _row(rows, f"UR5e valid-region map, full ({full['rows_full']} rollouts), peak RSS",
+                 full["cold"]["peak_rss_mib"], "MiB", "< 4096", full["cold"]["peak_rss_mib"] < 4096,
+                 f"measured on {full['cold']['rows']} rows; projected run {full['projected_full_run_s']:.0f} s")
+    if "ablation" in res:
+        r = res["ablation"]["result"]
+        if "cold" in r:
+            _row(rows, "ablation, paper protocol (configs/ablation_ur5e.yaml), cold", r["cold"]["wall_s"],
+                 "s whole process", "<= 30", r["cold"]["wall_s"] <= 30,
+                 f"warm {r['warm']['wall_s']:.1f} s; peak RSS {r['cold']['peak_rss_mib']:.0f} MiB")
+        if "full" in r:
+            f = r["full"]
+            _row(rows, "ablation, full (configs/ablation_ur5e_full.yaml), peak RSS", f["peak_rss_mib"], "MiB",
+                 "< 4096", f["peak_rss_mib"] < 4096,
+                 f"{f['streams']} of {f['streams_full']} streams; projected run {f['projected_full_run_s']:.0f} s")
+        if "updates_per_s" in r:
+            slow = min(r["updates_per_s"].items(), key=lambda kv: kv[1]["rate"])
+            ours = r["updates_per_s"].get("ours", {"rate": float("nan")})
+            _row(rows, "ablation estimator updates/s: ours", ours["rate"], "updates/s", "", None,
+                 f"slowest: {slow[0]} {slow[1]['rate']:.0f}/s ({slow[1]['vs_ours']:.2f}x ours)")
+    return rows
+
+
+def _fmt(v):
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.3e}"
+    return str(v)
+
+
+def render(rows: list[dict], markdown: bool = False) -> str:
+    status = {True: "met", False: "NOT met", None: ""}
+    if markdown:
+        lines = ["| benchmark | value | unit | goal | status | note |", "|---|---|---|---|---|---|"]
+        lines += [f"| {r['benchmark']} | {_fmt(r['value'])} | {r['unit']} | {r['goal']} | {status[r['met']]} | "
+                  f"{r['note']} |" for r in rows]
+        return "\n".join(lines)
+    lines = [f"{'benchmark':64s} {'value':>10s} {'unit':16s} {'goal':9s} {'status':8s} note"]
+    lines += [f"{r['benchmark'][:64]:64s} {_fmt(r['value']):>10s} {r['unit']:16s} {r['goal']:9s} "
+              f"{status[r['met']]:8s} {r['note']}" for r in rows]
+    return "\n".join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=str(HERE / "results.json"))
+    ap.add_argument("--skip", nargs="*", default=[], choices=BENCHMARKS)
+    ap.add_argument("--markdown", action="store_true", help="also print the table as Markdown (the README table)")
+    ap.add_argument("--gpu-scale", action="store_true", help="100,000 rollouts and 1,000,000 estimators")
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    res = collect(set(args.skip), args.gpu_scale)
+    rows = table(res)
+    print()
+    print(render(rows))
+    if args.markdown:
+        print()
+        print(render(rows, markdown=True))
+    total = time.perf_counter() - t0
+    print(f"\nall benchmarks: {total:.0f} s")
+    import jax
+
+    record = {
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+                    "python": platform.python_version(), "jax": jax.__version__,
+                    "device": str(jax.devices()[0]), "load_avg_at_end": os.getloadavg()},
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"), "total_s": total, "table": rows, "benchmarks": res,
+    }
+    Path(args.out).write_text(json.dumps(record, indent=2, default=str))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
