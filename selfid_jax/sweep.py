@@ -28,14 +28,12 @@ Devices and chunk size
     the device count to waste nothing.
 
 One compilation per program
-    Compiled programs are kept in memory, keyed by the lowered program's text
-    and the devices: a repeated sweep, and :func:`compute_rows` (a pre-run of
-    the same function, e.g. a feasibility check), reuse them.
+    Compiled programs are kept in memory, keyed by the lowered program's text and the devices (and
+    its host callbacks, which the text does not show): a repeated sweep and :func:`compute_rows` reuse them.
 
 Several hosts (``jax.distributed``)
-    Start the same command on every host (``selfid-jax sweep CONFIG
-    --distributed`` or ``--coordinator host0:1234 --num-processes P
-    --process-id i``), which calls
+    Start the same command on every host (``selfid-jax sweep CONFIG --distributed`` or ``--coordinator
+    host0:1234 --num-processes P --process-id i``), which calls
     ``jax.distributed.initialize(coordinator_address="host0:1234",
     num_processes=P, process_id=i)`` before any JAX computation (on GPU
     clusters with SLURM/Open MPI the arguments may be omitted). Then
@@ -339,7 +337,9 @@ def _executables(rows_fn, params: Mapping[str, np.ndarray], devices):
         if size not in local:
             lowered = jitted.lower({k: jax.ShapeDtypeStruct((size, *v.shape[1:]), v.dtype, sharding=in_sharding)
                                     for k, v in params.items()})
-            key = (hashlib.sha256(lowered.as_text().encode()).hexdigest(), tuple(d.id for d in devices))
+            cbs = getattr(getattr(lowered, "_lowering", None), "compile_args", {}).get("host_callbacks") or ()
+            key = (hashlib.sha256(lowered.as_text().encode()).hexdigest(), tuple(d.id for d in devices),
+                   tuple(map(id, cbs)))  # host callbacks (native MuJoCo) are not in the text: never shared
             if key not in _EXECUTABLES:
                 _EXECUTABLES[key] = lowered.compile()
                 _check_outputs(named_leaves(_EXECUTABLES[key].out_info)[0], size)

@@ -71,3 +71,26 @@ def test_ablation_program_has_two_rollout_loops_whatever_the_methods(monkeypatch
         out = jax.eval_shape(exp.batched(part.static), part.params)
         assert sorted(calls) == ["Fixed", "JacobianInverse"], (k, calls)
         assert out.completion.shape == (1, k, 2) and out.converged_at.shape == (1, k)
+
+
+class _Scale:
+    """A host function whose behaviour lives in its state, as a native-MuJoCo callback's model does."""
+
+    def __init__(self, factor):
+        self.factor = factor
+
+    def __call__(self, x):
+        return np.asarray(x) * self.factor
+
+
+def test_programs_with_different_host_callbacks_are_not_shared():
+    """Two programs that lower to the same text but call different host functions keep their own compilation."""
+    def rows(cb):
+        return lambda p: {"y": jax.pure_callback(cb, jax.ShapeDtypeStruct(p["x"].shape, p["x"].dtype), p["x"],
+                                                 vmap_method="sequential")}
+
+    params = {"x": np.arange(4.0)}
+    twice = sweep.compute_rows(rows(_Scale(2.0)), params, batch=4)
+    thrice = sweep.compute_rows(rows(_Scale(3.0)), params, batch=4)
+    np.testing.assert_array_equal(twice["y"], 2 * params["x"])
+    np.testing.assert_array_equal(thrice["y"], 3 * params["x"])
