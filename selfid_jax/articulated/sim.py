@@ -1,0 +1,331 @@
+"""Closed-loop rollout: tactile controller -> gripper twist -> arm inverse Jacobian -> mocap -> MuJoCo or MJX.
+
+One rollout (:func:`rollout`) is a ``lax.scan`` over control steps (pure JAX,
+jit + vmap). Each step: read the gripper pose and the markers (:mod:`.tactile`),
+run the controller (Tac-Man, TacMan-Turbo literal, or TacMan-Turbo keeping
+``u0``; chosen by a traced index), map the gripper twist (gripper frame) to
+the world frame and through the arm's inverse Jacobian (the true one at the
+current joints, or a fixed self-identified estimate), scale by ``alpha``
+(Eq. 25-26) on the arm's joint-velocity limits, integrate the joints, and
+move the mocap along the arm's forward kinematics over ``substeps`` physics
+steps. The arm is kinematic (its joints follow the command exactly); the
+gripper is a dynamic body welded to the mocap.
+
+Backends (static): ``"native"`` steps ``mujoco.MjModel`` on the host through
+``jax.pure_callback`` (a vmapped batch is one callback that loops over it,
+skipping finished rollouts); ``"mjx"`` steps ``mjx.Model`` with per-object
+fields set by :func:`~.scenes.apply_mjx` (compiled; worth it on a GPU).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from selfid_jax.articulated import scenes, tacman, tactile
+
+__all__ = ["CONTROLLERS", "RolloutParams", "RolloutResult", "Static", "rollout", "make_static"]
+
+CONTROLLERS = ("tacman", "turbo", "turbo_u0")  # traced index 0, 1, 2
+ARMS = ("true", "selfid")
+
+
+class Static(NamedTuple):
+    """Closed over by :func:`rollout` (hashable pieces and arrays; no config objects)."""
+
+    backend: str  # "native" | "mjx"
+    layout: scenes.Layout
+    mj_model: Any  # mujoco.MjModel template (native); also the source of the MJX model
+    mjx_model: Any  # mjx.Model template (mjx backend) or None
+    pads: tactile.Pads
+    arm: Any  # selfid_jax System (6-D task), POM = gripper frame
+    q0: np.ndarray  # (n,) arm start joints [rad]
+    steps: int  # control steps
+    substeps: int  # physics steps per control step
+    stride: int  # trace subsampling
+    level: float  # success progress
+    scene_id: int  # crc32 of the template and settings (see RolloutResult.scene_id)
+
+
+class RolloutParams(NamedTuple):
+    """Traced, one row (vmap adds a leading axis)."""
+
+    obj: scenes.ObjectParams
+    controller: jax.Array  # () int32 index into CONTROLLERS
+    use_estimate: jax.Array  # () bool: fixed self-ID estimate instead of the true inverse Jacobian
+    jinv_est: jax.Array  # (n, 6) self-identified inverse Jacobian
+    key: jax.Array  # (2,) uint32 key data (marker noise)
+    speed: jax.Array  # () |u0| [m/s] along the gripper's x axis
+    marker_noise: jax.Array  # () [m]
+    contact_eps: jax.Array  # () Eq. 2 threshold [m]
+    qdot_max: jax.Array  # (n,) joint-velocity limits [rad/s]
+    beta: jax.Array  # () Eq. 25 safety factor
+    dev_high: jax.Array  # () Tac-Man exploration -> recovery [m]
+    dev_low: jax.Array  # () Tac-Man recovery -> exploration [m]
+    rec_gain: jax.Array  # () Tac-Man recovery gain
+    slip: jax.Array  # () in-hand translation declared a slip [m]
+    slip_rot: jax.Array  # () in-hand rotation declared a slip [rad]
+
+
+class RolloutResult(NamedTuple):
+    success: jax.Array  # () bool
+    failed: jax.Array  # () bool: slipped or non-finite
+    slipped: jax.Array  # () bool
+    nonfinite: jax.Array  # () bool: the physics state went non-finite (rollout frozen there)
+    steps_used: jax.Array  # () int32 control steps until success (or all)
+    progress: jax.Array  # () final normalised progress
+    efficiency: jax.Array  # () % of the path per control step (100 min(progress, level) / level / steps_used)
+    jerk: jax.Array  # () mean ||d^3 q / dt^3|| over the steps used [rad/s^3]
+    dev_mean: jax.Array  # () mean contact deviation over the steps used [m]
+    dev_max: jax.Array  # () max contact deviation [m]
+    invalid_steps: jax.Array  # () int32 steps whose contact set failed Eq. 11-12
+    alpha_min: jax.Array  # () smallest alpha applied
+    handle_trace: jax.Array  # (S, 3) handle positions in G1 frame [m], every stride-th step
+    gripper_trace: jax.Array  # (S, 3) gripper positions in G1 frame [m]
+    progress_trace: jax.Array  # (S,) progress
+    dev_trace: jax.Array  # (S,) contact deviation [m]
+    scene_id: jax.Array  # () int32 constant identifying the scene template: the host callback is invisible in the
+    # lowered program text, and selfid_jax.sweep shares compiled programs by that text, so without it two kinds
+    # with equal shapes (prismatic, revolute) would share one callback
+
+
+def make_static(backend, layout, mj_model, pads, arm, q0, *, steps, substeps, stride) -> Static:
+    if backend not in ("native", "mjx"):
+        raise ValueError(f"backend must be 'native' or 'mjx', got {backend!r}")
+    mjx_model = None
+    if backend == "mjx":
+        from mujoco import mjx
+
+        mjx_model = mjx.put_model(mj_model, impl="jax")
+    import zlib
+
+    m = mj_model
+    blob = repr((backend, layout, substeps)).encode() + b"".join(
+        np.ascontiguousarray(a, np.float64).tobytes() for a in (m.opt.timestep, m.body_pos, m.jnt_stiffness,
+                                                               m.dof_damping, m.eq_solref, m.body_mass))
+    return Static(backend, layout, mj_model, mjx_model, pads, arm, np.asarray(q0, float), int(steps), int(substeps),
+                  int(stride), scenes.success_level(layout.kind), int(zlib.crc32(blob) & 0x7FFFFFFF))
+
+
+# ----------------------------------------------------------------------------- physics backends
+
+
+def _sensors(xpos_g, xquat_g, xpos_h, xquat_h):
+    return jnp.concatenate([xpos_g, xquat_g, xpos_h, xquat_h])
+
+
+_NATIVE: dict = {}
+
+
+def _native_host(static: Static):
+    """Host stepping function for ``static`` (one MjModel copy and MjData per static)."""
+    import copy
+
+    import mujoco
+
+    key = id(static.mj_model), static.layout
+    if key in _NATIVE:
+        return _NATIVE[key]
+    m = copy.deepcopy(static.mj_model)
+    d = mujoco.MjData(m)
+    lay, K = static.layout, static.substeps
+
+    def host(qpos, qvel, warm, mpos, mquat, active, *obj):
+        lead = np.broadcast_shapes(qpos.shape[:-1], active.shape, *(o.shape[: o.ndim - f] for o, f in
+                                                                    zip(obj, _OBJ_NDIM)))
+        B = int(np.prod(lead))
+        qpos = np.broadcast_to(qpos, lead + qpos.shape[-1:]).reshape(B, -1).astype(np.float64).copy()
+        qvel = np.broadcast_to(qvel, lead + qvel.shape[-1:]).reshape(B, -1).astype(np.float64).copy()
+        warm = np.broadcast_to(warm, lead + warm.shape[-1:]).reshape(B, -1).astype(np.float64).copy()
+        mpos = np.broadcast_to(mpos, lead + mpos.shape[-2:]).reshape(B, K, 3)
+        mquat = np.broadcast_to(mquat, lead + mquat.shape[-2:]).reshape(B, K, 4)
+        active = np.broadcast_to(active, lead).reshape(B)
+        obj = [np.broadcast_to(o, lead + o.shape[o.ndim - f:]).reshape((B,) + o.shape[o.ndim - f:])
+               for o, f in zip(obj, _OBJ_NDIM)]
+        sens = np.zeros((B, 14))
+        for b in range(B):
+            scenes.apply_native(m, lay, scenes.ObjectParams(*(o[b] for o in obj)))
+            d.qpos[:], d.qvel[:], d.qacc_warmstart[:] = qpos[b], qvel[b], warm[b]
+            if active[b]:
+                for k in range(K):
+                    d.mocap_pos[0], d.mocap_quat[0] = mpos[b, k], mquat[b, k]
+                    mujoco.mj_step(m, d)
+            mujoco.mj_kinematics(m, d)
+            qpos[b], qvel[b], warm[b] = d.qpos, d.qvel, d.qacc_warmstart
+            sens[b] = np.concatenate([d.xpos[lay.gripper], d.xquat[lay.gripper], d.xpos[lay.handle],
+                                      d.xquat[lay.handle]])
+        # float64 travels as uint32 pairs: the callback's return check canonicalises float64 to float32
+        # when x64 is enabled by a (thread-local) context rather than globally.
+        out = lambda a: np.ascontiguousarray(a, np.float64).view(np.uint32).reshape(lead + a.shape[1:] + (2,))  # noqa: E731
+        return out(qpos), out(qvel), out(warm), out(sens)
+
+    _NATIVE[key] = host
+    return host
+
+
+_OBJ_NDIM = tuple(len(s) for s in ((3,), (3,), (), (), (2, 5), (), (), ()))  # per-field core ndim
+
+
+class _Phys(NamedTuple):
+    qpos: jax.Array
+    qvel: jax.Array
+    warm: jax.Array
+    data: Any  # mjx.Data (mjx backend) or None
+
+
+def _phys_init(static: Static, obj):
+    m = static.mj_model
+    f = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    qpos, qvel, warm = (jnp.asarray(a, f) for a in (m.qpos0, np.zeros(m.nv), np.zeros(m.nv)))
+    data = None
+    if static.backend == "mjx":
+        from mujoco import mjx
+
+        model = scenes.apply_mjx(static.mjx_model, static.layout, obj)
+        with jax.numpy_rank_promotion("allow"):
+            data = mjx.kinematics(model, mjx.make_data(model))
+    return _Phys(qpos, qvel, warm, data)
+
+
+def _phys_step(static: Static, obj, phys: _Phys, mpos, mquat, active):
+    """``substeps`` physics steps with the mocap along ``mpos (K, 3)``, ``mquat (K, 4)``: ``(phys, sensors (14,))``."""
+    lay = static.layout
+    if static.backend == "native":
+        host = _native_host(static)
+        f = phys.qpos.dtype
+        u = lambda n: jax.ShapeDtypeStruct((n, 2), jnp.uint32)  # noqa: E731
+        shapes = (u(phys.qpos.shape[0]), u(phys.qvel.shape[0]), u(phys.warm.shape[0]), u(14))
+        outs = jax.pure_callback(host, shapes, phys.qpos, phys.qvel, phys.warm, mpos, mquat, active, *obj,
+                                 vmap_method="expand_dims")
+        qpos, qvel, warm, sens = (jax.lax.bitcast_convert_type(o, jnp.float64).astype(f) for o in outs)
+        return _Phys(qpos, qvel, warm, None), sens
+    from mujoco import mjx
+
+    model = scenes.apply_mjx(static.mjx_model, lay, obj)
+
+    def sub(d, mq):
+        p, q = mq
+        d1 = d.replace(mocap_pos=p[None].astype(d.mocap_pos.dtype), mocap_quat=q[None].astype(d.mocap_quat.dtype))
+        d1 = mjx.step(model, d1)
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(active, a, b), d1, d), None
+
+    with jax.numpy_rank_promotion("allow"):
+        d, _ = jax.lax.scan(sub, phys.data, (mpos, mquat))
+        d = mjx.kinematics(model, d)
+    sens = _sensors(d.xpos[lay.gripper], d.xquat[lay.gripper], d.xpos[lay.handle], d.xquat[lay.handle])
+    return _Phys(d.qpos, d.qvel, d.qacc_warmstart, d), sens
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+class _Carry(NamedTuple):
+    phys: _Phys
+    sens: jax.Array  # (14,)
+    q: jax.Array  # (n,) arm joints
+    turbo: tacman.TurboState
+    tac: tacman.TacManState
+    X1: jaxlie.SE3  # in-hand pose at the start (reference of the markers)
+    done: jax.Array  # () bool
+    success: jax.Array
+    slipped: jax.Array
+    nonfinite: jax.Array
+    steps_used: jax.Array  # () int32
+    invalid: jax.Array  # () int32
+    alpha_min: jax.Array
+    key: jax.Array
+
+
+def _poses(sens):
+    T_g = jaxlie.SE3(jnp.concatenate([sens[3:7], sens[0:3]]))
+    T_h = jaxlie.SE3(jnp.concatenate([sens[10:14], sens[7:10]]))
+    return T_g, T_h
+
+
+def rollout(static: Static, p: RolloutParams) -> RolloutResult:
+    """One closed-loop rollout of ``static.steps`` control steps (see the module docstring)."""
+    arm, lay = static.arm, static.layout
+    f = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    dt = jnp.asarray(static.mj_model.opt.timestep * static.substeps, f)
+    q0 = jnp.asarray(static.q0, f)
+    ref = jnp.asarray(static.pads.ref, f)
+    p1, R1 = jnp.asarray(lay.p1, f), jnp.asarray(lay.R1, f)
+    G1 = tacman.se3(p1, R1)
+    u0 = jnp.concatenate([jnp.stack([p.speed, 0.0, 0.0]).astype(f), jnp.zeros(3, f)])
+    turbo_p = tacman.TurboParams(u0, dt, p.controller == 2)
+    tac_p = tacman.TacManParams(p.speed, dt, p.dev_high, p.dev_low, p.rec_gain, 2.0 * p.speed)
+
+    phys = _phys_init(static, p.obj)
+    sens0 = jnp.concatenate([p1, jaxlie.SO3.from_matrix(R1).wxyz, p1, jaxlie.SO3.from_matrix(R1).wxyz])
+    T_g0, T_h0 = _poses(sens0)
+    zero_i = jnp.zeros((), jnp.int32)
+    carry = _Carry(phys, sens0, q0, tacman.turbo_init(T_g0), tacman.tacman_init(T_g0, jnp.array([1.0, 0, 0], f)),
+                   T_g0.inverse() @ T_h0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), bool),
+                   jnp.zeros((), bool), zero_i, zero_i, jnp.ones((), f), jax.random.wrap_key_data(p.key))
+
+    def body(c: _Carry, _):
+        T_g, T_h = _poses(c.sens)
+        X_rel = (T_g.inverse() @ T_h) @ c.X1.inverse()
+        key, k_read = jax.random.split(c.key)
+        cur, mask, _ = tactile.read(static.pads, X_rel, k_read, p.marker_noise, p.contact_eps)
+        reading = tacman.Reading(T_g, ref, cur, mask)
+        turbo, u_turbo, (valid_t, _) = tacman.turbo_step(c.turbo, reading, turbo_p)
+        tac, u_tac, (valid_r, _) = tacman.tacman_step(c.tac, reading, tac_p)
+        is_tac = p.controller == 0
+        u = jnp.where(is_tac, u_tac, u_turbo)
+        valid = jnp.where(is_tac, valid_r, valid_t)
+        R_g = T_g.rotation().as_matrix()
+        V = jnp.concatenate([R_g @ u[:3], R_g @ u[3:]])  # world-frame [v, w]
+        jinv = jnp.where(p.use_estimate, p.jinv_est, arm.true_inverse_jacobian(c.q))
+        qdot = jinv @ V
+        alpha = tacman.alpha_scale(qdot, p.qdot_max, p.beta)
+        qdot = jnp.where(c.done, 0.0, alpha * qdot)
+        fracs = jnp.arange(1, static.substeps + 1, dtype=f) / static.substeps
+        qs = c.q[None] + fracs[:, None] * (qdot * dt)[None]
+        pm, Rm = jax.vmap(arm.pose)(qs)
+        mquat = jaxlie.SO3.from_matrix(Rm).wxyz
+        phys, sens = _phys_step(static, p.obj, c.phys, pm, mquat, ~c.done)
+        finite = jnp.all(jnp.isfinite(sens)) & jnp.all(jnp.isfinite(phys.qpos))
+        phys = jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), phys, c.phys)
+        sens = jnp.where(finite, sens, c.sens)
+        q = qs[-1]
+        # truth after the step (noise-free): progress, in-hand deviation, slip
+        T_g2, T_h2 = _poses(sens)
+        X2 = (T_g2.inverse() @ T_h2) @ c.X1.inverse()
+        start = jnp.asarray(static.pads.delta0) >= p.contact_eps
+        dev = tacman.deviation(X2, ref, start)
+        slip = (jnp.linalg.norm(X2.translation()) > p.slip) | (jnp.linalg.norm(X2.rotation().log()) > p.slip_rot)
+        prog = scenes.progress(phys.qpos, lay, p.obj)
+        succ = prog >= static.level
+        live = ~c.done
+        nonfinite = c.nonfinite | (live & ~finite)
+        slipped = c.slipped | (live & slip)
+        success = c.success | (live & succ & ~slip)
+        done = c.done | success | slipped | nonfinite
+        steps_used = c.steps_used + live.astype(jnp.int32)
+        invalid = c.invalid + (live & ~valid).astype(jnp.int32)
+        alpha_min = jnp.where(live, jnp.minimum(c.alpha_min, alpha), c.alpha_min)
+        G1i = G1.inverse()
+        rec = (G1i @ T_h2).translation(), (G1i @ T_g2).translation(), prog, dev, live, q
+        return _Carry(phys, sens, q, turbo, tac, c.X1, done, success, slipped, nonfinite, steps_used, invalid,
+                      alpha_min, key), rec
+
+    c, (h_tr, g_tr, prog, dev, live, qs) = jax.lax.scan(body, carry, None, length=static.steps)
+    n_used = jnp.maximum(c.steps_used, 1)
+    w = live.astype(f)
+    prog_end = prog[jnp.clip(c.steps_used - 1, 0, static.steps - 1)]
+    efficiency = 100.0 * jnp.minimum(prog_end, static.level) / static.level / n_used
+    qall = jnp.concatenate([q0[None], qs])
+    jerk_t = jnp.linalg.norm(jnp.diff(qall, n=3, axis=0), axis=-1) / dt**3  # (steps - 2,)
+    jw = w[2:]
+    jerk = jnp.sum(jw * jerk_t) / jnp.maximum(jnp.sum(jw), 1.0)
+    dev_mean = jnp.sum(w * dev) / jnp.maximum(jnp.sum(w), 1.0)
+    dev_max = jnp.max(jnp.where(live, dev, 0.0))
+    sl = slice(0, None, static.stride)
+    return RolloutResult(c.success, c.slipped | c.nonfinite, c.slipped, c.nonfinite, c.steps_used, prog_end,
+                         efficiency, jerk, dev_mean, dev_max, c.invalid, c.alpha_min, h_tr[sl], g_tr[sl], prog[sl],
+                         dev[sl], jnp.asarray(static.scene_id, jnp.int32))

@@ -1,0 +1,262 @@
+"""Tac-Man (reactive) and TacMan-Turbo (proactive) tactile control, as pure JAX (seed 003, Eq. 8-27).
+
+Conventions: a pose is a ``jaxlie.SE3``; a gripper twist ``u (6,) = [v, w]`` is
+the velocity of the gripper origin and the angular velocity, both in the
+current gripper frame (m/s, rad/s); applied over ``dt`` it moves the gripper
+to ``T_g @ SE3(exp(w dt), v dt)`` (position and rotation decoupled, as Eq.
+18-19 compute them). Marker arrays are ``(M, 3)`` in the gripper frame (m)
+with a ``(M,)`` mask of the active contact set (Eq. 2).
+
+Pieces (each jit- and vmap-able, no Python control flow on values):
+
+* :func:`kabsch` -- in-hand pose from corresponding contact points (Eq. 9-12),
+  with the ``>= 3`` non-collinear check as a flag;
+* :func:`predict` -- constant-velocity SE(3) prediction (Eq. 14-15);
+* :func:`offset_velocity` -- Eq. 16-21; :func:`keep_speed` -- the variant that
+  keeps the base velocity ``u0`` (the literal law stalls on resisting objects);
+* :func:`alpha_scale` -- joint-velocity limit scaling (Eq. 25-27);
+* :func:`turbo_init`/:func:`turbo_step` and :func:`tacman_init`/:func:`tacman_step`:
+  one control step of each controller: ``(state, reading) -> (state, u, info)``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import jaxlie
+
+__all__ = [
+    "Reading",
+    "TacManParams",
+    "TacManState",
+    "TurboParams",
+    "TurboState",
+    "alpha_scale",
+    "deviation",
+    "kabsch",
+    "keep_speed",
+    "offset_velocity",
+    "predict",
+    "se3",
+    "tacman_init",
+    "tacman_step",
+    "turbo_init",
+    "turbo_step",
+]
+
+
+def se3(p, R) -> jaxlie.SE3:
+    """``jaxlie.SE3`` of a position ``(3,)`` [m] and a rotation matrix ``(3, 3)``."""
+    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(R), p)
+
+
+def kabsch(ref, cur, mask, *, collinear_tol=1e-3):
+    """Rigid transform ``T`` with ``T ref_k ~ cur_k`` over the masked pairs (Eq. 9, Kabsch): ``(T, valid)``.
+
+    Args:
+      ref: ``(M, 3)`` reference contact points ``c_1`` [m].
+      cur: ``(M, 3)`` current points ``c_i`` [m].
+      mask: ``(M,)`` bool: pairs in ``K_{1,i}`` (both in contact, Eq. 10).
+      collinear_tol: the set counts as collinear when the second principal
+        spread of ``ref`` is below ``collinear_tol`` times the first (ratio of
+        standard deviations).
+
+    Returns:
+      ``(T, valid)``: ``jaxlie.SE3`` and a bool scalar, False when fewer than 3
+      pairs are active (Eq. 11) or they are collinear (Eq. 12); ``T`` is then
+      the identity (finite, never NaN).
+    """
+    w = mask.astype(ref.dtype)
+    n = jnp.sum(w)
+    safe_n = jnp.maximum(n, 1.0)
+    a_bar = jnp.sum(w[:, None] * ref, 0) / safe_n
+    b_bar = jnp.sum(w[:, None] * cur, 0) / safe_n
+    a = (ref - a_bar[None]) * w[:, None]
+    b = (cur - b_bar[None]) * w[:, None]
+    spread = jnp.linalg.eigvalsh(a.T @ a / safe_n)  # ascending
+    valid = (n >= 3) & (spread[1] > collinear_tol**2 * spread[2]) & (spread[2] > 0)
+    H = a.T @ b
+    U, _, Vt = jnp.linalg.svd(H)
+    d = jnp.sign(jnp.linalg.det(Vt.T @ U.T))
+    d = jnp.where(d == 0, 1.0, d)
+    R = Vt.T @ jnp.diag(jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d])) @ U.T
+    t = b_bar - R @ a_bar
+    R = jnp.where(valid, R, jnp.eye(3, dtype=ref.dtype))
+    t = jnp.where(valid, t, jnp.zeros(3, ref.dtype))
+    return se3(t, R), valid
+
+
+def predict(T_prev: jaxlie.SE3, T_now: jaxlie.SE3) -> jaxlie.SE3:
+    """Next handle pose under constant velocity: ``T_now @ (T_prev^-1 @ T_now)`` (Eq. 14-15)."""
+    return T_now @ (T_prev.inverse() @ T_now)
+
+
+def _decoupled(T: jaxlie.SE3):
+    """``[p, rotation vector]`` of ``T`` (Eq. 17, 19-20: ``theta * omega_hat = log R``)."""
+    return jnp.concatenate([T.translation(), T.rotation().log()])
+
+
+def offset_velocity(T_g: jaxlie.SE3, T_pred: jaxlie.SE3, u0, dt):
+    """Offset velocity ``u_i (6,)`` that brings the gripper onto the predicted handle pose in ``dt`` (Eq. 16-21).
+
+    ``T_breve = T_g^-1 T_pred`` (Eq. 17), ``u_i = [p_breve, log R_breve] / dt
+    - u0`` (Eq. 18-20), so the command ``u0 + u_i`` moves the gripper exactly
+    onto the prediction (Eq. 16).
+    """
+    return _decoupled(T_g.inverse() @ T_pred) / dt - u0
+
+
+def keep_speed(T_u: jaxlie.SE3, u0, dt, tiny=1e-7):
+    """``T_u`` rescaled along its screw so it advances ``|v0| dt`` (the chord; exact without rotation): keeps ``u0``.
+
+    The literal Eq. 14-18 make the gripper follow the handle's own last
+    motion and drive the in-hand deviation to zero every step. On an object
+    that resists (damping, friction loss) that deviation, the gel shear, is
+    what carries the pulling force: without it the handle slows, the
+    constant-velocity prediction follows it down and the manipulation
+    stalls. Keeping the base speed in the prediction (``T_u -> exp(s log
+    T_u)``, ``s = |v0| dt / |t(T_u)|``; ``exp(u0 dt)`` while the handle has not
+    moved, ``|t(T_u)| < tiny`` m) aims the gripper ``(|v0| - v_handle) dt``
+    ahead of the handle along the predicted screw: a shear that grows until
+    it pulls the handle at about the base speed, and no faster (a speed loop
+    of gain ``gel stiffness * dt``).
+    """
+    t = jnp.linalg.norm(T_u.translation())
+    speed = jnp.linalg.norm(u0[:3])
+    scaled = jaxlie.SE3.exp(T_u.log() * (speed * dt / jnp.maximum(t, tiny)))
+    base = jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.exp(u0[3:] * dt), u0[:3] * dt)
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(t > tiny, a, b), scaled, base)
+
+
+def alpha_scale(qdot, qdot_max, beta, eps=1e-9):
+    """Eq. 25: ``alpha = min(min_j beta qdot_max_j / max(|qdot_j|, eps), 1)`` (scalar, dimensionless).
+
+    ``qdot (n,)`` the unscaled joint velocities (Eq. 23), ``qdot_max (n,)`` the
+    limits (rad/s), ``beta`` a safety factor. The executed command is ``alpha``
+    times the full one (Eq. 26: ``u_i -> alpha u_i + (alpha - 1) u0``, i.e.
+    ``u0 + u_i -> alpha (u0 + u_i)``), taking ``dt / alpha`` to reach the
+    prediction (Eq. 27).
+    """
+    ratio = beta * qdot_max / jnp.maximum(jnp.abs(qdot), eps)
+    return jnp.minimum(jnp.min(ratio), 1.0)
+
+
+def deviation(T_in_hand: jaxlie.SE3, ref, mask):
+    """Mean displacement ``|T c_1 - c_1|`` of the masked reference markers [m] (a scalar contact deviation)."""
+    moved = jax.vmap(T_in_hand.apply)(ref) - ref
+    w = mask.astype(ref.dtype)
+    return jnp.sum(w * jnp.linalg.norm(moved, axis=-1)) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+class Reading(NamedTuple):
+    """What the controller sees at one control step."""
+
+    T_g: jaxlie.SE3  # gripper pose (tracker / arm), world frame
+    ref: jax.Array  # (M, 3) reference markers c_1 (gripper frame) [m]
+    cur: jax.Array  # (M, 3) current markers c_i, with sensor noise [m]
+    mask: jax.Array  # (M,) bool active pairs K_{1,i}
+
+
+# ----------------------------------------------------------------------------- TacMan-Turbo
+
+
+class TurboParams(NamedTuple):
+    u0: jax.Array  # (6,) base velocity in the gripper frame [m/s, rad/s] (Eq. 4)
+    dt: jax.Array  # () control interval [s]
+    keep_u0: jax.Array  # () bool: keep the base speed in the prediction (see keep_speed)
+
+
+class TurboState(NamedTuple):
+    T_h_prev: jaxlie.SE3  # previous handle pose estimate (Eq. 13)
+    X_prev: jaxlie.SE3  # last valid in-hand pose estimate (held when Kabsch is invalid)
+    i: jax.Array  # () int32 control steps taken
+
+
+def turbo_init(T_g: jaxlie.SE3) -> TurboState:
+    """Eq. 1: the handle frame coincides with the gripper at the start."""
+    return TurboState(T_g, _identity(T_g.wxyz_xyz.dtype), jnp.zeros((), jnp.int32))
+
+
+def turbo_step(state: TurboState, r: Reading, p: TurboParams):
+    """One TacMan-Turbo step: ``(state, u_cmd (6,), (valid, X_hat))``; ``u_cmd = u0 + u_i`` before alpha scaling.
+
+    Kabsch in-hand pose (Eq. 9-12; the last valid one is held when the set
+    is invalid), handle pose (Eq. 13), constant-velocity prediction (Eq.
+    14-15), offset velocity (Eq. 16-21). The first step uses ``u0`` alone.
+    """
+    X, valid = kabsch(r.ref, r.cur, r.mask)
+    X = jax.tree_util.tree_map(lambda a, b: jnp.where(valid, a, b), X, state.X_prev)
+    T_h = r.T_g @ X
+    T_u = state.T_h_prev.inverse() @ T_h  # Eq. 15
+    T_u = jax.tree_util.tree_map(lambda a, b: jnp.where(p.keep_u0, a, b), keep_speed(T_u, p.u0, p.dt), T_u)
+    T_pred = T_h @ T_u  # Eq. 14
+    u_i = offset_velocity(r.T_g, T_pred, p.u0, p.dt)
+    u = jnp.where(state.i > 0, p.u0 + u_i, p.u0)
+    return TurboState(T_h, X, state.i + 1), u, (valid, X)
+
+
+# ----------------------------------------------------------------------------- Tac-Man
+
+
+class TacManParams(NamedTuple):
+    speed: jax.Array  # () exploration speed |v0| [m/s]
+    dt: jax.Array  # () control interval [s]
+    dev_high: jax.Array  # () contact deviation that ends an exploration stage [m]
+    dev_low: jax.Array  # () deviation at which a recovery stage ends [m]
+    gain: jax.Array  # () recovery gain: fraction of the in-hand pose removed per step (0, 1]
+    max_speed: jax.Array  # () recovery speed cap [m/s] (the rotation is capped at max_speed / 0.05 m)
+
+
+class TacManState(NamedTuple):
+    recovering: jax.Array  # () bool: in a recovery (compensation) stage
+    direction: jax.Array  # (3,) unit exploration direction, gripper frame
+    p_start: jax.Array  # (3,) handle position estimate (world) where the current cycle began [m]
+    X_prev: jaxlie.SE3  # last valid in-hand pose estimate
+
+
+def tacman_init(T_g: jaxlie.SE3, direction) -> TacManState:
+    d = jnp.asarray(direction, T_g.wxyz_xyz.dtype)
+    return TacManState(jnp.zeros((), bool), d / jnp.linalg.norm(d), T_g.translation(),
+                       _identity(T_g.wxyz_xyz.dtype))
+
+
+def tacman_step(state: TacManState, r: Reading, p: TacManParams):
+    """One Tac-Man step (exploration-compensation): ``(state, u_cmd (6,), (valid, X_hat))``.
+
+    Exploration: move at ``speed`` along ``direction`` (gripper frame) until the
+    contact deviation exceeds ``dev_high``. Recovery: hold the object and move
+    the gripper onto the handle (``gain`` of the in-hand pose per step, capped)
+    until the deviation is below ``dev_low``; then the exploration direction
+    becomes the handle's net displacement over the cycle (in the new gripper
+    frame), the adaptation that keeps the reactive loop going round a door.
+    """
+    X, valid = kabsch(r.ref, r.cur, r.mask)
+    X = jax.tree_util.tree_map(lambda a, b: jnp.where(valid, a, b), X, state.X_prev)
+    dev = deviation(X, r.ref, r.mask)
+    T_h = r.T_g @ X
+    start_rec = (~state.recovering) & (dev > p.dev_high)
+    end_rec = state.recovering & (dev < p.dev_low)
+    recovering = (state.recovering | start_rec) & ~end_rec
+    moved = T_h.translation() - state.p_start
+    moved_g = r.T_g.rotation().inverse() @ moved
+    dist = jnp.linalg.norm(moved_g)
+    new_dir = jnp.where(dist > 1e-4, moved_g / jnp.maximum(dist, 1e-12), state.direction)
+    direction = jnp.where(end_rec, new_dir, state.direction)
+    p_start = jnp.where(end_rec, T_h.translation(), state.p_start)
+    rec = _decoupled(X) * p.gain / p.dt
+    v_lim, w_lim = p.max_speed, p.max_speed / 0.05
+    rec = jnp.concatenate([_clip(rec[:3], v_lim), _clip(rec[3:], w_lim)])
+    explore = jnp.concatenate([p.speed * direction, jnp.zeros(3, direction.dtype)])
+    u = jnp.where(recovering, rec, explore)
+    return TacManState(recovering, direction, p_start, X), u, (valid, X)
+
+
+def _identity(dtype) -> jaxlie.SE3:
+    return jaxlie.SE3(jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype))
+
+
+def _clip(v, limit):
+    n = jnp.linalg.norm(v)
+    return v * jnp.minimum(1.0, limit / jnp.maximum(n, 1e-12))
