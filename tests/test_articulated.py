@@ -54,6 +54,7 @@ def test_kabsch_flags_collinear_and_too_few_points():
     np.testing.assert_allclose(np.asarray(est.as_matrix()), np.asarray(T.as_matrix()), atol=1e-9)
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_constant_velocity_prediction_is_exact_on_a_screw_motion():
     xi = jnp.array([0.02, -0.01, 0.03, 0.3, -0.2, 0.5])  # [v, w] twist
     base = _random_pose(3, angle=1.0, shift=0.5)
@@ -76,6 +77,7 @@ def test_keep_speed_stays_on_the_screw_at_the_base_speed():
     np.testing.assert_allclose(np.asarray(still.translation()), [6e-4, 0, 0], atol=1e-15)
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_offset_velocity_reaches_the_prediction_and_alpha_scales_to_the_limit():
     T_g, T_pred, dt = _random_pose(4), _random_pose(5), 0.02
     u0 = jnp.array([0.03, 0.0, 0.0, 0.0, 0.0, 0.1])

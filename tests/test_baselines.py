@@ -160,6 +160,7 @@ def test_rls_with_forgetting_matches_weighted_least_squares():
         np.testing.assert_allclose(est[K - 1], np.linalg.solve(G.T, rhs.T).T, rtol=1e-9)
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_kalman_with_zero_process_noise_is_rls():
     d, V, truth = linear_stream(4, 3, 15, noise=1e-3)
     delta, r = 1e-3, 1e-4
@@ -180,6 +181,7 @@ def test_particle_filter_roughly_recovers_2x2():
     assert rel_err(est[-1], truth) < rel_err(est[0], truth)
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 @pytest.mark.parametrize("scheme", particle_filter.RESAMPLING)
 def test_resampling_counts(scheme):
     """Systematic and stratified resampling keep floor(N w_p) copies of each particle at least."""
@@ -190,6 +192,7 @@ def test_resampling_counts(scheme):
     assert float(particle_filter.effective_sample_size(jnp.log(jnp.asarray(w)))) == pytest.approx(1 / 0.375)
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_oracles_and_ours_without_refinement():
     d, V, truth = linear_stream(5, 3, 6)
     state = fold(E.init(3, 3, capacity=6), d, V)
@@ -239,6 +242,7 @@ def _bad_stream(seed, n=3, T=12):
 @pytest.mark.parametrize(
     "name", [pytest.param(n, marks=pytest.mark.slow) if n == "particle" else n for n in METHOD_NAMES]
 )
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_jit_vmap_loop_and_bad_samples(name):
     est = make(name, **_options(name))
     streams = [_bad_stream(seed) for seed in range(2)]

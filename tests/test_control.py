@@ -79,6 +79,7 @@ def test_selfid_estimate_completes_star_on_ur5e(ur5e_configs):
     assert len(converged) >= 8
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_steps_and_errors_match_closed_form_on_identity_system():
     # p = (q1, q2): the true inverse is I, so each segment takes ceil(length / max_step) steps on the path.
     sys2 = from_pose_fn(lambda params, q: jnp.stack([q[0], q[1], 0.0]), 2, task_dim=2, q_low=[-9, -9],
@@ -158,6 +159,7 @@ def test_selfid_run_noise_jit_vmap_and_no_retrace():
     assert np.max(np.abs(clean.estimate - truth) / np.abs(truth).max(axis=(1, 2), keepdims=True)) < 0.1
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_rollout_metrics_are_differentiable_in_the_inverse_jacobian_scale():
     """The pipeline differentiates end to end: d(mean tracking error)/d(m_eps) through the scan controller."""
     arm = two_link()

@@ -56,6 +56,7 @@ def test_matches_numpy_reference():
     assert buf_rows == {tuple(np.round(r, 12)) for r in d[-8:]}
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_ties_and_empty_state():
     state = E.init(2, 3)
     np.testing.assert_array_equal(sj.signed_inverse_jacobian(state), np.ones((2, 3)))
@@ -83,6 +84,7 @@ def test_sign_recovery_on_sign_unambiguous_system(n):
     np.testing.assert_array_equal(sj.signed_inverse_jacobian(state), np.sign(np.linalg.inv(Q)))
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_rejects_bad_samples_without_nan():
     state = E.init(3, 2, capacity=4)
     good_d, good_v = jnp.array([0.01, -0.02, 0.03]), jnp.array([0.1, -0.2])
@@ -126,6 +128,7 @@ def test_wrong_shapes_raise_value_error():
         sj.refine(state, jnp.zeros((3, 2)), method="adam")
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_convergence_test_needs_two_consecutive_small_changes():
     eps = 0.1
     state = E.init(1, 1)
@@ -231,6 +234,7 @@ class JitVmapTest(chex.TestCase):
         np.testing.assert_allclose(out[1][:, 0], [0.0, 0.0])
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_no_new_data_never_converges_and_eps_inf_needs_two_records():
     """Records that follow no accepted sample never count; iteration 1 never converges, even at eps = inf."""
     state = E.init(2, 2)
@@ -275,6 +279,7 @@ def test_bad_thresholds_raise(eps, eps_rel, match):
                          eps_rel=eps_rel)
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_overflowing_samples_are_rejected_and_bad_dtypes_refused():
     state = E.init(2, 2, dtype=jnp.float32)
     state = E.update(state, jnp.array([3e38, 0.1], jnp.float32), jnp.array([0.1, 0.2], jnp.float32))

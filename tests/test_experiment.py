@@ -56,6 +56,7 @@ def test_no_module_over_about_400_lines():
     assert max(sizes.values()) <= 440, {k: v for k, v in sizes.items() if v > 440}
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_valid_region_sweep_of_controller_and_eps_values_compiles_once():
     """Every sweepable number is a traced Params field: one trace for rows with different values."""
     from experiments.valid_region import ValidRegionConfig

@@ -81,6 +81,7 @@ def np_kalman(d, V, q, r):
     return out
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 @pytest.mark.parametrize("capacity", [16, 6])  # buffer larger than the stream, and a wrapped ring buffer
 def test_variants_match_numpy(capacity):
     d, V = samples()
@@ -124,6 +125,7 @@ def test_degenerate_states_are_finite_and_zero():
     assert M.get("kalman") is M.kalman
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_jit_and_vmap_equal_loop():
     states = [fold(*samples(seed), capacity=6) for seed in range(3)]
     batched = jax.tree.map(lambda *x: jnp.stack(x), *states)

@@ -18,6 +18,7 @@ def numpy_closest(points, vertices, samples=2001):
     return dense[idx]
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_axis_errors_match_numpy_on_a_letter_path():
     rng = np.random.default_rng(0)
     letters = np.asarray(paths.text("GRAB", height=0.012, dim=3))

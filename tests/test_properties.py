@@ -1,5 +1,6 @@
 """Property tests (hypothesis) of laws the estimator must satisfy for any input."""
 
+import pytest
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -35,6 +36,7 @@ def test_state_never_holds_nan_and_counts_add_up(samples):
     assert int(state.count) == expected_ok
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 @settings(max_examples=25, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.integers(1, 4))
 def test_exact_recovery_and_sample_order_invariance(seed, n):

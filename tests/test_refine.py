@@ -40,6 +40,7 @@ def test_exact_recovery_of_linear_system(method, n):
     np.testing.assert_allclose(Jinv, np.linalg.pinv(J), rtol=1e-5, atol=1e-5 * np.abs(np.linalg.pinv(J)).max())
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 @pytest.mark.parametrize("K", [3, 20])  # fewer samples than task dims, and overdetermined
 def test_optax_and_slsqp_agree_with_closed_form(K):
     rng = np.random.default_rng(K)

@@ -51,6 +51,7 @@ def test_layout_read_from_mjcf(hand):
     assert np.linalg.cond(Jinv) == pytest.approx(2.21, abs=0.01)
 
 
+@pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_closed_form_equals_ift_inverse_jacobian(hand):
     """pinv of the implicit-function-theorem Jacobian (jacfwd through Newton) = rows [u_i, (R b_i) x u_i]."""
     q = jnp.asarray(_box(0, 8))
