@@ -13,6 +13,11 @@ The tidy results table has one row per (grid row, method, iteration count):
 completion, mean_error, failed, converged_at``. ``converged_at`` is the first
 iteration at which the method's estimate met the Sec. IV-D test
 (``||J_t - J_{t-1}||_F <= eps`` twice in a row), -1 if it never did.
+
+Model-based rows (``method: ekm`` with a ``nominal:`` model; issue 16) learn
+from the same stream and follow the star with their own Eq. 10-11 QP
+controller, one vmapped rollout per group of E-KM rows
+(``experiments/ablation_ekm.py``); with any of them the part runs in float64.
 """
 
 from __future__ import annotations
@@ -32,6 +37,9 @@ from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
 
+from experiments import ablation_ekm
+from experiments.ablation_ekm import METHOD_CHOICES, NominalSpec, is_model_based
+
 
 class MethodSpec(BaseModel):
     """One curve of the ablation: a label, a method of ``selfid_jax.baselines`` and its options."""
@@ -39,10 +47,12 @@ class MethodSpec(BaseModel):
     model_config = dict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field(min_length=1, description="label of the curve")
-    method: Literal[baselines.METHOD_NAMES] = Field(description="one of " + ", ".join(baselines.METHOD_NAMES))
+    method: Literal[METHOD_CHOICES] = Field(description="one of " + ", ".join(METHOD_CHOICES))
     options: dict[str, float | int | str | bool] = Field(
         default_factory=dict, description="keyword options of the method's factory in selfid_jax.baselines"
     )
+    nominal: NominalSpec | None = Field(None, description="model-based methods (ekm) only, and required there: "
+                                        "the nominal model's length scale and joint offsets (experiments/ablation_ekm.py)")
 
 
 class AblationConfig(BaseConfig):
@@ -81,6 +91,7 @@ class AblationConfig(BaseConfig):
     @model_validator(mode="after")
     def _noise_pairs(self):
         check_noise_pairs(self.pose_noise, self.rot_noise)
+        ablation_ekm.check_methods(self.methods, self.system)
         return self
 
 
@@ -92,7 +103,8 @@ class Static(NamedTuple):
     steps: int  # control-step budget
     iters: int  # self-ID iterations per stream (the largest checkpoint)
     checkpoints: tuple[int, ...]  # 0-based sample indices at which each estimate is followed
-    methods: tuple[baselines.Estimator, ...]  # one per curve, in config order
+    methods: tuple[baselines.Estimator | None, ...]  # one per curve, in config order (None: an E-KM row)
+    ekm: tuple[ablation_ekm.EKMGroup, ...] = ()  # the E-KM rows, grouped by static settings (ablation_ekm.py)
 
 
 class Params(NamedTuple):
@@ -138,18 +150,29 @@ def compute(static: Static, p: Params) -> Outputs:
     def follow(jinv):
         return control.follow(system, jinv, static.path, p.q0, p.controller, steps=static.steps)
 
-    fixed, converged = [], []
-    for method in static.methods:
+    fixed, converged = [], {}
+    for j, method in enumerate(static.methods):
+        if method is None:  # an E-KM row: below
+            continue
         est = baselines.run_stream(method, k_est, sid.dtheta, sid.V, truth)
-        converged.append(estimator.convergence_iteration(est, p.eps, p.eps_rel, accepted=accepted))
+        converged[j] = estimator.convergence_iteration(est, p.eps, p.eps_rel, accepted=accepted)
         if method.name != "true":
             fixed.append(est[checkpoints])
+    model_based = {}  # E-KM: one vmapped QP rollout per group of rows
+    for group in static.ekm:
+        res, conv = ablation_ekm.rollouts(group, system, static.path, p.q0, p.controller, sid, checkpoints,
+                                          static.steps, p.eps, p.eps_rel, accepted)
+        for g, j in enumerate(group.rows):
+            model_based[j] = jax.tree.map(lambda x, g=g: x[g], res)
+            converged[j] = conv[g]
     if fixed:
         stacked = jnp.concatenate(fixed)  # (M' C, n, m), methods in config order
         res_fixed = jax.vmap(lambda J: follow(control.fixed(J)))(stacked)
     rows, i = [], 0
-    for method in static.methods:
-        if method.name == "true":
+    for j, method in enumerate(static.methods):
+        if method is None:
+            res = model_based[j]
+        elif method.name == "true":
             res = jax.tree.map(lambda x: jnp.broadcast_to(x, (n_ckpt,) + jnp.shape(x)),
                                follow(control.true_inverse(system)))
         else:
@@ -157,12 +180,13 @@ def compute(static: Static, p: Params) -> Outputs:
             i += 1
         rows.append((res.completion, res.mean_error, res.failed))
     completion, mean_error, failed = (jnp.stack(x) for x in zip(*rows))
-    return Outputs(completion, mean_error, failed, jnp.stack(converged))
+    return Outputs(completion, mean_error, failed, jnp.stack([converged[j] for j in range(len(static.methods))]))
 
 
 def build(cfg):
-    """The one part, built (and later run) in float64 if the system needs it (closed-chain hands)."""
-    x64 = needs_x64(cfg.system)
+    """The one part, built (and later run) in float64 if the system needs it (closed-chain hands) or a
+    model-based method is in the list (the E-KM's SOGP is float64 only)."""
+    x64 = needs_x64(cfg.system) or any(is_model_based(spec.method) for spec in cfg.methods)
     with precision(x64):
         return _build(cfg)._replace(x64=x64)
 
@@ -201,7 +225,9 @@ def _build(cfg: AblationConfig) -> Part:
         steps=cfg.controller.steps,
         iters=max(cfg.iterations),
         checkpoints=tuple(i - 1 for i in cfg.iterations),
-        methods=tuple(baselines.make(spec.method, **spec.options) for spec in cfg.methods),
+        methods=tuple(None if is_model_based(spec.method) else baselines.make(spec.method, **spec.options)
+                      for spec in cfg.methods),
+        ekm=ablation_ekm.groups(system, cfg.methods, max(cfg.iterations)),
     )
     return Part(system_name(cfg.system), static, params, meta)
 

@@ -9,7 +9,7 @@ import yaml
 
 from selfid_jax import cli
 
-pytestmark = pytest.mark.slow  # end-to-end sweep through the CLI
+slow = pytest.mark.slow  # end-to-end sweeps through the CLI
 
 CONFIG = {
     "experiment": "ablation",
@@ -44,6 +44,7 @@ def run_dir(tmp_path_factory):
     return out
 
 
+@slow
 def test_ablation_table_bounds_and_methods(run_dir):
     df = pd.read_parquet(run_dir / "results.parquet")
     assert len(df) == 4 * 2 * (3 * 2 * 2)  # methods x iteration counts x (configs x trials x noise levels)
@@ -68,6 +69,7 @@ def test_ablation_table_bounds_and_methods(run_dir):
     assert np.all(np.isfinite(noisy.mean_error)) and noisy.completion.mean() > 0
 
 
+@slow
 def test_summary_and_figures(run_dir):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["methods"]["true"]["iterations_to_threshold"] == 2
@@ -77,6 +79,7 @@ def test_summary_and_figures(run_dir):
             assert (run_dir / "figures" / f"{name}.{ext}").stat().st_size > 1000
 
 
+@slow
 def test_config_errors_name_key(tmp_path):
     from selfid_jax.config import ConfigError, load_config
 
@@ -89,3 +92,72 @@ def test_config_errors_name_key(tmp_path):
     path.write_text(yaml.safe_dump(bad))
     with pytest.raises(ConfigError, match="magnitude"):
         load_config(path)
+
+
+# ----------------------------------------------------------------------------- E-KM rows (issue 16)
+HARD = {"scale": [1.5, 0.6], "offset": [0.6, -0.6]}
+EASY = {"scale": [1.2, 0.8], "offset": [0.1, -0.1]}
+EKM_CONFIG = {
+    "experiment": "ablation",
+    "seed": 0,
+    "system": "two_link",
+    "methods": [
+        {"name": "true", "method": "true"},
+        {"name": "ours", "method": "ours"},
+        {"name": "ekm fixed easy", "method": "ekm", "options": {"mode": "fixed"}, "nominal": EASY},
+        {"name": "ekm online easy", "method": "ekm", "options": {"mode": "online"}, "nominal": EASY},
+        {"name": "ekm fixed hard", "method": "ekm", "options": {"mode": "fixed"}, "nominal": HARD},
+        {"name": "ekm online hard", "method": "ekm", "options": {"mode": "online"}, "nominal": HARD},
+    ],
+    "iterations": [1, 5],
+    "n_configs": 2,
+    "n_trials": 1,
+    "pose_noise": [0.0],
+    "rot_noise": [0.0],
+    "m_a": [0.05],
+    "eps": 0.1,
+    "path": {"kind": "star", "size": 0.2},
+    "controller": {"max_step": 0.01, "tol": 0.002, "steps": 435, "gain": 1.0},
+    "chunk_size": 2,
+}
+
+
+@slow
+def test_ekm_rows_end_to_end(tmp_path):
+    """Fixed / online x easy / hard E-KM rows next to ours and true on a 2-link star, one compiled program."""
+    cfg = tmp_path / "ekm.yaml"
+    cfg.write_text(yaml.safe_dump(EKM_CONFIG, sort_keys=False))
+    out = tmp_path / "run"
+    assert cli.main(["sweep", str(cfg), "--out", str(out), "--no-progress"]) == 0
+    df = pd.read_parquet(out / "results.parquet")
+    assert len(df) == 6 * 2 * 2  # methods x iteration counts x configs
+    assert np.all(np.isfinite(df.completion)) and np.all(np.isfinite(df.mean_error)) and not df.failed.any()
+    np.testing.assert_array_equal(df[df.method == "true"].completion, 1.0)
+    # the study's finding (experiments/ekm_study.py): the hard wrong model plus an online GP completes the
+    # star from ONE self-ID sample, where the model-free estimate from one sample cannot
+    hard = df[(df.method == "ekm online hard") & (df.iterations == 1)]
+    np.testing.assert_array_equal(hard.completion, 1.0)
+    assert df[(df.method == "ours") & (df.iterations == 1)].completion.max() < 0.5
+    assert df[df.method.str.startswith("ekm")].converged_at.ge(-1).all()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["methods"]["ekm online hard"]["iterations_to_threshold"] == 1
+
+
+def _ekm_error(tmp_path, match, **method):
+    from selfid_jax.config import ConfigError, load_config
+
+    bad = dict(EKM_CONFIG, methods=[{"name": "true", "method": "true"}, {"name": "x", **method}])
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(bad))
+    with pytest.raises(ConfigError, match=match):
+        load_config(path)
+
+
+def test_ekm_config_errors_name_key(tmp_path):
+    _ekm_error(tmp_path, r"methods\[1\].*nominal: required", method="ekm", options={"mode": "online"})
+    _ekm_error(tmp_path, r"methods\[1\].*nominal: only model-based", method="ours", nominal=EASY)
+    _ekm_error(tmp_path, r"methods\[1\].*nominal\.scale", method="ekm", nominal={"scale": [1.0, 1.0, 1.0]})
+    _ekm_error(tmp_path, r"methods\[1\].*nominal\.offset", method="ekm", nominal={"offset": [0.1]})
+    _ekm_error(tmp_path, r"nominal.*unexpected|extra|scales", method="ekm", nominal={"scales": 1.0})
+    _ekm_error(tmp_path, r"methods\[1\].*options: q0", method="ekm", options={"q0": 0.1}, nominal=EASY)
+    _ekm_error(tmp_path, "mode", method="ekm", options={"mode": "sometimes"}, nominal=EASY)
