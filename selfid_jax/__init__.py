@@ -18,7 +18,7 @@ from selfid_jax._xla import apply_default_xla_flags as _apply_default_xla_flags
 _apply_default_xla_flags()
 
 from selfid_jax import baselines, control, estimator, experiment, geometry, magnitude, metrics, paths, systems  # noqa: E402
-from selfid_jax import dls, manipulability  # noqa: E402
+from selfid_jax import design, dls, manipulability  # noqa: E402
 from selfid_jax import refine as refine_lib, selfid  # noqa: E402
 from selfid_jax.estimator import (  # noqa: E402
     EstimatorState,
@@ -48,6 +48,7 @@ __all__ = [
     "System",
     "arm5",
     "baselines",
+    "design",
     "dls",
     "from_ets",
     "manipulability",

@@ -1,0 +1,615 @@
+"""Self-ID design (``selfid_jax.design``): which self-ID magnitude ``m_a`` should a robot use, given its tracker's noise?
+
+For each system and tracker-noise level (one row of the sweep), one compiled
+program (:func:`selfid_jax.design.optimize`) evaluates the design loss (mean
+over start configurations and trials of ``log`` of the mean squared distance
+to the path, failures saturated) on a log-spaced grid of scalar magnitudes,
+refines the grid's best point by Adam on ``log m_a`` with the gradient through
+self-ID, the closed-form estimate and the rollout, and then refines one
+magnitude per actuator from the scalar optimum. Every evaluation uses the same
+training trials (common random numbers); the designs (the system's own safe
+``m_a``, the grid's best, the refined scalar, the per-actuator one) are then
+compared on held-out trials (a second key, ``eval_trials`` per start).
+Wherever the fraction of failed rollouts exceeds ``refine.max_failed`` the
+gradient is flagged unreliable and not followed (see :mod:`selfid_jax.design`).
+
+Why a row is a whole (system, noise level) problem
+    The refinement starts where the grid is lowest, so it depends on the grid
+    of the same noise level; the experiment contract builds every part's
+    parameters from the config before any compute, so a second part could not
+    start from the first part's results, and running the refinement in
+    ``summarize`` would put compute (and gradients) where only saved results
+    should be read. Instead each row's pure ``compute`` runs grid, scalar
+    refinement and per-actuator refinement in one scan (one copy of the
+    differentiated rollout in the program: it compiles about 3x faster than a
+    vmapped grid plus two refinements), then the held-out evaluation of the
+    four designs (one vmapped forward pass). A row costs
+    ``(G + 2 K) x n_configs x n_trials`` differentiated rollouts. An interrupted
+    sweep resumes per finished row (``chunk_size: 1`` in the shipped configs:
+    one noise level per chunk), and ``tabulate`` stores every evaluated point
+    (grid curve, both gradient paths, the held-out comparison) in the tidy
+    table, so ``selfid-jax plot`` redraws the figures and ``summarize`` the
+    optima from the saved table alone.
+
+The tidy table has one row per evaluated point, ``stage`` one of ``grid``,
+``scalar``, ``per_actuator`` (the points in evaluation order, ``index``) and
+``eval`` (``design``: ``default``, ``grid``, ``scalar``, ``per_actuator`` if refined):
+``m_a`` (geometric mean over actuators), ``m_a_vec`` (per actuator), ``loss``
+[log m^2], ``gm_error_mm`` (``1e3 exp(loss / 2)``), ``rms_error_mm`` (over the
+rollouts that did not fail), ``failed_fraction``, ``completion``, ``reliable``
+and, on the optimisation stages, ``grad`` (d loss / d log m_a, summed over
+actuators) and ``grad_vec`` (per actuator); ``eval`` rows carry no gradient
+(``grad`` NaN, ``grad_vec`` empty). ``summarize`` gives per system and noise
+level the grid's best, the refined scalar and per-actuator optima, the range of
+``m_a`` within 10% of the best error, held-out errors and the error the
+per-actuator design saves, and how often the gradient's sign matches the grid's
+own slope at reliable and at unreliable points.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal, NamedTuple, Union
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
+
+from selfid_jax import control, design, paths
+from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, check_noise_pairs, unique
+from selfid_jax.experiment import Experiment, Part, controller_rows, precision
+from selfid_jax.plots import save_figure
+from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax.systems import System
+from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+
+_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+EVAL_DESIGNS = ("default", "grid", "scalar", "per_actuator")
+"""The designs compared on held-out trials: the system's safe ``m_a``, the grid's best, the refined scalar, per actuator."""
+
+Noise = Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)]
+
+
+class MagnitudeGrid(BaseModel):
+    """A log-spaced grid of self-ID magnitudes ``m_a`` [rad or m]."""
+
+    model_config = _STRICT
+
+    start: float = Field(gt=0, le=10, description="smallest magnitude [rad or m]")
+    stop: float = Field(gt=0, le=10, description="largest magnitude, above start")
+    num: int = Field(ge=2, le=1000, description="number of grid points (log-spaced)")
+
+    @field_validator("stop")
+    @classmethod
+    def _stop_after_start(cls, stop: float, info: ValidationInfo) -> float:
+        start = info.data.get("start")
+        if start is not None and not stop > start:
+            raise ValueError(f"must be greater than start ({start})")
+        return stop
+
+    def values(self) -> np.ndarray:
+        """``(num,)`` magnitudes, ``geomspace(start, stop, num)``."""
+        return np.geomspace(self.start, self.stop, self.num)
+
+
+class RefineConfig(BaseModel):
+    """The gradient refinement (Adam on ``log m_a``, cosine-decayed step; :func:`selfid_jax.design.refine`)."""
+
+    model_config = _STRICT
+
+    steps: int = Field(40, ge=1, le=10**4, description="Adam steps per refinement (scalar, then per actuator)")
+    learning_rate: float = Field(0.1, gt=0, le=10, description="initial step in log m_a (0.1: 10% of m_a)")
+    max_failed: float = Field(0.1, ge=0, le=1, description="gradient unreliable above this fraction of failed "
+                              "rollouts: not followed")
+
+
+class SystemRun(BaseModel):
+    """A system with its own protocol (a hand needs mm paths, finer tracker noise and magnitudes): overrides the top level."""
+
+    model_config = _STRICT
+
+    system: SystemSpec
+    path: PathConfig | None = None
+    controller: ControllerConfig | None = None
+    m_a_grid: MagnitudeGrid | None = None
+    pose_noise: Noise | None = None
+    rot_noise: Noise | None = None
+
+
+SystemEntry = Annotated[
+    Union[Annotated[SystemSpec, Tag("<spec>")], Annotated[SystemRun, Tag("<run>")]],
+    Discriminator(lambda v: "<run>" if isinstance(v, SystemRun) or (isinstance(v, dict) and "system" in v)
+                  else "<spec>"),
+]
+
+
+class Protocol(NamedTuple):
+    """One system's resolved protocol."""
+
+    spec: Any
+    path: PathConfig
+    controller: ControllerConfig
+    m_a_grid: MagnitudeGrid
+    pose_noise: list[float]
+    rot_noise: list[float]
+
+
+class DesignConfig(BaseConfig):
+    """Self-ID magnitude design per system and tracker-noise level: grid, gradient refinement, held-out comparison."""
+
+    experiment: Literal["design"] = "design"
+    systems: Annotated[list[SystemEntry], Field(
+        min_length=1, description="built-in names, {mjcf: ...} / {pose_fn: ...}, or {system: ..., path: ..., "
+        "controller: ..., m_a_grid: ..., pose_noise: ..., rot_noise: ...}")]
+    path: PathConfig
+    controller: ControllerConfig = ControllerConfig()
+    m_a_grid: MagnitudeGrid
+    pose_noise: Noise = Field(description="tracker position noise sd per level [m]")
+    rot_noise: Noise | None = Field(None, description="tracker rotation noise sd per level [rad] (default 0)")
+    n_configs: int = Field(ge=1, le=10**4, description="start configurations (feasible for the true inverse)")
+    n_trials: int = Field(1, ge=1, le=10**4, description="training trials per start (self-ID draws and noise)")
+    eval_trials: int = Field(2, ge=1, le=10**4, description="held-out trials per start for comparing designs")
+    iters: int = Field(12, ge=1, le=10**4, description="self-ID samples per estimate (no early stop)")
+    refine: RefineConfig = RefineConfig()
+    per_actuator: bool = Field(True, description="also refine one magnitude per actuator from the scalar optimum")
+    follow_from: Literal["selfid_end", "start"] = Field(
+        "selfid_end", description="the path starts where self-ID left the robot, or at the start configuration")
+
+    @field_validator("systems")
+    @classmethod
+    def _unique(cls, systems: list) -> list:
+        unique([system_name(s.system if isinstance(s, SystemRun) else s) for s in systems], "system names")
+        return systems
+
+    @model_validator(mode="after")
+    def _protocols_fit(self):
+        for entry in self.systems:
+            proto = protocol(self, entry)
+            proto.path.check_controller(proto.controller)
+            check_noise_pairs(proto.pose_noise, proto.rot_noise)
+        return self
+
+
+def protocol(cfg: DesignConfig, entry) -> Protocol:
+    """The resolved protocol of one ``systems`` entry, the top level filling what it leaves out."""
+    run = entry if isinstance(entry, SystemRun) else SystemRun(system=entry)
+    pose = run.pose_noise if run.pose_noise is not None else cfg.pose_noise
+    if run.rot_noise is not None:
+        rot = run.rot_noise
+    elif run.pose_noise is None and cfg.rot_noise is not None:  # the top level's levels, paired
+        rot = cfg.rot_noise
+    else:
+        rot = [0.0] * len(pose)
+    return Protocol(run.system, run.path or cfg.path, run.controller or cfg.controller, run.m_a_grid or cfg.m_a_grid,
+                    list(pose), list(rot))
+
+
+class Static(NamedTuple):
+    """What every row of one system shares (closed over by the compiled function)."""
+
+    system: System
+    path: jax.Array  # (W, task_dim) star waypoint offsets [m]
+    iters: int  # self-ID samples per estimate
+    n_trials: int  # training trials per start
+    eval_trials: int  # held-out trials per start
+    steps: int  # control-step budget per rollout
+    opt_steps: int  # Adam steps per refinement
+    per_actuator: bool
+    follow_from: str
+
+
+class Params(NamedTuple):
+    """One row's traced inputs (batch axis first when batched)."""
+
+    pose_noise: jax.Array  # () tracker position noise sd [m]
+    rot_noise: jax.Array  # () tracker rotation noise sd [rad]
+    m_a_grid: jax.Array  # (G,) magnitudes [rad or m]
+    default_m_a: jax.Array  # (n,) the system's safe magnitude (reference design)
+    key: jax.Array  # (2,) uint32 key data of the training trials
+    eval_key: jax.Array  # (2,) uint32 key data of the held-out trials
+    q0s: jax.Array  # (S, n) start configurations
+    learning_rate: jax.Array  # () initial Adam step in log m_a
+    max_failed: jax.Array  # () reliability threshold
+    controller: control.ControllerParams  # () each
+
+
+class Outputs(NamedTuple):
+    """One row's results: G grid points, K steps per refinement, E = 4 held-out designs (see module docstring)."""
+
+    grid_m_a: jax.Array  # (G,) [rad or m]
+    grid_loss: jax.Array  # (G,) [log m^2]
+    grid_failed: jax.Array  # (G,) fraction of failed rollouts
+    grid_completion: jax.Array  # (G,)
+    grid_rms: jax.Array  # (G,) [m]
+    grid_grad: jax.Array  # (G, n) d loss / d log m_a_i
+    scalar_log_m_a: jax.Array  # (K,)
+    scalar_loss: jax.Array  # (K,)
+    scalar_failed: jax.Array  # (K,)
+    scalar_completion: jax.Array  # (K,)
+    scalar_rms: jax.Array  # (K,) [m]
+    scalar_grad: jax.Array  # (K,) d loss / d log m_a followed (summed over actuators; 0 where unreliable)
+    per_log_m_a: jax.Array | None  # (K, n) (None without per_actuator)
+    per_loss: jax.Array | None  # (K,)
+    per_failed: jax.Array | None  # (K,)
+    per_completion: jax.Array | None  # (K,)
+    per_rms: jax.Array | None  # (K,) [m]
+    per_grad: jax.Array | None  # (K, n) followed (0 where unreliable)
+    eval_log_m_a: jax.Array  # (E, n) the compared designs
+    eval_loss: jax.Array  # (E,) on held-out trials
+    eval_failed: jax.Array  # (E,)
+    eval_completion: jax.Array  # (E,)
+    eval_rms: jax.Array  # (E,) [m]
+
+
+def compute(static: Static, p: Params) -> Outputs:
+    """Grid, scalar and per-actuator refinement on the training trials, then the designs on held-out trials."""
+    system = static.system
+    n = system.n_act
+    params = design.DesignParams(jnp.zeros((n,)), p.pose_noise, p.rot_noise, p.controller)
+    kw = dict(iters=static.iters, steps=static.steps, follow_from=static.follow_from)
+    key, eval_key = jax.random.wrap_key_data(p.key), jax.random.wrap_key_data(p.eval_key)
+    res = design.optimize(system, params, p.m_a_grid, key, p.q0s, static.path, opt_steps=static.opt_steps,
+                          learning_rate=p.learning_rate, max_failed=p.max_failed, per_actuator=static.per_actuator,
+                          n_trials=static.n_trials, **kw)
+    g = res.grid
+    per = res.per_actuator
+    scalar_vec = jnp.full((n,), res.scalar.best_log_m_a)
+    designs = jnp.stack([jnp.log(p.default_m_a), jnp.full((n,), jnp.log(g.m_a[g.best])), scalar_vec,
+                         per.best_log_m_a if per is not None else scalar_vec])
+    _, info = jax.vmap(lambda x: design.design_loss(system, params._replace(log_m_a=x), eval_key, p.q0s, static.path,
+                                                    n_trials=static.eval_trials, return_info=True, **kw))(designs)
+
+    return Outputs(
+        grid_m_a=g.m_a, grid_loss=g.info.loss, grid_failed=g.info.failed_fraction, grid_completion=g.info.completion,
+        grid_rms=g.info.rms_error, grid_grad=g.grad,
+        scalar_log_m_a=res.scalar.log_m_a, scalar_loss=res.scalar.loss, scalar_failed=res.scalar.failed_fraction,
+        scalar_completion=res.scalar.completion, scalar_rms=res.scalar.rms_error, scalar_grad=res.scalar.grad,
+        per_log_m_a=None if per is None else per.log_m_a, per_loss=None if per is None else per.loss,
+        per_failed=None if per is None else per.failed_fraction, per_completion=None if per is None else per.completion,
+        per_rms=None if per is None else per.rms_error, per_grad=None if per is None else per.grad,
+        eval_log_m_a=designs, eval_loss=info.loss, eval_failed=info.failed_fraction, eval_completion=info.completion,
+        eval_rms=info.rms_error,
+    )
+
+
+def build(cfg: DesignConfig) -> list[Part]:
+    """One part per system (float64 where the system needs it): one row per tracker-noise level."""
+    parts = []
+    for index, entry in enumerate(cfg.systems):
+        proto = protocol(cfg, entry)
+        x64 = needs_x64(proto.spec)
+        with precision(x64):
+            parts.append(_system_part(cfg, proto, index)._replace(x64=x64))
+    return parts
+
+
+def _system_part(cfg: DesignConfig, proto: Protocol, index: int) -> Part:
+    name, system = system_name(proto.spec), build_system(proto.spec)
+    if not system.position_axes:
+        raise ValueError(f"system {name!r}: the design loss needs a task with position components, got {system.axes}")
+    path = paths.star(size=proto.path.size, dim=6)[:, list(system.axes)]
+    ctrl = control.ControllerParams(**proto.controller.traced())
+    q0s = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed + index), cfg.n_configs, ctrl,
+                                             steps=proto.controller.steps))
+    meta = grid_table({"system": [name], "noise_level": range(len(proto.pose_noise))})
+    meta["pose_noise"] = np.asarray(proto.pose_noise, float)[meta["noise_level"]]
+    meta["rot_noise"] = np.asarray(proto.rot_noise, float)[meta["noise_level"]]
+    N = len(meta)
+    grid = proto.m_a_grid.values()
+
+    def rows(x):
+        return np.repeat(np.asarray(x)[None], N, axis=0)
+
+    params = Params(
+        pose_noise=meta["pose_noise"].to_numpy(float),
+        rot_noise=meta["rot_noise"].to_numpy(float),
+        m_a_grid=rows(grid),
+        default_m_a=rows(np.asarray(system.m_a, float)),
+        key=row_keys(cfg.seed, np.full(N, 2 * index)),  # the same trials at every noise level (common random numbers)
+        eval_key=row_keys(cfg.seed, np.full(N, 2 * index + 1)),
+        q0s=rows(q0s),
+        learning_rate=np.full(N, cfg.refine.learning_rate),
+        max_failed=np.full(N, cfg.refine.max_failed),
+        controller=controller_rows(proto.controller, N),
+    )
+    static = Static(system, path, cfg.iters, cfg.n_trials, cfg.eval_trials, proto.controller.steps, cfg.refine.steps,
+                    cfg.per_actuator, cfg.follow_from)
+    return Part(name, static, params, meta)
+
+
+# --------------------------------------------------------------------------- table
+
+def _stack(wide: pd.DataFrame, col: str, shape: tuple[int, ...]) -> np.ndarray:
+    return np.stack([np.asarray(v, float) for v in wide[col].to_numpy()]).reshape((len(wide), *shape))
+
+
+def tabulate(wide: pd.DataFrame, part: Part, cfg: DesignConfig) -> pd.DataFrame:
+    """One row per evaluated point: the grid, both gradient paths and the held-out designs (module docstring)."""
+    n = part.static.system.n_act
+    G = int(np.shape(part.params.m_a_grid)[1])
+    K = cfg.refine.steps
+    base = wide[["system", "noise_level", "pose_noise", "rot_noise"]]
+    frames = []
+
+    def add(stage, designs, log_m_a, loss, failed, completion, rms, grad, reliable):
+        count = log_m_a.shape[1]
+        for j in range(count):
+            df = base.copy()
+            df["stage"] = stage
+            df["design"] = designs[j] if designs is not None else stage
+            df["index"] = j
+            vec = log_m_a[:, j].reshape(len(wide), -1) * np.ones((1, n))
+            df["m_a"] = np.exp(vec.mean(axis=1))
+            df["m_a_vec"] = list(np.exp(vec))
+            df["loss"] = loss[:, j]
+            df["gm_error_mm"] = 1e3 * np.exp(loss[:, j] / 2.0)
+            df["rms_error_mm"] = 1e3 * rms[:, j]
+            df["failed_fraction"] = failed[:, j]
+            df["completion"] = completion[:, j]
+            if grad is None:
+                df["grad"] = np.nan
+                df["grad_vec"] = [np.zeros(0)] * len(wide)
+            else:
+                gv = grad[:, j].reshape(len(wide), -1)
+                df["grad"] = gv.sum(axis=1)
+                df["grad_vec"] = list(gv) if gv.shape[1] == n else [np.zeros(0)] * len(wide)
+            df["reliable"] = reliable[:, j]
+            frames.append(df)
+
+    mf = cfg.refine.max_failed
+
+    def reliable(loss, failed):
+        return np.isfinite(loss) & (failed <= mf)
+
+    gl, gf = _stack(wide, "grid_loss", (G,)), _stack(wide, "grid_failed", (G,))
+    add("grid", None, np.log(_stack(wide, "grid_m_a", (G,))), gl, gf, _stack(wide, "grid_completion", (G,)),
+        _stack(wide, "grid_rms", (G,)), _stack(wide, "grid_grad", (G, n)), reliable(gl, gf))
+    sl, sf = _stack(wide, "scalar_loss", (K,)), _stack(wide, "scalar_failed", (K,))
+    add("scalar", None, _stack(wide, "scalar_log_m_a", (K,)), sl, sf, _stack(wide, "scalar_completion", (K,)),
+        _stack(wide, "scalar_rms", (K,)), _stack(wide, "scalar_grad", (K,)), reliable(sl, sf))
+    if "per_loss" in wide:
+        pl, pf = _stack(wide, "per_loss", (K,)), _stack(wide, "per_failed", (K,))
+        add("per_actuator", None, _stack(wide, "per_log_m_a", (K, n)), pl, pf, _stack(wide, "per_completion", (K,)),
+            _stack(wide, "per_rms", (K,)), _stack(wide, "per_grad", (K, n)), reliable(pl, pf))
+    E = len(EVAL_DESIGNS)
+    keep = E if "per_loss" in wide else E - 1  # without a per-actuator design its slot repeats the scalar one
+
+    def ev(col, shape=()):
+        return _stack(wide, col, (E, *shape))[:, :keep]
+
+    el, ef = ev("eval_loss"), ev("eval_failed")
+    add("eval", EVAL_DESIGNS[:keep], ev("eval_log_m_a", (n,)), el, ef, ev("eval_completion"), ev("eval_rms"), None,
+        reliable(el, ef))
+    return pd.concat(frames, ignore_index=True)
+
+
+# --------------------------------------------------------------------------- summary
+
+def _best_point(g: pd.DataFrame) -> pd.Series:
+    """The lowest-loss reliable row of a refinement trace (its first row if none is reliable)."""
+    ok = g[g["reliable"]]
+    return ok.loc[ok["loss"].idxmin()] if len(ok) else g.iloc[0]
+
+
+FLAT_TOLERANCE = 1.1
+"""``m_a_within_10pct``: the grid magnitudes whose geometric-mean error is within this factor of the best."""
+
+
+def _flat_range(grid: pd.DataFrame) -> list[float]:
+    """``[low, high]``: the contiguous grid range around the best point within :data:`FLAT_TOLERANCE` of its error."""
+    g = grid.sort_values("index")
+    err, m = g["gm_error_mm"].to_numpy(), g["m_a"].to_numpy()
+    best = int(np.argmin(err))
+    ok = err <= FLAT_TOLERANCE * err[best]
+    lo = hi = best
+    while lo > 0 and ok[lo - 1]:
+        lo -= 1
+    while hi < len(ok) - 1 and ok[hi + 1]:
+        hi += 1
+    return [float(m[lo]), float(m[hi])]
+
+
+def _gradient_check(grid: pd.DataFrame) -> dict[str, Any]:
+    """Does the gradient's sign match the grid's own slope? Central differences of the grid loss in log m_a at the
+    interior points, split by the reliability flag (the detector of the unreliable regime)."""
+    g = grid.sort_values("index")
+    x, y = np.log(g["m_a"].to_numpy()), g["loss"].to_numpy()
+    slope = (y[2:] - y[:-2]) / (x[2:] - x[:-2])
+    grad, rel = g["grad"].to_numpy()[1:-1], g["reliable"].to_numpy()[1:-1]
+    agree = np.sign(grad) == np.sign(slope)
+    out = {}
+    for name, mask in (("reliable", rel), ("unreliable", ~rel)):
+        out[name] = {"points": int(mask.sum()),
+                     "sign_agrees": float(agree[mask].mean()) if mask.any() else None}
+    return out
+
+
+def summarize(table: pd.DataFrame, cfg: DesignConfig) -> dict[str, Any]:
+    """Per system and noise level: grid best, refined scalar and per-actuator optima, held-out errors and savings."""
+    systems: dict[str, Any] = {}
+    for entry in cfg.systems:
+        proto = protocol(cfg, entry)
+        name = system_name(proto.spec)
+        t = table[table["system"] == name]
+        if t.empty:
+            continue
+        levels = []
+        for level, g in t.groupby("noise_level", sort=True):
+            grid = g[g["stage"] == "grid"]
+            gb = grid.loc[grid["loss"].idxmin()]
+            scalar = g[g["stage"] == "scalar"]
+            sb = _best_point(scalar)
+            ev = {str(r["design"]): {
+                "m_a": [float(v) for v in r["m_a_vec"]], "loss": float(r["loss"]),
+                "gm_error_mm": float(r["gm_error_mm"]), "rms_error_mm": float(r["rms_error_mm"]),
+                "failed_fraction": float(r["failed_fraction"]), "completion": float(r["completion"]),
+            } for _, r in g[g["stage"] == "eval"].iterrows()}
+            item: dict[str, Any] = {
+                "pose_noise": float(gb["pose_noise"]), "rot_noise": float(gb["rot_noise"]),
+                "grid_best_m_a": float(gb["m_a"]), "grid_best_loss": float(gb["loss"]),
+                "m_a_within_10pct": _flat_range(grid),
+                # the refinement stays in the grid's range: an optimum on its edge asks for a wider grid
+                "at_grid_edge": bool(np.isclose(sb["m_a"], grid["m_a"].min(), rtol=1e-3)
+                                     or np.isclose(sb["m_a"], grid["m_a"].max(), rtol=1e-3)),
+                "grid_failed_fraction": [float(v) for v in grid.sort_values("index")["failed_fraction"]],
+                "scalar_m_a": float(sb["m_a"]), "scalar_loss": float(sb["loss"]),
+                "scalar_unreliable_steps": int((~scalar["reliable"]).sum()),
+                "gradient_check": _gradient_check(grid),
+                "held_out": ev,
+            }
+            per = g[g["stage"] == "per_actuator"]
+            if len(per):
+                pb = _best_point(per)
+                item.update({"per_actuator_m_a": [float(v) for v in pb["m_a_vec"]],
+                             "per_actuator_loss": float(pb["loss"]),
+                             "per_actuator_unreliable_steps": int((~per["reliable"]).sum())})
+            if "scalar" in ev and "per_actuator" in ev and len(per):
+                # geometric-mean RMS error ratio on held-out trials: exp((L_per - L_scalar) / 2)
+                item["per_actuator_error_saved"] = 1.0 - float(np.exp((ev["per_actuator"]["loss"]
+                                                                       - ev["scalar"]["loss"]) / 2.0))
+            if "scalar" in ev and "default" in ev:
+                item["scalar_error_saved_vs_default"] = 1.0 - float(np.exp((ev["scalar"]["loss"]
+                                                                            - ev["default"]["loss"]) / 2.0))
+            levels.append(item)
+        systems[name] = {
+            "n_act": int(len(t[t["stage"] == "eval"]["m_a_vec"].iloc[0])),
+            "protocol": {"path": proto.path.model_dump(), "controller": proto.controller.model_dump(),
+                         "m_a_grid": proto.m_a_grid.model_dump()},
+            "noise_levels": levels,
+        }
+    return {
+        "iters": cfg.iters, "n_configs": cfg.n_configs, "n_trials": cfg.n_trials, "eval_trials": cfg.eval_trials,
+        "refine": cfg.refine.model_dump(), "per_actuator": cfg.per_actuator, "follow_from": cfg.follow_from,
+        "loss": "mean over rollouts of log(mean squared path distance + (1e-3 tol)^2) [log m^2], failed rollouts "
+                "(diverged, non-finite or incomplete) saturated at the divergence distance",
+        "systems": systems,
+    }
+
+
+def report(summary: dict) -> str:
+    """One line per system and noise level: grid best, refined scalar and per-actuator m_a, held-out savings."""
+    lines = []
+    for name, s in summary["systems"].items():
+        for lv in s["noise_levels"]:
+            ho = lv["held_out"]
+            line = (f"{name}: noise {1e3 * lv['pose_noise']:g} mm: m_a grid {lv['grid_best_m_a']:.3g}, refined "
+                    f"{lv['scalar_m_a']:.3g}")
+            if "per_actuator_m_a" in lv:
+                line += ", per actuator [" + ", ".join(f"{v:.3g}" for v in lv["per_actuator_m_a"]) + "]"
+            lo, hi = lv["m_a_within_10pct"]
+            line += f" (within 10% of the best error: {lo:.3g}-{hi:.3g})"
+            line += "; held-out error (geometric mean RMS) " + ", ".join(
+                f"{d} {ho[d]['gm_error_mm']:.3g} mm" for d in EVAL_DESIGNS if d in ho)
+            if "per_actuator_error_saved" in lv:
+                line += f"; per actuator saves {100 * lv['per_actuator_error_saved']:.1f}%"
+            if lv.get("at_grid_edge"):
+                line += " [optimum on the grid's edge: widen m_a_grid]"
+            unrel = lv["scalar_unreliable_steps"] + lv.get("per_actuator_unreliable_steps", 0)
+            if unrel:
+                line += f" ({unrel} unreliable gradient steps not followed)"
+            lines.append(line)
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- figures
+
+def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
+    """``design_curves``: grid loss vs m_a per noise level with the gradient paths; ``design_optimum``: optimum vs noise.
+
+    Curves: one panel per system; each noise level's grid (line; crosses where
+    the gradient is flagged unreliable), the scalar gradient path (dots, from
+    the grid's best), its optimum (star) and the per-actuator optimum's loss
+    at its geometric-mean magnitude (diamond). Optimum: the refined scalar
+    ``m_a`` (line), the grid's best (dashed) and each actuator's magnitude of
+    the per-actuator design (markers) against the tracker's position noise.
+    Reads the saved table only.
+    """
+    from matplotlib.figure import Figure
+
+    names = list(dict.fromkeys(table["system"]))
+    written: list[Path] = []
+    fig = Figure(figsize=(4.6 * len(names), 4.0), layout="constrained")
+    axes = fig.subplots(1, len(names), squeeze=False)[0]
+    for ax, name in zip(axes, names):
+        t = table[table["system"] == name]
+        for k, (level, g) in enumerate(t.groupby("noise_level", sort=True)):
+            color = f"C{k}"
+            grid = g[g["stage"] == "grid"].sort_values("index")
+            noise = float(grid["pose_noise"].iloc[0])
+            ax.plot(grid["m_a"], grid["loss"], "-", color=color, lw=1.2, label=f"noise {1e3 * noise:g} mm")
+            bad = grid[~grid["reliable"]]
+            ax.plot(bad["m_a"], bad["loss"], "x", color=color, ms=6)
+            sc = g[g["stage"] == "scalar"].sort_values("index")
+            ax.plot(sc["m_a"], sc["loss"], ".-", color=color, ms=3, lw=0.6, alpha=0.8)
+            sb = _best_point(sc)
+            ax.plot([sb["m_a"]], [sb["loss"]], "*", color=color, ms=12, mec="k", mew=0.5)
+            per = g[g["stage"] == "per_actuator"]
+            if len(per):
+                pb = _best_point(per)
+                ax.plot([pb["m_a"]], [pb["loss"]], "D", color=color, ms=6, mec="k", mew=0.5)
+        ax.set_xscale("log")
+        ax.set_xlabel("self-ID magnitude m_a [rad or m]")
+        ax.set_ylabel("loss: mean log(MSE to the path) [log m^2]")
+        ax.set_title(f"{name}: grid (x: gradient unreliable), gradient path, optimum (*), per actuator (D)", fontsize=7)
+        ax.legend(fontsize=7)
+    fig.suptitle(_protocol_line(summary), fontsize=7)
+    written += save_figure(fig, out_dir, "design_curves")
+
+    fig = Figure(figsize=(4.6 * len(names), 4.0), layout="constrained")
+    axes = fig.subplots(1, len(names), squeeze=False)[0]
+    for ax, name in zip(axes, names):
+        levels = summary.get("systems", {}).get(name, {}).get("noise_levels", [])
+        if not levels:
+            ax.set_axis_off()
+            continue
+        noise = np.asarray([lv["pose_noise"] for lv in levels])
+        zero = noise <= 0
+        if zero.any():  # noise-free levels sit left of the rest on the log axis, their tick labelled 0
+            nonzero = noise[~zero]
+            noise = np.where(zero, (nonzero.min() if nonzero.size else 1e-3) / 4.0, noise)
+        band = np.asarray([lv["m_a_within_10pct"] for lv in levels])
+        ax.fill_between(noise, band[:, 0], band[:, 1], color="0.85", label="within 10% of the best error (grid)")
+        ax.plot(noise, [lv["scalar_m_a"] for lv in levels], "o-", color="k", label="refined scalar m_a")
+        ax.plot(noise, [lv["grid_best_m_a"] for lv in levels], "s--", color="0.5", mfc="none", label="grid best")
+        if "per_actuator_m_a" in levels[0]:
+            per = np.asarray([lv["per_actuator_m_a"] for lv in levels])
+            for i in range(per.shape[1]):
+                ax.plot(noise * (1.0 + 0.04 * (i - per.shape[1] / 2)), per[:, i], "^", ms=5, color=f"C{i}",
+                        label=f"actuator {i + 1}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        if zero.any():
+            ticks = sorted(set(noise.tolist()))
+            ax.set_xticks(ticks, ["0" if t == noise[zero][0] else f"{t:g}" for t in ticks], fontsize=7)
+        ax.set_xlabel("tracker position noise sd [m]")
+        ax.set_ylabel("optimal self-ID magnitude m_a [rad or m]")
+        ax.set_title(name, fontsize=9)
+        ax.legend(fontsize=6)
+    fig.suptitle(_protocol_line(summary), fontsize=7)
+    written += save_figure(fig, out_dir, "design_optimum")
+    return written
+
+
+def _protocol_line(summary: dict) -> str:
+    if "iters" not in summary:
+        return ""
+    r = summary["refine"]
+    return (f"{summary['iters']} self-ID samples, {summary['n_configs']} starts x {summary['n_trials']} trials "
+            f"(held out: x {summary['eval_trials']}); Adam {r['steps']} steps, lr {r['learning_rate']:g} in log m_a; "
+            f"gradient unreliable above {r['max_failed']:g} failed; path from {summary['follow_from']}")
+
+
+EXPERIMENT = Experiment(
+    name="design",
+    config=DesignConfig,
+    build=build,
+    compute=compute,
+    summarize=summarize,
+    tabulate=tabulate,
+    plot=plot,
+    report=report,
+    description="self-ID design: the self-ID magnitude m_a per system and tracker noise, by grid and gradient",
+)
