@@ -5,8 +5,12 @@ The XLA CPU backend that ships with current jaxlib compiles batched
 with the concurrency-optimised scheduler. On small CPUs both are badly slow for
 the programs this library runs (many small matrix ops inside long scans):
 a 200-step rollout took 202 ms instead of 1.3 ms, and batched ``mjx.step``
-stalled at batch >= ~350 on 2 cores. ``benchmarks/xla_flags.py`` measures the
-effect on this machine.
+stalled at batch >= ~350 on 2 cores. From jaxlib 0.8.1 it also hands
+reductions and elementwise chains to YNNPACK kernels, one call per fusion: for
+a few entries per estimator or per joint that doubled the UR5e rollout
+(0.125 against 0.062 ms at batch 10,000) and slowed the self-ID step 1.2x.
+``benchmarks/xla_flags.py`` measures the effect on this machine. Each flag is
+set only for the jaxlib releases that know it (:data:`MIN_JAXLIB`).
 
 The flags are appended to ``XLA_FLAGS`` unless the user already set that flag
 (either value wins over ours). They only take effect if the XLA backend has not
@@ -21,15 +25,64 @@ import os
 DEFAULT_XLA_FLAGS: dict[str, str] = {
     "--xla_cpu_use_fusion_emitters": "false",
     "--xla_cpu_enable_concurrency_optimized_scheduler": "false",
+    "--xla_cpu_experimental_ynn_fusion_type": "",
+}
+
+# The oldest jaxlib whose XLA knows each flag (checked in the released wheels:
+# an unknown flag in XLA_FLAGS aborts the process when the backend starts).
+MIN_JAXLIB: dict[str, tuple[int, ...]] = {
+    "--xla_cpu_use_fusion_emitters": (0, 6, 0),
+    "--xla_cpu_experimental_ynn_fusion_type": (0, 8, 1),
 }
 
 
-def merged_xla_flags(existing: str | None, defaults: dict[str, str] = DEFAULT_XLA_FLAGS) -> str:
+def jaxlib_version() -> tuple[int, ...] | None:
+    """The installed jaxlib's release as an int tuple (:func:`release_tuple`), None if unknown; jaxlib is not imported."""
+    from importlib import metadata
+
+    try:
+        return release_tuple(metadata.version("jaxlib"))
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def release_tuple(text: str) -> tuple[int, ...] | None:
+    """Release numbers of a version string: ``"0.9.0.1"`` -> ``(0, 9, 0, 1)``, ``"0.7.0rc1"`` -> ``(0, 7, 0)``.
+
+    None when it does not start with a number.
+    """
+    parts = []
+    for token in text.split("+")[0].split("."):
+        digits = ""
+        for c in token:
+            if not c.isdigit():
+                break
+            digits += c
+        if not digits:
+            break
+        parts.append(int(digits))
+        if digits != token:  # "0rc1", "2dev3": the release number ends here
+            break
+    return tuple(parts) or None
+
+
+def defaults_for(version: tuple[int, ...] | None) -> dict[str, str]:
+    """The default flags this jaxlib release knows: those of :data:`DEFAULT_XLA_FLAGS` whose minimum it meets.
+
+    ``version`` None (unknown) keeps only the flags without a minimum.
+    """
+    return {flag: value for flag, value in DEFAULT_XLA_FLAGS.items()
+            if flag not in MIN_JAXLIB or (version is not None and version >= MIN_JAXLIB[flag])}
+
+
+def merged_xla_flags(existing: str | None, defaults: dict[str, str] | None = None) -> str:
     """Return ``existing`` XLA flags with each default appended unless already set.
 
     A flag counts as set if ``existing`` names it in any form
-    (``--flag=value`` or bare ``--flag``).
+    (``--flag=value`` or bare ``--flag``). ``defaults``: the flags to add
+    (default: :func:`defaults_for` the installed jaxlib).
     """
+    defaults = defaults_for(jaxlib_version()) if defaults is None else defaults
     tokens = (existing or "").split()
     present = {tok.split("=", 1)[0] for tok in tokens}
     for flag, value in defaults.items():

@@ -43,8 +43,7 @@ class EstimatorState(NamedTuple):
     buffer (``capacity`` rows, 0 for none) holds samples themselves.
     """
 
-    sign_pos: jax.Array  # (n, m) float: accumulated weight of s_ij = +1 (Eq. 9)
-    sign_neg: jax.Array  # (n, m) float: accumulated weight of s_ij = -1 (Eq. 9)
+    sign_net: jax.Array  # (n, m) float: weight of s_ij = +1 minus weight of s_ij = -1 (Eq. 9's two buckets)
     mag_sum: jax.Array  # (n, m) float: sum of |dtheta_i / V_j| over samples with |V_j| > v_tol (Eq. 11)
     mag_count: jax.Array  # (m,) float: (weighted) number of samples in mag_sum, per task component j
     S_vv: jax.Array  # (m, m) float: sum V V^T, task units^2 (Gram matrix of Eq. 14)
@@ -94,8 +93,7 @@ def init(
     dtype = float_dtype() if dtype is None else check_float_dtype("dtype", dtype)
     zeros = jnp.zeros((n, m), dtype)
     return EstimatorState(
-        sign_pos=zeros,
-        sign_neg=zeros,
+        sign_net=zeros,
         mag_sum=zeros,
         mag_count=jnp.zeros((m,), dtype),
         S_vv=jnp.zeros((m, m), dtype),
@@ -248,8 +246,8 @@ def fits(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> jax.Array:
 def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
     """Fold one *valid* sample ``(dtheta (n,), V (m,))`` into the sums and the ring buffer; counters untouched.
 
-    Multiplies every sum by ``forget`` and adds the sample's sign weights
-    (Eq. 6-9), its magnitude ratios ``|dtheta_i / V_j|`` where
+    Multiplies every sum by ``forget`` and adds the sample's signed weights
+    ``s_ij w_ij`` (Eq. 6-9), its magnitude ratios ``|dtheta_i / V_j|`` where
     ``|V_j| > v_tol`` (Eq. 11), ``V V^T`` to ``S_vv``, ``dtheta V^T`` to
     ``S_tv`` and ``||dtheta||^2`` to ``s_tt``, and writes the pair to ring-buffer
     row ``count % capacity`` (if ``capacity > 0``). ``O(n m + m^2)`` operations.
@@ -257,7 +255,7 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> Estima
     leaves the state unchanged, forgetting included. No checks: use :func:`update`.
     """
     n, m, capacity = sizes(state)
-    dtype = state.sign_pos.dtype
+    dtype = state.sign_net.dtype
     # Per-sample values come out of reductions (computed once per estimator by XLA); what follows
     # them is recomputed inside each (n, m) sum below, so it stays short.
     a_t, a_v = jnp.abs(dtheta), jnp.abs(V)
@@ -270,8 +268,7 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> Estima
     inv_v = jnp.where(big > 0, 1.0 / jnp.where(big > 0, a_v, 1.0), 0.0)  # Eq. 11 ratio = |dtheta_i| * inv_v_j
     sw = u_t[:, None] * u_v[None, :]  # s_ij w_ij (Eq. 6-8)
     new = state._replace(
-        sign_pos=lam * state.sign_pos + jnp.maximum(sw, 0.0),
-        sign_neg=lam * state.sign_neg + jnp.maximum(-sw, 0.0),
+        sign_net=lam * state.sign_net + sw,
         mag_sum=lam * state.mag_sum + a_t[:, None] * inv_v[None, :],
         mag_count=lam * state.mag_count + big,
         S_vv=lam * state.S_vv + V[:, None] * V[None, :],
@@ -299,13 +296,13 @@ def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorS
     (:func:`guarded_update`).
     """
     n, m, _ = sizes(state)
-    return guarded_update(accumulate, state, dtheta, V, shape=(n, m), dtype=state.sign_pos.dtype, admit=fits,
+    return guarded_update(accumulate, state, dtheta, V, shape=(n, m), dtype=state.sign_net.dtype, admit=fits,
                           zero_is_identity=True)
 
 
 def signed_inverse_jacobian(state: EstimatorState) -> jax.Array:
-    """Signed inverse Jacobian ``(n, m)`` in {-1, +1}: the heavier sign bucket, ties -> +1 (Eq. 10)."""
-    return jnp.where(state.sign_pos >= state.sign_neg, 1.0, -1.0).astype(state.sign_pos.dtype)
+    """Signed inverse Jacobian ``(n, m)`` in {-1, +1}: the heavier sign bucket (``sign_net >= 0``), ties -> +1 (Eq. 10)."""
+    return jnp.where(state.sign_net >= 0, 1.0, -1.0).astype(state.sign_net.dtype)
 
 
 def magnitude_inverse_jacobian(state: EstimatorState) -> jax.Array:

@@ -46,6 +46,7 @@ import optax
 
 from selfid_jax._checks import check_array, check_scalar, is_traced
 from selfid_jax.estimator import EstimatorState, samples, signed_inverse_jacobian, sizes
+from selfid_jax.linalg import _ldl_null_space, _small_matmul, _spd_right_solve, default_rcond, psd_pinv  # noqa: F401
 
 METHODS = ("closed_form", "optax", "slsqp")
 LOSSES = ("l2", "huber")
@@ -88,116 +89,32 @@ def closed_form(theta, V, J0, *, ridge=0.0):
     return J0 + jnp.where(ridge > 0, ridge_corr, R @ jnp.linalg.pinv(V.T))
 
 
-def default_rcond(m: int, dtype) -> float:
-    """Default relative eigenvalue cutoff of :func:`psd_pinv`: ``10 m eps`` of ``dtype`` (6.7e-15 in float64, 3.6e-6 in float32 for m = 3)."""
-    return 10.0 * m * float(jnp.finfo(dtype).eps)
-
-
-def _small_matmul(A, B):
-    """``A (p, k) @ B (k, q)`` as unrolled multiply-adds over the small static ``k`` (see ``estimator.small_sum``)."""
-    out = A[:, 0:1] * B[0:1, :]
-    for k in range(1, A.shape[1]):
-        out = out + A[:, k : k + 1] * B[k : k + 1, :]
-    return out
-
-
-def psd_pinv(S, *, rcond=None):
-    """Pseudo-inverse ``P (m, m)`` of a symmetric positive semi-definite ``S (m, m)`` and the projector ``N (m, m)`` onto its null space.
-
-    Rank-revealing ``L D L^T`` factorisation without pivoting, unrolled over the
-    static ``m`` (vmapped, it is elementwise work across the batch, with no
-    LAPACK call per matrix). The Schur complements of a PSD matrix are PSD, so
-    a zero pivot means a zero row and column. At step ``k`` the candidate null
-    vector ``z_k = L^-T e_k`` (it needs only the columns of ``L`` before ``k``)
-    has Rayleigh quotient ``z_k^T S z_k / ||z_k||^2 = d_k / ||z_k||^2``; pivot
-    ``k`` counts as zero, and its column of ``L`` is dropped, when that is at
-    most ``rcond * tr(S)`` (default :func:`default_rcond`): the eigenvalue
-    cutoff of a pseudo-inverse, relative to the sum of the eigenvalues. (The
-    pivot itself is a poor test without pivoting: after a small earlier pivot
-    the round-off of a null pivot reached 2e-10 of its diagonal entry, while
-    the Rayleigh quotient of round-off null directions stayed below 6e-16 of
-    the trace and that of excited ones above 6e-8, over 3,200 random rank-1
-    and rank-2 streams in 3-D.) Then ``W = L^-T D^+ L^-1`` satisfies
-    ``S W S = S``, the ``z_k`` of the dropped pivots span the null space,
-    orthonormalised by Gram-Schmidt into ``N = sum q q^T``, and
-    ``P = (I - N) W (I - N)`` is the Moore-Penrose inverse. With no pivot
-    dropped, ``N = 0`` exactly and ``P = S^-1``.
-
-    Because ``S = V V^T`` squares the condition number of the samples ``V``, a
-    direction whose singular value is below about ``sqrt(rcond)`` times the
-    largest counts as not excited (float32, m = 3: ``2e-3``; the buffered
-    ``pinv(V)`` keeps down to ``10 K eps``). ``rcond`` may be traced. Jit,
-    vmap and differentiate (NaN-safe where a pivot is dropped).
-    """
-    m = S.shape[-1]
-    dtype = S.dtype
-    rcond = default_rcond(m, dtype) if rcond is None else rcond
-    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-    scale = rcond * sum((S[k, k] for k in range(1, m)), S[0, 0])  # rcond * tr(S)
-    L = [[zero] * m for _ in range(m)]  # unit lower triangular, L[i][k] for i > k
-    Li = [[one if i == c else zero for c in range(m)] for i in range(m)]  # L^-1, row k = z_k^T
-    d, dinv, keep = [zero] * m, [zero] * m, [None] * m
-    for k in range(m):
-        for c in range(k):  # row k of L^-1 from row k of L (columns < k, final) and earlier rows
-            Li[k][c] = -sum((L[k][j] * Li[j][c] for j in range(c + 1, k)), L[k][c])
-        piv = S[k, k]
-        for j in range(k):
-            piv = piv - L[k][j] * L[k][j] * d[j]
-        norm2 = sum((Li[k][c] * Li[k][c] for c in range(k)), one)  # ||z_k||^2 >= 1
-        keep[k] = piv > scale * norm2
-        d[k] = jnp.where(keep[k], piv, 0.0)
-        dinv[k] = jnp.where(keep[k], 1.0 / jnp.where(keep[k], piv, 1.0), 0.0)
-        for i in range(k + 1, m):
-            a = S[i, k]
-            for j in range(k):
-                a = a - L[i][j] * L[k][j] * d[j]
-            L[i][k] = a * dinv[k]
-    # W = Li^T D^+ Li (symmetric)
-    W = [[zero] * m for _ in range(m)]
-    for i in range(m):
-        for j in range(i, m):
-            w = zero
-            for k in range(j, m):
-                w = w + Li[k][i] * dinv[k] * Li[k][j]
-            W[i][j] = W[j][i] = w
-    # null space: z_k (row k of Li) for dropped k, orthonormalised
-    qs = []
-    for k in range(m):
-        z = list(Li[k])
-        for q in qs:
-            dot = sum((q[i] * z[i] for i in range(1, m)), q[0] * z[0])
-            z = [z[i] - dot * q[i] for i in range(m)]
-        norm2 = sum((zi * zi for zi in z[1:]), z[0] * z[0])
-        drop = ~keep[k]
-        inv_norm = jnp.where(drop, jax.lax.rsqrt(jnp.where(drop & (norm2 > 0), norm2, 1.0)), 0.0)
-        qs.append([zi * inv_norm for zi in z])
-    N = jnp.stack([jnp.stack([sum((q[i] * q[j] for q in qs[1:]), qs[0][i] * qs[0][j]) for j in range(m)])
-                   for i in range(m)])
-    W = jnp.stack([jnp.stack(row) for row in W])
-    R = jnp.eye(m, dtype=dtype) - N
-    return _small_matmul(_small_matmul(R, W), R), N
-
-
 def statistics_closed_form(S_vv, S_tv, J0, *, ridge=0.0, rcond=None):
     """Eq. 14 in closed form from the sufficient statistics: ``(n, m)``.
 
     ``S_vv (m, m) = sum V V^T``, ``S_tv (n, m) = sum dtheta V^T`` (over every
     sample, possibly forgetting-weighted), ``J0 (n, m)`` the initial guess.
     ``ridge = 0``: the minimum-norm correction of ``J0``,
-    ``J0 + (S_tv - J0 S_vv) pinv(S_vv)``, computed as ``S_tv P + J0 N`` with
-    ``(P, N) = psd_pinv(S_vv)`` so that a large ``J0`` does not cancel against
-    itself (in float32, ``J0 - J0 S_vv S_vv^-1`` leaves errors of ``eps |J0|
-    cond(S_vv)``); equal to :func:`closed_form` on the samples themselves, and
+    ``J0 + (S_tv - J0 S_vv) pinv(S_vv)``, which is ``S_tv P + J0 N`` with
+    ``(P, N) = psd_pinv(S_vv)``, computed without forming ``P`` (see the code)
+    so that a large ``J0`` does not cancel against itself (in float32,
+    ``J0 - J0 S_vv S_vv^-1`` leaves errors of ``eps |J0| cond(S_vv)``); equal to :func:`closed_form` on the samples themselves, and
     to ``S_tv S_vv^-1`` whatever ``J0`` is once ``S_vv`` has full rank.
     ``ridge > 0``: ``(S_tv + ridge J0) (S_vv + ridge I)^-1``, the exact ridge
     solution. ``ridge`` and ``rcond`` may be traced; a literal 0 skips the
     ridge branch.
     """
-    P, N = psd_pinv(S_vv, rcond=rcond)
-    J = _small_matmul(S_tv, P) + _small_matmul(J0, N)
+    m = S_vv.shape[-1]
+    _, _, N = _ldl_null_space(S_vv, rcond)
+    # S P = I - N and N S = 0 give (S / c + N)^-1 = c P + N, so that
+    # (S_tv / c + (J0 - S_tv / c) N) (S / c + N)^-1 = S_tv P + J0 N with one
+    # solve of a positive definite matrix (c = tr(S) / m sets the scale of N) and no P formed.
+    tr = sum((S_vv[k, k] for k in range(1, m)), S_vv[0, 0])
+    inv_c = 1.0 / jnp.where(tr > 0, tr / m, 1.0)
+    T = S_tv * inv_c
+    J = _spd_right_solve(T + _small_matmul(J0 - T, N), S_vv * inv_c + N)
     if isinstance(ridge, (int, float)) and ridge == 0:
         return J
-    m = S_vv.shape[0]
     ridge = jnp.asarray(ridge, S_vv.dtype)
     safe = jnp.where(ridge > 0, ridge, 1.0)
     ridged = jnp.linalg.solve(S_vv + safe * jnp.eye(m, dtype=S_vv.dtype), (S_tv + safe * J0).T).T

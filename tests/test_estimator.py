@@ -192,7 +192,7 @@ def test_guarded_update_is_the_one_sample_screen():
         seen.append((a, b))
         return E.accumulate(s, a, b)
 
-    out = E.guarded_update(fold, state, jnp.array([jnp.nan, 0.0, 0.1]), V, shape=(3, 2), dtype=state.sign_pos.dtype)
+    out = E.guarded_update(fold, state, jnp.array([jnp.nan, 0.0, 0.1]), V, shape=(3, 2), dtype=state.sign_net.dtype)
     chex.assert_trees_all_equal(out, state._replace(rejected=jnp.int32(1)))
     np.testing.assert_array_equal(seen[0][0], np.zeros(3))
 

@@ -1,4 +1,4 @@
-"""The CPU XLA flags set at import: merged with the user's, opt-out honoured, active in a fresh process."""
+"""The CPU XLA flags set at import: merged with the user's, opt-out honoured, gated by jaxlib release, active in a fresh process."""
 
 import os
 import subprocess
@@ -6,18 +6,36 @@ import sys
 
 import pytest
 
-from selfid_jax._xla import DEFAULT_XLA_FLAGS, merged_xla_flags
+from selfid_jax._xla import DEFAULT_XLA_FLAGS, MIN_JAXLIB, defaults_for, jaxlib_version, merged_xla_flags, release_tuple
+
+ALL = {flag: value for flag, value in DEFAULT_XLA_FLAGS.items()}
 
 
 def test_xla_flags_merge_keeps_user_settings():
-    flags = merged_xla_flags("--xla_cpu_use_fusion_emitters=true --foo=1")
+    flags = merged_xla_flags("--xla_cpu_use_fusion_emitters=true --foo=1", ALL)
     assert "--xla_cpu_use_fusion_emitters=true" in flags and "--xla_cpu_use_fusion_emitters=false" not in flags
     assert "--xla_cpu_enable_concurrency_optimized_scheduler=false" in flags and "--foo=1" in flags
-    assert merged_xla_flags(None).split() == [
+    assert merged_xla_flags(None, ALL).split() == [
         "--xla_cpu_use_fusion_emitters=false",
         "--xla_cpu_enable_concurrency_optimized_scheduler=false",
+        "--xla_cpu_experimental_ynn_fusion_type=",
     ]
-    assert merged_xla_flags("--xla_cpu_use_fusion_emitters").count("fusion_emitters") == 1  # bare flag counts
+    assert merged_xla_flags("--xla_cpu_use_fusion_emitters", ALL).count("fusion_emitters") == 1  # bare flag counts
+    assert merged_xla_flags("--xla_cpu_experimental_ynn_fusion_type=dot", ALL).count("ynn") == 1
+
+
+def test_flags_only_for_jaxlib_releases_that_know_them():
+    # an unknown flag aborts XLA at start-up: a release before a flag's minimum must not get it
+    assert set(defaults_for((0, 4, 30))) == {"--xla_cpu_enable_concurrency_optimized_scheduler"}
+    assert set(defaults_for((0, 5, 3))) == {"--xla_cpu_enable_concurrency_optimized_scheduler"}
+    assert set(defaults_for((0, 8, 0))) == {"--xla_cpu_enable_concurrency_optimized_scheduler",
+                                           "--xla_cpu_use_fusion_emitters"}
+    assert set(defaults_for((0, 8, 1))) == set(DEFAULT_XLA_FLAGS) == set(defaults_for((0, 10, 2)))
+    assert set(defaults_for(None)) == set(DEFAULT_XLA_FLAGS) - set(MIN_JAXLIB)
+    assert release_tuple("0.9.0.1") == (0, 9, 0, 1) and release_tuple("0.7.0rc1") == (0, 7, 0)
+    assert release_tuple("0.10.2+cuda12") == (0, 10, 2) and release_tuple("dev") is None
+    assert jaxlib_version() is not None and jaxlib_version() >= (0, 4, 30)
+    assert merged_xla_flags(None).split() == merged_xla_flags(None, defaults_for(jaxlib_version())).split()
 
 
 def _flags_after_import(env_extra: dict[str, str]) -> str:
@@ -32,6 +50,6 @@ def _flags_after_import(env_extra: dict[str, str]) -> str:
 def test_import_sets_flags_and_opt_out_leaves_them():
     flags = _flags_after_import({"XLA_FLAGS": "--foo=1"})
     assert flags.split()[0] == "--foo=1"
-    for flag, value in DEFAULT_XLA_FLAGS.items():
+    for flag, value in defaults_for(jaxlib_version()).items():
         assert f"{flag}={value}" in flags
     assert _flags_after_import({"XLA_FLAGS": "--foo=1", "SELFID_JAX_NO_XLA_FLAGS": "1"}) == "--foo=1"

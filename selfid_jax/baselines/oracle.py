@@ -41,7 +41,7 @@ def sign_true_mag(*, v_tol: ArrayLike = 1e-9) -> Estimator:
         return estimator.signed_inverse_jacobian(state) * jnp.abs(truth)
 
     return assemble("sign_true_mag", init=_init_for(v_tol), fold=estimator.accumulate, read=read,
-                    ref=lambda s: s.sign_pos)
+                    ref=lambda s: s.sign_net)
 
 
 def true() -> Estimator:
@@ -51,4 +51,4 @@ def true() -> Estimator:
     that only counts samples.
     """
     return assemble("true", init=_init_for(1e-9), fold=lambda state, dtheta, V: state,
-                    read=lambda state, truth: truth, ref=lambda s: s.sign_pos)
+                    read=lambda state, truth: truth, ref=lambda s: s.sign_net)

@@ -159,7 +159,7 @@ def ours(
             state, J0, refine_method=refine_method, refine_steps=refine_steps, sign_project=sign_project
         )
 
-    return assemble(name, init=init, fold=estimator.accumulate, read=read, ref=lambda s: s.sign_pos,
+    return assemble(name, init=init, fold=estimator.accumulate, read=read, ref=lambda s: s.sign_net,
                     admit=estimator.fits, zero_is_identity=True)
 
 
