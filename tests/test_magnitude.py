@@ -139,3 +139,12 @@ def test_jit_and_vmap_equal_loop():
         got = jax.jit(jax.vmap(fn))(batched, q)
         want = np.stack([fn(s, qq) for s, qq in zip(states, q)])
         np.testing.assert_allclose(got, want, rtol=1e-12, err_msg=name)
+
+
+@pytest.mark.parametrize("K", [1, 2, 3, 7, 8, 37, 100])
+def test_sort_axis0_matches_numpy(K):
+    rng = np.random.default_rng(K)
+    x = rng.choice([0.0, 0.5, 1.0, 2.0, np.inf], size=(K, 3, 2)) if K % 2 else rng.normal(size=(K, 3, 2))
+    np.testing.assert_array_equal(jax.jit(M.sort_axis0)(jnp.asarray(x)), np.sort(x, axis=0))  # ties and inf too
+    batch = jnp.asarray(rng.normal(size=(4, K, 5)))
+    np.testing.assert_array_equal(jax.vmap(M.sort_axis0)(batch), np.sort(np.asarray(batch), axis=1))
