@@ -76,8 +76,11 @@ def test_make_validates_names_and_options():
         B.rls(0.9)
     with pytest.raises(ValueError, match="PRNG key"):
         B.particle(n_particles=4).init(2, 2)
+    with pytest.raises(ValueError, match="median.*capacity must be > 0"):
+        B.ours(magnitude="median").init(2, 2, capacity=0)
     with pytest.raises(ValueError, match="capacity"):
-        B.ours().init(2, 2, capacity=0)
+        B.ours().init(2, 2, capacity=-1)
+    assert B.ours().init(2, 2, capacity=0).dtheta_buf.shape == (0, 2)  # the mean magnitude needs no buffer
     # every factory is keyword-only and make() forwards to it
     for name, factory in METHODS.items():
         params = inspect.signature(factory).parameters.values()

@@ -8,7 +8,8 @@ optax's ``GradientTransformation(init, update)``:
   random numbers (the others ignore it and accept ``None``; those raise on
   ``None``); ``capacity`` is the sample-buffer size of the methods that need
   samples (the others, the paper's estimator with its default options
-  included, keep constant-size statistics and ignore it); ``dtype`` defaults
+  included, keep constant-size statistics and ignore it; 0 is allowed, and
+  those that need samples then raise); ``dtype`` defaults
   to JAX's default float.
 * ``update(state, dtheta (n,), V (m,)) -> state``: one self-ID sample (actuator
   units, task units). A sample with a non-finite entry, or an all-zero
@@ -99,7 +100,7 @@ def assemble(
     def init_fn(n: int, m: int, key=None, *, capacity: int = 64, dtype=None):
         n = check_positive_int("n", n)
         m = check_positive_int("m", m)
-        capacity = check_positive_int("capacity", capacity)
+        capacity = _estimator.check_nonnegative_int("capacity", capacity)
         return init(n, m, key, capacity, float_dtype() if dtype is None else dtype)
 
     def update_fn(state, dtheta, V):

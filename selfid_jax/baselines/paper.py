@@ -145,6 +145,9 @@ def ours(
     buffered = magnitude in _magnitude.BUFFERED
 
     def init(n, m, key, capacity, dtype):
+        if buffered and capacity == 0:
+            raise ValueError(f"{name}: magnitude {magnitude!r} reads the last `capacity` samples: capacity must be "
+                             "> 0, got 0")
         return estimator.init(n, m, capacity=capacity if buffered else 0, v_tol=v_tol, forget=forget, dtype=dtype)
 
     def read(state: EstimatorState, truth):
