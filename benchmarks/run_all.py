@@ -6,13 +6,13 @@ prints one table: the measured value, the issue-14 goal and whether this run
 met it, and writes everything (the table and each script's full record) to
 ``--out``. Timings are medians of a few repetitions but still move with the
 load of the machine; ratios measured in one process (``x RLS``, ``x SLSQP``)
-are the robust numbers. About 4-5 minutes on 2 CPU cores.
+are the robust numbers. About 2.5 minutes on 2 idle CPU cores (4-5 under load).
 
     python benchmarks/run_all.py [--out benchmarks/results.json] [--markdown] [--skip ablation ...]
 
 On a machine with a GPU the same command measures there (the scripts use
-JAX's default device); ``--gpu-scale`` raises the sizes to 100,000 rollouts
-and 1,000,000 estimators.
+JAX's default device); ``--gpu-scale`` raises the sizes to 100,000 rollouts,
+1,000,000 estimators and 200 articulated objects.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-BENCHMARKS = ("estimator", "estimator_2dev", "rollouts", "refine", "valid_region", "ablation")
+BENCHMARKS = ("estimator", "estimator_2dev", "rollouts", "refine", "valid_region", "ablation", "articulated")
 
 
 def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 900) -> tuple[dict, float]:
@@ -58,6 +58,7 @@ def collect(skip=(), gpu_scale=False) -> dict:
         "refine": ("refine", ["--batch", "2000", "--slsqp", "20"], None),
         "valid_region": ("valid_region", ["--full-chunks", "1"], None),
         "ablation": ("ablation", ["--full-chunks", "1"], None),
+        "articulated": ("articulated", ["--batch", "200" if gpu_scale else "8", "--steps", "100"], None),
     }
     if gpu_scale:
         plans.pop("estimator_2dev")
@@ -132,6 +133,16 @@ def table(res: dict) -> list[dict]:
             ours = r["updates_per_s"].get("ours", {"rate": float("nan")})
             _row(rows, "ablation estimator updates/s: ours", ours["rate"], "updates/s", "", None,
                  f"slowest: {slow[0]} {slow[1]['rate']:.0f}/s ({slow[1]['vs_ours']:.2f}x ours)")
+    if "articulated" in res:
+        r = res["articulated"]["result"]
+        nat = r["rows"]["native"]
+        note = f"{r['batch']} {r['kind']} objects x {r['steps']} steps, compile+first {nat['first_call_s']:.1f} s"
+        _row(rows, "articulated rollouts, native MuJoCo", nat["sim_s_per_wall_s"], "sim s / wall s", "", None, note)
+        if "mjx" in r["rows"]:
+            mjx = r["rows"]["mjx"]
+            _row(rows, "  ... MJX against native in the same run", r["mjx_vs_native"], "x native", "", None,
+                 f"compile+first {mjx['first_call_s']:.1f} s; handle paths differ by up to "
+                 f"{1e3 * r['max_handle_diff_m']:.2g} mm (friction loss {r['frictionloss']} N)")
     return rows
 
 
