@@ -80,6 +80,21 @@ class TacManCfg(BaseModel):
         return self
 
 
+class TurboLeadCfg(BaseModel):
+    """``turbo_lead`` (:func:`selfid_jax.articulated.tacman.lead_step`): integral lead and twist smoothing.
+
+    ``lead_max`` 1 mm: Tac-Man's ``dev_high`` (the deviation it still calls
+    safe), 5x below the 5 mm slip, and at ``gel_k`` 20 kN/m a 20 N pull, 5x
+    the population's largest resistance; with a 15 deg misalignment its
+    normal component (0.26 mm) stays below the 0.7 mm that lifts a pad off
+    (squeeze 1 mm, ``contact_eps`` 0.3 mm). ``tau`` 0.06 s: 3 control steps.
+    """
+
+    model_config = _STRICT
+    lead_max: float = Field(1e-3, ge=0, le=0.01, description="cap of the integral lead along the screw [m]")
+    tau: float = Field(0.06, ge=0, le=10, description="handle-twist smoothing time constant [s] (0: none)")
+
+
 class ArticulatedConfig(BaseConfig):
     """Tac-Man vs TacMan-Turbo over a seeded population of articulated objects, true vs self-ID arm."""
 
@@ -87,8 +102,8 @@ class ArticulatedConfig(BaseConfig):
     backend: Literal["native", "mjx"] = "native"
     objects: Objects
     population: Population = Population()
-    controllers: Annotated[list[Literal["tacman", "turbo", "turbo_u0"]], Field(min_length=1)] = \
-        ["tacman", "turbo", "turbo_u0"]
+    controllers: Annotated[list[Literal["tacman", "turbo", "turbo_u0", "turbo_lead"]], Field(min_length=1)] = \
+        ["tacman", "turbo", "turbo_u0", "turbo_lead"]
     arms: Annotated[list[Literal["true", "selfid"]], Field(min_length=1)] = ["true", "selfid"]
     speed: float = Field(0.03, gt=0, le=0.5, description="|u0| [m/s] along the gripper x axis")
     control_dt: float = Field(0.02, gt=0, le=0.2, description="control interval [s]")
@@ -101,6 +116,7 @@ class ArticulatedConfig(BaseConfig):
     slip_rot: float = Field(0.3, gt=0, le=3, description="in-hand rotation declared a slip [rad]")
     pads: Pads = Pads()
     tacman: TacManCfg = TacManCfg()
+    turbo_lead: TurboLeadCfg = TurboLeadCfg()
     gel_k: float = Field(20000.0, gt=0, le=1e7, description="gel shear/normal stiffness [N/m]")
     gel_kr: float = Field(5.0, gt=0, le=1e4, description="gel torsional stiffness [N m/rad]")
     selfid_iters: int = Field(30, ge=2, le=10**4)
@@ -186,7 +202,8 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
             key=row_keys(cfg.seed + 1000 * k_i, n), speed=full(cfg.speed), marker_noise=full(cfg.pads.noise),
             contact_eps=full(cfg.pads.contact_eps), qdot_max=np.full((n, 6), cfg.qdot_max), beta=full(cfg.beta),
             dev_high=full(cfg.tacman.dev_high), dev_low=full(cfg.tacman.dev_low), rec_gain=full(cfg.tacman.gain),
-            slip=full(cfg.slip), slip_rot=full(cfg.slip_rot))
+            slip=full(cfg.slip), slip_rot=full(cfg.slip_rot), lead_max=full(cfg.turbo_lead.lead_max),
+            lead_tau=full(cfg.turbo_lead.tau))
         # one self-ID per object (the same estimate for every controller on it)
         params = Params(rollout, row_keys(cfg.seed + 7, o), full(cfg.m_a), full(cfg.eps))
         parts.append(Part(kind, static, params, meta))
@@ -230,7 +247,7 @@ def summarize(table: pd.DataFrame, cfg: ArticulatedConfig) -> dict[str, Any]:
 
 
 def report(summary: dict) -> str:
-    lines = [f"{'kind':10s} {'arm':7s} {'controller':9s} {'success':>8s} {'time s':>13s} {'eff %/step':>14s} "
+    lines = [f"{'kind':10s} {'arm':7s} {'controller':10s} {'success':>8s} {'time s':>13s} {'eff %/step':>14s} "
              f"{'jerk':>16s} {'dev mean mm':>12s} {'dev max mm':>11s} {'slips':>5s}"]
 
     def ms(m, k, fmt):
@@ -240,7 +257,7 @@ def report(summary: dict) -> str:
     rows = [(k, a, c, m) for k, arms in summary["kinds"].items() for a, cs in arms.items() for c, m in cs.items()]
     rows += [("ALL", a, c, m) for a, cs in summary["overall"].items() for c, m in cs.items()]
     for k, a, c, m in rows:
-        lines.append(f"{k:10s} {a:7s} {c:9s} {100 * m['success_rate']:7.0f}% {ms(m, 'time_s', '.1f'):>13s} "
+        lines.append(f"{k:10s} {a:7s} {c:10s} {100 * m['success_rate']:7.0f}% {ms(m, 'time_s', '.1f'):>13s} "
                      f"{ms(m, 'efficiency', '.3f'):>14s} {ms(m, 'jerk', '.0f'):>16s} "
                      f"{ms(m, 'dev_mean_mm', '.2f'):>12s} {(m['dev_max_mm']['mean'] or 0):11.2f} {m['slips']:5d}")
     return "\n".join(lines)

@@ -77,6 +77,49 @@ def test_keep_speed_stays_on_the_screw_at_the_base_speed():
     np.testing.assert_allclose(np.asarray(still.translation()), [6e-4, 0, 0], atol=1e-15)
 
 
+def _lead_run(vs, *, speed=0.03, dt=0.02, lead_max=1e-3, tau=0.06):
+    """``lead_step`` along a screw at handle speeds ``vs`` [m/s] per step (exact markers, gripper at the handle)."""
+    xi = jnp.array([0.8, 0.0, 0.6, 0.0, 0.0, 2.0])  # unit origin speed along the screw; 2 rad/m
+    u0 = jnp.array([speed, 0.0, 0.0, 0.0, 0.0, 0.0])
+    p = tacman.TurboParams(u0, dt, jnp.asarray(False), lead_max, tau)
+    ref = jnp.asarray(PADS.ref)
+    mask = jnp.asarray(PADS.delta0 >= 3e-4)
+    step = jax.jit(lambda st, T_g: tacman.lead_step(st, tacman.Reading(T_g, ref, ref, mask), p))
+    T = _random_pose(6)
+    st = tacman.turbo_init(T)
+    out = []
+    for k, v in enumerate(vs):  # the gripper sits on the handle (X = identity), which moved v dt along xi since k - 1
+        if k > 0:
+            T = T @ jaxlie.SE3.exp(xi * v * dt)
+        st, u, (valid, _) = step(st, T)
+        assert bool(valid)
+        out.append((st, u, T))
+    return out, xi
+
+
+@pytest.mark.slow  # > 1 s on 2 shared cores (eager jaxlie ops compile on first use)
+def test_lead_grows_by_the_speed_deficit_saturates_and_aims_ahead_along_the_screw():
+    speed, dt, lead_max = 0.03, 0.02, 1e-3
+    vs = [0.0] + [0.01] * 5 + [0.03] * 3  # step 0 is u0 alone; then 20 mm/s short of |v0|, then at |v0|
+    out, xi = _lead_run(vs, speed=speed, dt=dt, lead_max=lead_max)
+    s = np.array([float(o[0].s) for o in out])
+    expect = np.minimum(np.arange(len(vs)) * (speed - 0.01) * dt, lead_max)  # 0.4 mm per step, capped at 1 mm
+    expect[6:] = lead_max  # the handle at |v0|: no deficit, the lead stays
+    np.testing.assert_allclose(s, expect, atol=1e-9)
+    a = 1.0 - np.exp(-dt / 0.06)  # smoothing factor per step, tau = 0.06 s
+    xf = np.array([speed * dt, 0, 0, 0, 0, 0])  # the smoothed twist starts from u0 dt
+    for k, (st, u, T_g) in enumerate(out[1:], start=1):
+        xf = xf + a * (np.asarray(xi) * vs[k] * dt - xf)
+        np.testing.assert_allclose(np.asarray(st.xi), xf, atol=1e-9)
+        # closed form: the gripper moves onto T_h exp(xf (|v0| dt + s) / |xf_v|) in dt: an arc |v0| dt + s along xf
+        target = T_g @ jaxlie.SE3.exp(jnp.asarray(xf * (speed * dt + float(st.s)) / np.linalg.norm(xf[:3])))
+        moved = T_g @ jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.exp(u[3:] * dt), u[:3] * dt)
+        np.testing.assert_allclose(np.asarray(moved.as_matrix()), np.asarray(target.as_matrix()), atol=1e-9)
+    # the smoothed screw turns from u0 to the handle's: 8 steps of a = 0.28 leave 7 % of the prior
+    cos = xf[:3] @ np.asarray(xi[:3]) / np.linalg.norm(xf[:3])
+    assert cos > 0.99
+
+
 @pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_offset_velocity_reaches_the_prediction_and_alpha_scales_to_the_limit():
     T_g, T_pred, dt = _random_pose(4), _random_pose(5), 0.02
@@ -121,7 +164,7 @@ def _params(obj, controllers, *, use_estimate=False, jinv=None):
         scenes.ObjectParams(*(jnp.asarray(a) for a in obj)), jnp.asarray(controllers, jnp.int32),
         jnp.full((B,), use_estimate), jnp.zeros((B, 6, 6)) if jinv is None else jnp.broadcast_to(jinv, (B, 6, 6)),
         jax.random.key_data(jax.random.split(jax.random.key(0), B)), full(0.03), full(5e-6), full(3e-4),
-        jnp.ones((B, 6)), full(0.9), full(1e-3), full(2e-4), full(0.5), full(5e-3), full(0.3))
+        jnp.ones((B, 6)), full(0.9), full(1e-3), full(2e-4), full(0.5), full(5e-3), full(0.3), full(1e-3), full(0.06))
 
 
 def _objects(kind, n_rows, frictionloss=1.0):
@@ -133,19 +176,23 @@ def _objects(kind, n_rows, frictionloss=1.0):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind,steps", [("prismatic", 700), ("revolute", 900)])
 def test_drawer_and_door_opened_by_both_controllers(kind, steps):
-    """Tac-Man and TacMan-Turbo (keeping u0) open a drawer (> 250 mm) and a door (> 60 deg); literal Turbo stalls."""
+    """Tac-Man, TacMan-Turbo keeping u0 and with the integral lead open a drawer (> 250 mm) and a door (> 60 deg).
+
+    Literal Turbo stalls; the lead keeps |v0| where keep_speed's proportional shear slows down."""
     with jax.numpy_rank_promotion("allow"):
         arm, q0, p1, R1 = _arm()
         m, lay = scenes.compile_scene(kind, p1, R1)
         st = sim.make_static("native", lay, m, PADS, arm, q0, steps=steps, substeps=10, stride=50)
-        ctrl = [0, 2, 1]
-        r = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))(_params(_objects(kind, 3), ctrl))
-    assert list(np.asarray(r.success)) == [True, True, False]
+        ctrl = [0, 2, 1, 3]
+        r = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))(_params(_objects(kind, 4), ctrl))
+    assert list(np.asarray(r.success)) == [True, True, False, True]
     assert not np.any(np.asarray(r.failed))
     assert float(r.progress[2]) < 0.2  # the literal Eq. 16-18 drive the force-carrying shear to zero
     # the handle really moved: independent of the progress bookkeeping, from its traced path
-    h = np.asarray(r.handle_trace)
-    assert np.all(np.linalg.norm(h[:2, -1] - h[:2, 0], axis=-1) > 0.2)
+    h = np.asarray(r.handle_trace)[[0, 1, 3]]
+    assert np.all(np.linalg.norm(h[:, -1] - h[:, 0], axis=-1) > 0.2)
+    assert int(r.steps_used[3]) < int(r.steps_used[1])
+    assert float(r.dev_max[3]) < 1.5e-3  # the lead (<= 1 mm) plus the in-step motion, far from the 5 mm slip
 
 
 FRICTIONLOSS = 0.0

@@ -2,10 +2,11 @@
 
 One rollout (:func:`rollout`) is a ``lax.scan`` over control steps (pure JAX,
 jit + vmap). Each step: read the gripper pose and the markers (:mod:`.tactile`),
-run the controller (Tac-Man, TacMan-Turbo literal, or TacMan-Turbo keeping
-``u0``; chosen by a traced index), map the gripper twist (gripper frame) to
-the world frame and through the arm's inverse Jacobian (the true one at the
-current joints, or a fixed self-identified estimate), scale by ``alpha``
+run the controller (Tac-Man, TacMan-Turbo literal, TacMan-Turbo keeping
+``u0``, or TacMan-Turbo with an integral lead; chosen by a traced index), map
+the gripper twist (gripper frame) to the world frame and through the arm's
+inverse Jacobian (the true one at the current joints, or a fixed
+self-identified estimate), scale by ``alpha``
 (Eq. 25-26) on the arm's joint-velocity limits, integrate the joints, and
 move the mocap along the arm's forward kinematics over ``substeps`` physics
 steps. The arm is kinematic (its joints follow the command exactly); the
@@ -30,7 +31,7 @@ from selfid_jax.articulated import scenes, tacman, tactile
 
 __all__ = ["CONTROLLERS", "RolloutParams", "RolloutResult", "Static", "rollout", "make_static"]
 
-CONTROLLERS = ("tacman", "turbo", "turbo_u0")  # traced index 0, 1, 2
+CONTROLLERS = ("tacman", "turbo", "turbo_u0", "turbo_lead")  # traced index 0, 1, 2, 3
 ARMS = ("true", "selfid")
 
 
@@ -69,6 +70,8 @@ class RolloutParams(NamedTuple):
     rec_gain: jax.Array  # () Tac-Man recovery gain
     slip: jax.Array  # () in-hand translation declared a slip [m]
     slip_rot: jax.Array  # () in-hand rotation declared a slip [rad]
+    lead_max: jax.Array  # () turbo_lead: cap of the integral lead [m]
+    lead_tau: jax.Array  # () turbo_lead: handle-twist smoothing time constant [s]
 
 
 class RolloutResult(NamedTuple):
@@ -256,7 +259,7 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     p1, R1 = jnp.asarray(lay.p1, f), jnp.asarray(lay.R1, f)
     G1 = tacman.se3(p1, R1)
     u0 = jnp.concatenate([jnp.stack([p.speed, 0.0, 0.0]).astype(f), jnp.zeros(3, f)])
-    turbo_p = tacman.TurboParams(u0, dt, p.controller == 2)
+    turbo_p = tacman.TurboParams(u0, dt, p.controller == 2, p.lead_max, p.lead_tau)
     tac_p = tacman.TacManParams(p.speed, dt, p.dev_high, p.dev_low, p.rec_gain, 2.0 * p.speed)
 
     phys = _phys_init(static, p.obj)
@@ -274,6 +277,10 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
         cur, mask, _ = tactile.read(static.pads, X_rel, k_read, p.marker_noise, p.contact_eps)
         reading = tacman.Reading(T_g, ref, cur, mask)
         turbo, u_turbo, (valid_t, _) = tacman.turbo_step(c.turbo, reading, turbo_p)
+        lead, u_lead, _ = tacman.lead_step(c.turbo, reading, turbo_p)
+        is_lead = p.controller == 3
+        turbo = jax.tree_util.tree_map(lambda a, b: jnp.where(is_lead, a, b), lead, turbo)
+        u_turbo = jnp.where(is_lead, u_lead, u_turbo)  # the validity flag is the same Kabsch's
         tac, u_tac, (valid_r, _) = tacman.tacman_step(c.tac, reading, tac_p)
         is_tac = p.controller == 0
         u = jnp.where(is_tac, u_tac, u_turbo)

@@ -14,14 +14,17 @@ Pieces (each jit- and vmap-able, no Python control flow on values):
 * :func:`predict` -- constant-velocity SE(3) prediction (Eq. 14-15);
 * :func:`offset_velocity` -- Eq. 16-21; :func:`keep_speed` -- the variant that
   keeps the base velocity ``u0`` (the literal law stalls on resisting objects);
+  :func:`lead_update`, :func:`smooth_twist`, :func:`advance` -- the integral
+  lead and the filtered screw of :func:`lead_step` (``turbo_lead``);
 * :func:`alpha_scale` -- joint-velocity limit scaling (Eq. 25-27);
-* :func:`turbo_init`/:func:`turbo_step` and :func:`tacman_init`/:func:`tacman_step`:
+* :func:`turbo_init`/:func:`turbo_step` (and :func:`lead_step` on the same
+  state) and :func:`tacman_init`/:func:`tacman_step`:
   one control step of each controller: ``(state, reading) -> (state, u, info)``.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,13 +36,17 @@ __all__ = [
     "TacManState",
     "TurboParams",
     "TurboState",
+    "advance",
     "alpha_scale",
     "deviation",
     "kabsch",
     "keep_speed",
+    "lead_step",
+    "lead_update",
     "offset_velocity",
     "predict",
     "se3",
+    "smooth_twist",
     "tacman_init",
     "tacman_step",
     "turbo_init",
@@ -166,17 +173,22 @@ class TurboParams(NamedTuple):
     u0: jax.Array  # (6,) base velocity in the gripper frame [m/s, rad/s] (Eq. 4)
     dt: jax.Array  # () control interval [s]
     keep_u0: jax.Array  # () bool: keep the base speed in the prediction (see keep_speed)
+    lead_max: Any = 0.0  # () lead_step: cap of the integral lead s [m]
+    tau: Any = 0.0  # () lead_step: time constant of the handle-twist smoothing [s] (0: none)
 
 
 class TurboState(NamedTuple):
     T_h_prev: jaxlie.SE3  # previous handle pose estimate (Eq. 13)
     X_prev: jaxlie.SE3  # last valid in-hand pose estimate (held when Kabsch is invalid)
     i: jax.Array  # () int32 control steps taken
+    xi: jax.Array  # (6,) lead_step: smoothed per-step handle twist log(T_h_prev^-1 T_h) = [v dt, w dt] [m, rad]
+    s: jax.Array  # () lead_step: integral lead along the predicted screw [m]
 
 
 def turbo_init(T_g: jaxlie.SE3) -> TurboState:
-    """Eq. 1: the handle frame coincides with the gripper at the start."""
-    return TurboState(T_g, _identity(T_g.wxyz_xyz.dtype), jnp.zeros((), jnp.int32))
+    """Eq. 1: the handle frame coincides with the gripper at the start (no lead, no twist yet)."""
+    f = T_g.wxyz_xyz.dtype
+    return TurboState(T_g, _identity(f), jnp.zeros((), jnp.int32), jnp.zeros(6, f), jnp.zeros((), f))
 
 
 def turbo_step(state: TurboState, r: Reading, p: TurboParams):
@@ -185,16 +197,77 @@ def turbo_step(state: TurboState, r: Reading, p: TurboParams):
     Kabsch in-hand pose (Eq. 9-12; the last valid one is held when the set
     is invalid), handle pose (Eq. 13), constant-velocity prediction (Eq.
     14-15), offset velocity (Eq. 16-21). The first step uses ``u0`` alone.
+    ``state.xi`` and ``state.s`` pass through unchanged (see :func:`lead_step`).
     """
-    X, valid = kabsch(r.ref, r.cur, r.mask)
-    X = jax.tree_util.tree_map(lambda a, b: jnp.where(valid, a, b), X, state.X_prev)
-    T_h = r.T_g @ X
+    (X, valid), T_h = _in_hand(state, r)
     T_u = state.T_h_prev.inverse() @ T_h  # Eq. 15
     T_u = jax.tree_util.tree_map(lambda a, b: jnp.where(p.keep_u0, a, b), keep_speed(T_u, p.u0, p.dt), T_u)
     T_pred = T_h @ T_u  # Eq. 14
     u_i = offset_velocity(r.T_g, T_pred, p.u0, p.dt)
     u = jnp.where(state.i > 0, p.u0 + u_i, p.u0)
-    return TurboState(T_h, X, state.i + 1), u, (valid, X)
+    return state._replace(T_h_prev=T_h, X_prev=X, i=state.i + 1), u, (valid, X)
+
+
+def _in_hand(state: TurboState, r: Reading):
+    """``((X, valid), T_h)``: Kabsch in-hand pose (the last valid one held) and the handle pose ``T_g X`` (Eq. 13)."""
+    X, valid = kabsch(r.ref, r.cur, r.mask)
+    X = jax.tree_util.tree_map(lambda a, b: jnp.where(valid, a, b), X, state.X_prev)
+    return (X, valid), r.T_g @ X
+
+
+def lead_update(s, speed, v_handle, dt, lead_max):
+    """Integral lead ``clip(s + (speed - v_handle) dt, 0, lead_max)`` [m] (all scalars; m, m/s, s).
+
+    The gripper is aimed ``speed dt + s`` ahead of the handle, so at the end
+    of a step the gel shear is about ``s + (speed - v_handle) dt``: ``s``
+    integrates the speed deficit until the shear carries whatever force the
+    object's resistance needs at ``v_handle = speed``, never beyond ``lead_max``.
+    """
+    return jnp.clip(s + (speed - v_handle) * dt, 0.0, lead_max)
+
+
+def smooth_twist(xi_prev, xi, dt, tau):
+    """Exponential smoothing ``xi_prev + a (xi - xi_prev)``, ``a = 1 - exp(-dt / tau)`` (``a = 1`` at ``tau = 0``): ``(6,)``."""
+    a = jnp.where(tau > 0, -jnp.expm1(-dt / jnp.maximum(tau, 1e-12)), 1.0)
+    return xi_prev + a * (xi - xi_prev)
+
+
+def advance(xi, length, u0, tiny=1e-9) -> jaxlie.SE3:
+    """``exp(xi length / |xi_v|)``: the motion along the screw ``xi = [v, w] (6,)`` whose origin travels ``length`` [m].
+
+    The origin of ``T exp(c xi)`` moves at the constant speed ``|v|`` (body
+    twist), so the scaled screw moves it an arc ``length`` along the same
+    helix. While ``|xi_v| < tiny`` (no motion measured yet) the screw is ``u0
+    (6,)``'s, scaled the same way.
+    """
+    n = jnp.linalg.norm(xi[:3])
+    n0 = jnp.maximum(jnp.linalg.norm(u0[:3]), tiny)
+    tw = jnp.where(n > tiny, xi * (length / jnp.maximum(n, tiny)), u0 * (length / n0))
+    return jaxlie.SE3.exp(tw)
+
+
+def lead_step(state: TurboState, r: Reading, p: TurboParams):
+    """One ``turbo_lead`` step: ``(state, u_cmd (6,), (valid, X_hat))``; ``u_cmd = u0 + u_i`` before alpha scaling.
+
+    As :func:`turbo_step` (Kabsch, Eq. 13-21), with the prediction ``T_pred =
+    T_h advance(xi, |v0| dt + s)``: ``xi`` the per-step handle twist
+    ``log(T_h_prev^-1 T_h)`` smoothed over ``p.tau`` (:func:`smooth_twist`;
+    it starts from ``u0 dt``), ``s`` the integral lead (:func:`lead_update`,
+    ``v_handle = |xi_raw_v| / dt``, capped at ``p.lead_max``). The first step
+    uses ``u0`` alone and leaves ``xi = u0 dt``, ``s = 0``.
+    """
+    (X, valid), T_h = _in_hand(state, r)
+    speed = jnp.linalg.norm(p.u0[:3])
+    first = state.i == 0
+    xi_raw = (state.T_h_prev.inverse() @ T_h).log()
+    xi_prev = jnp.where(state.i > 1, state.xi, p.u0 * p.dt)
+    xi = jnp.where(first, p.u0 * p.dt, smooth_twist(xi_prev, xi_raw, p.dt, p.tau))
+    v_h = jnp.linalg.norm(xi_raw[:3]) / p.dt
+    s = jnp.where(first, 0.0, lead_update(state.s, speed, v_h, p.dt, p.lead_max))
+    T_pred = T_h @ advance(xi, speed * p.dt + s, p.u0)
+    u_i = offset_velocity(r.T_g, T_pred, p.u0, p.dt)
+    u = jnp.where(first, p.u0, p.u0 + u_i)
+    return TurboState(T_h, X, state.i + 1, xi, s), u, (valid, X)
 
 
 # ----------------------------------------------------------------------------- Tac-Man
