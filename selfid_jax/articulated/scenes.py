@@ -260,17 +260,39 @@ def apply_native(m, layout: Layout, obj: ObjectParams) -> None:
                 arr[idx] = val
 
 
+FRICTIONLOSS_FLOOR = 1e-9  # N or N m: MJX friction-loss rows carry at least this (see apply_mjx)
+
+
 def apply_mjx(model, layout: Layout, obj: ObjectParams):
-    """``model`` (``mjx.Model``) with one object's fields (traceable; vmap over ``obj``)."""
+    """``model`` (``mjx.Model``) with one object's fields (traceable; vmap over ``obj``).
+
+    MJX (impl "jax") decides at ``mjx.put_model`` which dofs get a friction-loss
+    constraint row: the static mask ``model._impl.dof_hasfrictionloss =
+    dof_frictionloss > 0`` of the template (0 here), and writing
+    ``dof_frictionloss`` afterwards alone leaves the friction loss out. So the
+    object's resistance dofs are marked here (the efc size grows by one row
+    each: make the ``mjx.Data`` from the returned model). MJX treats a marked
+    row with friction loss exactly 0 as an always-active quadratic
+    (velocity-locking) row, while native MuJoCo omits it; the value is floored
+    at ``FRICTIONLOSS_FLOOR`` so such a row carries at most that force.
+    """
     import jax.numpy as jnp
 
     changes = {}
-    for field, items in _fields(layout, obj, jnp).items():
+    fields = _fields(layout, obj, jnp)
+    fields["dof_frictionloss"] = [(i, jnp.maximum(v, FRICTIONLOSS_FLOOR)) for i, v in fields["dof_frictionloss"]]
+    for field, items in fields.items():
         arr = getattr(model, field)
         for idx, val in items:
             arr = arr.at[idx, :5].set(val) if field == "eq_data" else arr.at[idx].set(val)
         changes[field] = arr
-    return model.replace(**changes)
+    model = model.replace(**changes)
+    impl = getattr(model, "_impl", None)
+    if hasattr(impl, "dof_hasfrictionloss"):  # impl "jax"; a static numpy mask (pytree metadata)
+        has = np.array(impl.dof_hasfrictionloss, bool)
+        has[[i for i, _ in fields["dof_frictionloss"]]] = True
+        model = model.tree_replace({"_impl.dof_hasfrictionloss": has})
+    return model
 
 
 def progress(qpos, layout: Layout, obj: ObjectParams):
