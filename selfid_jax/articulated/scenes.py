@@ -79,6 +79,7 @@ class SceneSettings(NamedTuple):
     gel_cr: float = 0.05  # N m s/rad
     drive_solref: float = 0.005  # s, weld time constant mocap -> gripper
     grasp_solref: float = 0.004  # s, weld time constant gel -> handle
+    track_solref: float = 0.004  # s, time constant of the crank's screw and the tracks' y(x), yaw(x) couplings
 
 
 class ObjectParams(NamedTuple):
@@ -162,9 +163,9 @@ _OBJECT = {
 _EQ_EXTRA = {
     "prismatic": "",
     "revolute": "",
-    "helical": '<joint name="screw" joint1="obj_slide" joint2="obj" polycoef="0 0.01 0 0 0"/>',
-    "bezier": '<joint name="track_y" joint1="obj_y" joint2="obj" polycoef="0 0 0 0 0"/>\n'
-              '    <joint name="track_yaw" joint1="obj_yaw" joint2="obj" polycoef="0 0 0 0 0"/>',
+    "helical": '<joint name="screw" joint1="obj_slide" joint2="obj" polycoef="0 0.01 0 0 0" solref="{t} 1"/>',
+    "bezier": '<joint name="track_y" joint1="obj_y" joint2="obj" polycoef="0 0 0 0 0" solref="{t} 1"/>\n'
+              '    <joint name="track_yaw" joint1="obj_yaw" joint2="obj" polycoef="0 0 0 0 0" solref="{t} 1"/>',
 }
 
 
@@ -184,7 +185,7 @@ def scene_xml(kind: str, p1, R1, settings: SceneSettings = SceneSettings()) -> s
   <equality>
     <weld name="drive" body1="target" body2="gripper" solref="{s.drive_solref} 1"/>
     <weld name="grasp" body1="gel" body2="handle" solref="{s.grasp_solref} 1"/>
-    {_EQ_EXTRA[kind]}
+    {_EQ_EXTRA[kind].format(t=s.track_solref)}
   </equality>
 </mujoco>"""
 
