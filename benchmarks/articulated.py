@@ -18,13 +18,13 @@ On a GPU, ``--batch 200 --steps 2000`` is the paper-scale population of one kind
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import numpy as np
+from emit import emit
 
 from selfid_jax.articulated import sim
 from selfid_jax.experiment import precision
@@ -106,10 +106,7 @@ def main():
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     res = run(args.kind, args.batch, args.steps, args.controller, args.frictionloss, args.reps, args.skip_mjx)
-    print(report(res))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(res, f, indent=2)
+    emit(res, report(res), args.json)
 
 
 if __name__ == "__main__":

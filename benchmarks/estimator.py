@@ -31,7 +31,6 @@ steps/s for 10,000 estimators on 2 CPU cores, >= 0.5x RLS, within 1e-4.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -40,6 +39,7 @@ import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import jax.numpy as jnp
 import numpy as np
+from emit import emit
 
 from selfid_jax import baselines
 from selfid_jax import estimator as E
@@ -131,7 +131,7 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5, rounds: int = 3, st
     ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` to use both cores).
     """
     d, V, (d64, V64) = make_data(batch, steps)
-    ref = lstsq_reference(d64, V64)
+    ref = lstsq_reference(d64, V64, min(200, batch))
     fns, compile_s, errs = {}, {}, {}
     for name, (init, step, read) in variants(batch).items():
         if shard and "before" in name:
@@ -195,10 +195,7 @@ def main():
     ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args()
     res = run(args.batch, args.steps, args.reps, args.rounds, shard=args.shard)
-    print(report(res))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(res, f, indent=2)
+    emit(res, report(res), args.json)
 
 
 if __name__ == "__main__":
