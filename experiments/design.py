@@ -49,21 +49,21 @@ own slope at reliable and at unreliable points.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal, NamedTuple, Union
+from typing import Annotated, Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from selfid_jax import control, design, paths
-from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, check_noise_pairs, unique
+from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, check_noise_pairs, stop_after_start
 from selfid_jax.experiment import Experiment, Part, controller_rows, precision
 from selfid_jax.plots import save_figure
 from selfid_jax.sweep import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
@@ -82,13 +82,7 @@ class MagnitudeGrid(BaseModel):
     stop: float = Field(gt=0, le=10, description="largest magnitude, above start")
     num: int = Field(ge=2, le=1000, description="number of grid points (log-spaced)")
 
-    @field_validator("stop")
-    @classmethod
-    def _stop_after_start(cls, stop: float, info: ValidationInfo) -> float:
-        start = info.data.get("start")
-        if start is not None and not stop > start:
-            raise ValueError(f"must be greater than start ({start})")
-        return stop
+    _stop_after_start = field_validator("stop")(stop_after_start)
 
     def values(self) -> np.ndarray:
         """``(num,)`` magnitudes, ``geomspace(start, stop, num)``."""
@@ -119,11 +113,7 @@ class SystemRun(BaseModel):
     rot_noise: Noise | None = None
 
 
-SystemEntry = Annotated[
-    Union[Annotated[SystemSpec, Tag("<spec>")], Annotated[SystemRun, Tag("<run>")]],
-    Discriminator(lambda v: "<run>" if isinstance(v, SystemRun) or (isinstance(v, dict) and "system" in v)
-                  else "<spec>"),
-]
+SystemEntry = spec_or_run(SystemRun)
 
 
 class Protocol(NamedTuple):
@@ -158,11 +148,7 @@ class DesignConfig(BaseConfig):
     follow_from: Literal["selfid_end", "start"] = Field(
         "selfid_end", description="the path starts where self-ID left the robot, or at the start configuration")
 
-    @field_validator("systems")
-    @classmethod
-    def _unique(cls, systems: list) -> list:
-        unique([system_name(s.system if isinstance(s, SystemRun) else s) for s in systems], "system names")
-        return systems
+    _unique = field_validator("systems")(unique_system_names)
 
     @model_validator(mode="after")
     def _protocols_fit(self):

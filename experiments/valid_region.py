@@ -20,20 +20,20 @@ From Python::
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, NamedTuple, Union
+from typing import Annotated, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from selfid_jax import control, paths
-from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig, unique
+from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig
 from selfid_jax.experiment import Experiment, Part, controller_rows, precision
 from selfid_jax.sweep import compiled_batch, compute_rows, grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
 
 
 class SystemRun(BaseModel):
@@ -46,11 +46,7 @@ class SystemRun(BaseModel):
     controller: ControllerConfig | None = None
 
 
-SystemEntry = Annotated[
-    Union[Annotated[SystemSpec, Tag("<spec>")], Annotated[SystemRun, Tag("<run>")]],
-    Discriminator(lambda v: "<run>" if isinstance(v, SystemRun) or (isinstance(v, dict) and "system" in v)
-                  else "<spec>"),
-]
+SystemEntry = spec_or_run(SystemRun)
 """A ``systems`` entry: a system spec, or ``{system: spec, path: ..., controller: ...}``."""
 
 
@@ -79,11 +75,7 @@ class ValidRegionConfig(BaseConfig):
     path: PathConfig
     completion_threshold: float = Field(0.95, gt=0, le=1)
 
-    @field_validator("systems")
-    @classmethod
-    def _unique(cls, systems: list) -> list:
-        unique([system_name(s.system if isinstance(s, SystemRun) else s) for s in systems], "system names")
-        return systems
+    _unique = field_validator("systems")(unique_system_names)
 
     @model_validator(mode="after")
     def _protocols_fit(self):

@@ -96,6 +96,14 @@ class BaseConfig(BaseModel):
         return self
 
 
+def stop_after_start(stop: float, info: ValidationInfo) -> float:
+    """Field validator of a grid's ``stop``: ``ValueError`` unless it is greater than the ``start`` field."""
+    start = info.data.get("start")
+    if start is not None and not stop > start:
+        raise ValueError(f"must be greater than start ({start})")
+    return stop
+
+
 class EpsLimits(BaseModel):
     """A linspace grid of inverse-Jacobian error scalings ``eps_limit`` (dimensionless)."""
 
@@ -105,13 +113,7 @@ class EpsLimits(BaseModel):
     stop: float = Field(le=100, description="greater than start")
     num: int = Field(ge=2, le=10**5, description="number of grid points")
 
-    @field_validator("stop")
-    @classmethod
-    def _stop_after_start(cls, stop: float, info: ValidationInfo) -> float:
-        start = info.data.get("start")
-        if start is not None and not stop > start:
-            raise ValueError(f"must be greater than start ({start})")
-        return stop
+    _stop_after_start = field_validator("stop")(stop_after_start)
 
     def values(self) -> np.ndarray:
         """The grid, shape ``(num,)``, float64."""

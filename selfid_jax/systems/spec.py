@@ -33,9 +33,11 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
 
+from selfid_jax.config import unique
 from selfid_jax.systems.system import System
 
-__all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "needs_x64",
+__all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "entry_spec",
+           "needs_x64", "spec_or_run", "unique_system_names",
            "system_name"]
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
@@ -182,6 +184,31 @@ def system_name(spec) -> str:
         return Path(spec.mjcf).stem
     return spec.pose_fn.rsplit(":", 1)[1]
 
+
+
+def spec_or_run(run_model: type[BaseModel]):
+    """The type of a ``systems`` entry with per-system protocols: a system spec, or a ``run_model``.
+
+    ``run_model`` is a pydantic model with a ``system`` field (a
+    :data:`SystemSpec`) and the settings it overrides; a mapping with a
+    ``system`` key is read as one.
+    """
+    return Annotated[
+        Union[Annotated[SystemSpec, Tag("<spec>")], Annotated[run_model, Tag("<run>")]],
+        Discriminator(lambda v: "<run>" if isinstance(v, run_model) or (isinstance(v, dict) and "system" in v)
+                      else "<spec>"),
+    ]
+
+
+def entry_spec(entry):
+    """The system spec of a ``systems`` entry of :func:`spec_or_run`: the entry, or its ``system`` field."""
+    return entry if isinstance(entry, (str, MjcfSystem, PoseFnSystem)) else entry.system
+
+
+def unique_system_names(entries: list) -> list:
+    """``entries`` (``systems`` entries of :func:`spec_or_run`) if their system names are distinct, else ``ValueError``."""
+    unique([system_name(entry_spec(e)) for e in entries], "system names")
+    return entries
 
 def _import(target: str):
     module, _, attr = target.partition(":")
