@@ -104,20 +104,18 @@ def psd_pinv(S, *, rcond=None):
     return _small_matmul(_small_matmul(R, W), R), N
 
 
-def _ldl_null_space(S, rcond):
-    """The rank-revealing ``L D L^T`` of :func:`psd_pinv`: ``(Li, dinv, N)``.
+def _ldl(S, scale):
+    """Unrolled ``L D L^T`` of a symmetric ``S (m, m)`` without pivoting: ``(L, Li, dinv, keep)``, nested lists of scalars.
 
-    ``Li`` (nested lists, ``m x m`` scalars): ``L^-1``; ``dinv`` (``m``
-    scalars): ``D^+`` (0 for a dropped pivot); ``N (m, m)``: the projector onto
-    the span of the dropped ``z_k`` (rows ``k`` of ``L^-1``).
+    ``L`` unit lower triangular (``L[i][k]``, ``i > k``), ``Li = L^-1`` (row
+    ``k`` is ``z_k^T``), ``dinv`` the inverse pivots, 0 for a dropped one, and
+    ``keep[k]``: pivot ``k`` is above ``scale ||z_k||^2`` (``scale = 0``: above
+    0). A dropped pivot's ``D`` entry is 0 and its column of ``L`` is 0.
     """
     m = S.shape[-1]
-    dtype = S.dtype
-    rcond = default_rcond(m, dtype) if rcond is None else rcond
-    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
-    scale = rcond * sum((S[k, k] for k in range(1, m)), S[0, 0])  # rcond * tr(S)
-    L = [[zero] * m for _ in range(m)]  # unit lower triangular, L[i][k] for i > k
-    Li = [[one if i == c else zero for c in range(m)] for i in range(m)]  # L^-1, row k = z_k^T
+    zero, one = jnp.zeros((), S.dtype), jnp.ones((), S.dtype)
+    L = [[zero] * m for _ in range(m)]
+    Li = [[one if i == c else zero for c in range(m)] for i in range(m)]
     d, dinv, keep = [zero] * m, [zero] * m, [None] * m
     for k in range(m):
         for c in range(k):  # row k of L^-1 from row k of L (columns < k, final) and earlier rows
@@ -134,6 +132,19 @@ def _ldl_null_space(S, rcond):
             for j in range(k):
                 a = a - L[i][j] * L[k][j] * d[j]
             L[i][k] = a * dinv[k]
+    return L, Li, dinv, keep
+
+
+def _ldl_null_space(S, rcond):
+    """The rank-revealing ``L D L^T`` of :func:`psd_pinv`: ``(Li, dinv, N)``.
+
+    ``Li`` (nested lists, ``m x m`` scalars): ``L^-1``; ``dinv`` (``m``
+    scalars): ``D^+`` (0 for a dropped pivot); ``N (m, m)``: the projector onto
+    the span of the dropped ``z_k`` (rows ``k`` of ``L^-1``).
+    """
+    m = S.shape[-1]
+    rcond = default_rcond(m, S.dtype) if rcond is None else rcond
+    _, Li, dinv, keep = _ldl(S, rcond * sum((S[k, k] for k in range(1, m)), S[0, 0]))  # rcond * tr(S)
     # null space: z_k (row k of Li) for dropped k, orthonormalised
     qs = []
     for k in range(m):
@@ -153,20 +164,7 @@ def _ldl_null_space(S, rcond):
 def _spd_right_solve(B, A):
     """``B (p, m) A^-1`` for a symmetric positive definite ``A (m, m)``: unrolled ``L D L^T`` and two substitutions."""
     m = A.shape[-1]
-    zero = jnp.zeros((), A.dtype)
-    L = [[zero] * m for _ in range(m)]
-    d, dinv = [zero] * m, [zero] * m
-    for k in range(m):
-        piv = A[k, k]
-        for j in range(k):
-            piv = piv - L[k][j] * L[k][j] * d[j]
-        d[k] = piv
-        dinv[k] = 1.0 / jnp.where(piv > 0, piv, 1.0)
-        for i in range(k + 1, m):
-            a = A[i, k]
-            for j in range(k):
-                a = a - L[i][j] * L[k][j] * d[j]
-            L[i][k] = a * dinv[k]
+    L, _, dinv, _ = _ldl(A, 0.0)
     y = [B[:, j] for j in range(m)]  # Y L^T = B, forward
     for j in range(m):
         for k in range(j):
