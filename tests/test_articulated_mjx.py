@@ -7,32 +7,11 @@ template has no friction loss). The reference is native MuJoCo.
 """
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax.articulated import scenes, sim, tactile
-
-PADS = tactile.pads()
-
-
-def _arm():
-    from selfid_jax.systems.ur5e import UR5E_HOME, ur5e
-
-    arm = ur5e(task_dim=6)
-    q0 = np.asarray(UR5E_HOME)
-    p1, R1 = (np.asarray(a) for a in arm.pose(jnp.asarray(q0)))
-    return arm, q0, p1, R1
-
-
-def _params(obj, controllers):
-    B = len(controllers)
-    full = lambda v: jnp.full((B,), v)  # noqa: E731
-    return sim.RolloutParams(
-        scenes.ObjectParams(*(jnp.asarray(a) for a in obj)), jnp.asarray(controllers, jnp.int32),
-        jnp.full((B,), False), jnp.zeros((B, 6, 6)),
-        jax.random.key_data(jax.random.split(jax.random.key(0), B)), full(0.03), full(5e-6), full(3e-4),
-        jnp.ones((B, 6)), full(0.9), full(1e-3), full(2e-4), full(0.5), full(5e-3), full(0.3), full(1e-3), full(0.06))
+from selfid_jax.articulated import scenes, sim
+from test_articulated import PADS, _arm, _params  # the closed-loop helpers (tests/ is on the path)
 
 
 def _drawers(frictionlosses):
