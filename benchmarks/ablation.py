@@ -42,7 +42,7 @@ def study_times(config) -> dict:
 
 def full_chunks(config, k: int) -> dict:
     """The first ``k`` chunks of a ``_full`` config (fewer configurations): peak RSS and projected wall time."""
-    from selfid_jax.config import load_config
+    from selfid_jax.runner.registry import load as load_config
     from whole_process import measure
 
     cfg = load_config(config)
@@ -86,7 +86,7 @@ def update_rates(cfg, batch=256, T=100, n=6, m=3, reps=3):
 
 def run(config=ROOT / "configs/ablation_ur5e.yaml", *, skip_study=False, full=0, rates=True) -> dict:
     import selfid_jax  # noqa: F401
-    from selfid_jax.config import load_config
+    from selfid_jax.runner.registry import load as load_config
 
     res: dict = {"config": Path(config).name}
     if not skip_study:

@@ -27,11 +27,11 @@ import numpy as np
 from emit import emit
 
 from selfid_jax.articulated import sim
-from selfid_jax.experiment import precision
+from selfid_jax.runner.execute import precision
 
 
 def _part(backend: str, kind: str, batch: int, steps: int, controller: str, frictionloss, seed: int):
-    from experiments.articulated import ArticulatedConfig, build
+    from selfid_jax.experiments.articulated import ArticulatedConfig, build
 
     dt = 0.02
     cfg = ArticulatedConfig(backend=backend, objects={kind: batch}, controllers=[controller], arms=["true"],

@@ -2,7 +2,7 @@
 
 A step is what Algorithm 1 does per sample: ``update`` (Eq. 6-12 and the
 statistics ``S_vv``, ``S_tv``), ``initial_guess`` (Eq. 13), the closed-form
-refinement (Eq. 14, :func:`selfid_jax.refine.statistics_closed_form`) and the
+refinement (Eq. 14, :func:`selfid_jax.identify.refine.statistics_closed_form`) and the
 convergence ``record`` (Sec. IV-D). The harness is a ``lax.scan`` over
 ``--steps`` samples whose body is ``vmap(step)`` over ``--batch`` estimators
 (n = 6, m = 3, float32): one sample per robot per control tick, as a 1 kHz
@@ -42,9 +42,9 @@ import numpy as np
 from emit import emit
 
 from selfid_jax import baselines
-from selfid_jax import estimator as E
+from selfid_jax.identify import estimator as E
 
-RF = sys.modules["selfid_jax.refine"]
+RF = sys.modules["selfid_jax.identify.refine"]
 N, M = 6, 3
 F32 = jnp.float32
 

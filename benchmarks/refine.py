@@ -24,8 +24,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import selfid_jax as sj  # noqa: E402
-from selfid_jax import estimator as E  # noqa: E402
-from selfid_jax.refine import slsqp_refine  # noqa: E402
+from selfid_jax.identify import estimator as E  # noqa: E402
+from selfid_jax.identify.refine import slsqp_refine  # noqa: E402
 
 N = M = 6
 K = 20

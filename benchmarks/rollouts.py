@@ -22,7 +22,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from selfid_jax import control, paths
+from selfid_jax import control
+
+from selfid_jax.control import paths
 from selfid_jax.systems import ur5e
 from selfid_jax.systems.ur5e import UR5E_XML
 

@@ -30,7 +30,7 @@ GOAL_RSS_MIB = 4096.0
 def _overrides(path: Path, full_chunks: int):
     """``(overrides, full_rows)``: for a ``_full`` config, ``n_configs`` covering ``full_chunks`` chunks."""
     import selfid_jax  # noqa: F401
-    from selfid_jax.config import load_config
+    from selfid_jax.runner.registry import load as load_config
 
     cfg = load_config(path)
     per_config = len(cfg.eps_limits.values()) * cfg.n_trials * len(cfg.systems)

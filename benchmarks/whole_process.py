@@ -58,8 +58,8 @@ def main():
     jax.config.update("jax_compilation_cache_dir", args.cache_dir)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
-    from selfid_jax import experiment
-    from selfid_jax.config import load_config
+    from selfid_jax import runner as experiment
+    from selfid_jax.runner.registry import load as load_config
 
     t_import = time.perf_counter()
     cfg = load_config(args.config, args.set)

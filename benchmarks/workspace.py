@@ -1,6 +1,6 @@
 """Workspace-map throughput: configurations per second of the workspace experiment's compiled compute.
 
-Times ``jit(vmap(compute))`` of :mod:`experiments.workspace` on batches of configurations of the arm5 (one
+Times ``jit(vmap(compute))`` of :mod:`selfid_jax.experiments.workspace` on batches of configurations of the arm5 (one
 kinematics pass for pose and 6x5 Jacobian, three SVDs), float32 and float64, after a warm-up call, and once
 through the sweep runner (chunks written to a temporary run directory). Prints configurations/s.
 
@@ -17,8 +17,8 @@ import jax
 
 
 def rate(n: int, chunk: int, x64: bool) -> float:
-    from experiments import workspace
-    from selfid_jax.experiment import precision
+    from selfid_jax.experiments import workspace
+    from selfid_jax.runner.execute import precision
 
     cfg = workspace.WorkspaceConfig(n_configs=n, x64=x64, chunk_size=chunk)
     with precision(x64):
@@ -34,8 +34,8 @@ def rate(n: int, chunk: int, x64: bool) -> float:
 
 
 def runner_rate(n: int, chunk: int) -> tuple[float, dict]:
-    from experiments import workspace
-    from selfid_jax import experiment
+    from selfid_jax.experiments import workspace
+    from selfid_jax import runner as experiment
 
     cfg = workspace.WorkspaceConfig(n_configs=n, chunk_size=chunk)
     with tempfile.TemporaryDirectory() as d:

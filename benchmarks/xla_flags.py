@@ -39,7 +39,8 @@ def one(key):
                             env=jnp.array([0.3, 0.9, -0.6]), capacity=20, stop_at_convergence=False).estimate
 
 if sys.argv[3] == "ur5e":
-    from selfid_jax import control, paths
+    from selfid_jax import control
+    from selfid_jax.control import paths
     arm = sj.ur5e(task_dim=3)
     star = paths.star(size=0.05)
     fn = jax.jit(jax.vmap(lambda q: control.follow(arm, control.true_inverse(arm), star, q,

@@ -30,15 +30,23 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
 
-from selfid_jax import baselines, control, estimator, paths, plots, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, check_noise_pairs, unique
-from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.sweep import grid_table, row_keys
-from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax import baselines, control
 
-from experiments import ablation_ekm
-from experiments.ablation_ekm import METHOD_CHOICES, NominalSpec, is_model_based
+from selfid_jax.identify import estimator, algorithm as selfid
+
+from selfid_jax.control import paths
+
+from selfid_jax.experiments.common import figures as plots
+from selfid_jax.experiments.common.schema import ControllerConfig, PathConfig, StudyConfig, check_noise_pairs
+from selfid_jax.runner.config import unique
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.systems import System
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
+
+from selfid_jax.experiments.common import ekm as ablation_ekm
+from selfid_jax.experiments.common.ekm import METHOD_CHOICES, NominalSpec, is_model_based
 
 
 class MethodSpec(BaseModel):
@@ -55,7 +63,7 @@ class MethodSpec(BaseModel):
                                         "the nominal model's length scale and joint offsets (experiments/ablation_ekm.py)")
 
 
-class AblationConfig(BaseConfig):
+class AblationConfig(StudyConfig):
     """Estimation ablation on the UR5e (Sec. V-A)."""
 
     experiment: Literal["ablation"] = "ablation"

@@ -23,12 +23,12 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from selfid_jax import selfid
+from selfid_jax.identify import algorithm as selfid
 from selfid_jax.articulated import scenes, sim, tactile
-from selfid_jax.config import BaseConfig
-from selfid_jax.experiment import Experiment, Part, precision
-from selfid_jax.plots import save_figure
-from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax.experiments.common.schema import StudyConfig
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.figures import save_figure
+from selfid_jax.runner.grids import grid_table, row_keys
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 METRICS = ("time_s", "efficiency", "jerk", "dev_mean_mm", "dev_max_mm")
@@ -95,7 +95,7 @@ class TurboLeadCfg(BaseModel):
     tau: float = Field(0.06, ge=0, le=10, description="handle-twist smoothing time constant [s] (0: none)")
 
 
-class ArticulatedConfig(BaseConfig):
+class ArticulatedConfig(StudyConfig):
     """Tac-Man vs TacMan-Turbo over a seeded population of articulated objects, true vs self-ID arm."""
 
     experiment: Literal["articulated"] = "articulated"

@@ -20,12 +20,18 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from selfid_jax import control, estimator, paths, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, unique
-from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.plots import save_figure
+from selfid_jax import control
+
+from selfid_jax.identify import estimator, algorithm as selfid
+
+from selfid_jax.control import paths
+from selfid_jax.experiments.common.schema import ControllerConfig, PathConfig, StudyConfig
+from selfid_jax.runner.config import unique
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.runner.figures import save_figure
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 
 class DemoRun(BaseModel):
@@ -49,7 +55,7 @@ class DemoRun(BaseModel):
         return self
 
 
-class DemoConfig(BaseConfig):
+class DemoConfig(StudyConfig):
     """The main job: each run self-identifies its robot and follows a star with the estimates and the truth.
 
     Default: the UR5e and the Model O hand (eps relative for the hand: its inverse Jacobian is dimensionless

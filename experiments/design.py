@@ -57,13 +57,17 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from selfid_jax import control, design, paths
-from selfid_jax.config import BaseConfig, ControllerConfig, PathConfig, check_noise_pairs, stop_after_start
-from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.plots import save_figure
-from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax import control, design
+
+from selfid_jax.control import paths
+from selfid_jax.experiments.common.schema import ControllerConfig, PathConfig, StudyConfig, check_noise_pairs
+from selfid_jax.runner.config import stop_after_start
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.runner.figures import save_figure
+from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
@@ -127,7 +131,7 @@ class Protocol(NamedTuple):
     rot_noise: list[float]
 
 
-class DesignConfig(BaseConfig):
+class DesignConfig(StudyConfig):
     """Self-ID magnitude design per system and tracker-noise level: grid, gradient refinement, held-out comparison."""
 
     experiment: Literal["design"] = "design"

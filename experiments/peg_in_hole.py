@@ -41,11 +41,16 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from selfid_jax import control, estimator, geometry, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig, check_noise_pairs
-from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.plots import save_figure
-from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax import control
+
+from selfid_jax.identify import estimator, algorithm as selfid
+
+from selfid_jax.math import geometry
+from selfid_jax.experiments.common.schema import ControllerConfig, StudyConfig, check_noise_pairs
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.runner.figures import save_figure
+from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System, compose, hands
 from selfid_jax.systems.ur5e import ur5e
 
@@ -92,7 +97,7 @@ class Rotation(BaseModel):
     steps: int = Field(10, ge=1, le=1000, description="waypoints along the rotation")
 
 
-class PegConfig(BaseConfig):
+class PegConfig(StudyConfig):
     """Peg-in-hole with a Model O on a UR5e, both self-identified (Table III)."""
 
     experiment: Literal["peg_in_hole"] = "peg_in_hole"

@@ -26,20 +26,27 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from selfid_jax import control, estimator, geometry, metrics, paths, selfid
-from selfid_jax.config import BaseConfig, ControllerConfig, check_noise_pairs
-from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.plots import save_figure
-from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax import control
+
+from selfid_jax.identify import estimator, algorithm as selfid
+
+from selfid_jax.math import geometry
+
+from selfid_jax.control import metrics, paths
+from selfid_jax.experiments.common.schema import ControllerConfig, StudyConfig, check_noise_pairs
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.runner.figures import save_figure
+from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 from selfid_jax.systems.validation import AXIS_NAMES
 
 INVERSES = ("estimated", "analytical")
 
 
 class TrackingPath(BaseModel):
-    """The commanded path, as offsets from where self-ID ended (:mod:`selfid_jax.paths`)."""
+    """The commanded path, as offsets from where self-ID ended (:mod:`selfid_jax.control.paths`)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
@@ -97,7 +104,7 @@ class TrackingPath(BaseModel):
                 "rotation": float("inf")}[self.kind]
 
 
-class TrackingConfig(BaseConfig):
+class TrackingConfig(StudyConfig):
     """Self-ID then path tracking with the estimate and the truth, over configs x trials x tracker noise."""
 
     experiment: Literal["tracking"] = "tracking"

@@ -13,9 +13,9 @@ with ``eps_limit = 1``, so that the study's one compiled program serves both:
 
 From Python::
 
-    from selfid_jax import experiment
-    from selfid_jax.config import load_config
-    table, summary = experiment.run(experiment.get("valid_region"), load_config("configs/valid_region_two_link.yaml"), "runs/vr")
+    from selfid_jax import runner
+    cfg = runner.load("configs/valid_region_two_link.yaml")
+    table, summary = runner.run(runner.get("valid_region"), cfg, "runs/vr")
 """
 
 from __future__ import annotations
@@ -28,12 +28,15 @@ import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from selfid_jax import control, paths
-from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig
-from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.sweep import compiled_batch, compute_rows, grid_table, row_keys
+from selfid_jax import control
+
+from selfid_jax.control import paths
+from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig, StudyConfig
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
 
 
 class SystemRun(BaseModel):
@@ -57,7 +60,7 @@ def protocol(cfg: "ValidRegionConfig", entry) -> tuple[object, PathConfig, Contr
     return entry, cfg.path, cfg.controller
 
 
-class ValidRegionConfig(BaseConfig):
+class ValidRegionConfig(StudyConfig):
     """Valid inverse-Jacobian region study (paper Sec. III-C, Fig. 2).
 
     Every rollout scales the true inverse Jacobian elementwise by ``m_eps`` with
@@ -151,7 +154,7 @@ def feasible_configs(static: Static, key, k: int, controller: ControllerConfig, 
     (``k * oversample`` draws of ``system.sample_configs(key, ...)``, the first
     ``k`` that complete the path without failing are kept), but each rollout
     is a row of the study (``eps_limit = 1``: ``m_eps = 1`` exactly, the true
-    inverse Jacobian) run by :func:`selfid_jax.sweep.compute_rows` at the
+    inverse Jacobian) run by :func:`selfid_jax.runner.sweep.compute_rows` at the
     study's compiled ``batch``, so the sweep reuses this compilation instead of
     compiling a second rollout program (1.3-1.8 s for the UR5e), unless
     padding the candidates to ``batch`` would waste more than
@@ -205,7 +208,7 @@ def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller:
 
 def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:
     """Bounds per system with the protocol beside them (per system where a ``systems`` entry sets its own)."""
-    from selfid_jax import plots  # matplotlib only when needed (0.3 s of import)
+    from selfid_jax.experiments.common import figures as plots  # matplotlib only when needed (0.3 s of import)
 
     summary = plots.valid_region_summary(
         table,
@@ -236,8 +239,8 @@ def report(summary: dict) -> str:
 
 
 def plot(table: pd.DataFrame, summary: dict, out_dir):
-    """Fig. 2 from the saved table (:func:`selfid_jax.plots.valid_region_figure`)."""
-    from selfid_jax import plots
+    """Fig. 2 from the saved table (:func:`selfid_jax.experiments.common.figures.valid_region_figure`)."""
+    from selfid_jax.experiments.common import figures as plots
 
     return plots.valid_region_figure(table, summary, out_dir)
 

@@ -35,16 +35,23 @@ import numpy as np
 import pandas as pd
 from pydantic import Field
 
-from selfid_jax import control, manipulability, paths, plots
-from selfid_jax.config import BaseConfig, ControllerConfig, EpsLimits, PathConfig
-from selfid_jax.experiment import Experiment, Part, controller_rows, precision
-from selfid_jax.plots import save_figure
-from selfid_jax.sweep import grid_table, row_keys
+from selfid_jax import control
+
+from selfid_jax.systems import manipulability
+
+from selfid_jax.control import paths
+
+from selfid_jax.experiments.common import figures as plots
+from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig, StudyConfig
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.runner.figures import save_figure
+from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 
-class ValidRegionWorkspaceConfig(BaseConfig):
+class ValidRegionWorkspaceConfig(StudyConfig):
     """Valid region per start configuration, configurations stratified by manipulability; predicted beside it."""
 
     experiment: Literal["valid_region_workspace"] = "valid_region_workspace"

@@ -3,7 +3,7 @@
 Every row is one configuration drawn uniformly in the joint limits (or the
 system's sampling box); one compiled call gives its tool position and the
 dexterity metrics of its 6-row geometric Jacobian
-(:mod:`selfid_jax.manipulability`): seed 004's manipulability
+(:mod:`selfid_jax.systems.manipulability`): seed 004's manipulability
 ``sqrt(prod sigma)``, Yoshikawa's ``prod sigma``, the mixed-unit condition, the
 position-only (3-row) versions and the unit-consistent condition (rotation
 rows times ``length``). ``summarize`` and ``plot`` bin the tool positions into
@@ -31,20 +31,20 @@ import numpy as np
 import pandas as pd
 from pydantic import Field
 
-from selfid_jax import manipulability
-from selfid_jax.config import BaseConfig
-from selfid_jax.experiment import Experiment, Part, precision
-from selfid_jax.plots import save_figure
-from selfid_jax.sweep import row_keys
+from selfid_jax.systems import manipulability
+from selfid_jax.experiments.common.schema import StudyConfig
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.figures import save_figure
+from selfid_jax.runner.grids import row_keys
 from selfid_jax.systems import System
-from selfid_jax.systems.spec import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 PLANES = ("rz", "xz")
 METRIC_COLUMNS = ("sqrt_manipulability", "yoshikawa", "condition", "position_sqrt_manipulability",
                   "position_yoshikawa", "position_condition", "unit_consistent_condition")
 
 
-class WorkspaceConfig(BaseConfig):
+class WorkspaceConfig(StudyConfig):
     """Reachable-workspace maps: ``n_configs`` configurations, their tool positions and dexterity, binned in cells."""
 
     experiment: Literal["workspace"] = "workspace"

@@ -6,8 +6,12 @@ Eq. 6-14 and Sec. IV-D), Algorithm 1 (``sj.self_identify``, ``sj.selfid.run``),
 systems (``sj.ur5e``, ``sj.two_link``, ``sj.arm5``, ``sj.from_pose_fn``, ``sj.from_mjcf``,
 ``sj.from_ets``), kinematic metrics (``sj.manipulability``), damped least-squares IK (``sj.dls``),
 the controller (``sj.follow`` with ``sj.ControllerParams``), the estimation
-baselines (``sj.baselines``) and the experiment contract (``sj.experiment``).
-README.md has runnable examples.
+baselines (``sj.baselines``) and the experiment runner (``sj.experiment``, loaded
+on first use). README.md has runnable examples.
+
+Layers, bottom to top (import-linter contracts in ``pyproject.toml``):
+``math`` < ``systems`` < ``identify`` | ``control`` < ``baselines`` <
+``design`` | ``articulated`` < ``experiments``; ``runner`` knows none of them.
 
 Importing the package appends CPU XLA flags to ``XLA_FLAGS`` (see
 ``selfid_jax._xla``); import it before running any JAX computation.
@@ -17,10 +21,14 @@ from selfid_jax._xla import apply_default_xla_flags as _apply_default_xla_flags
 
 _apply_default_xla_flags()
 
-from selfid_jax import baselines, control, estimator, experiment, geometry, magnitude, metrics, paths, systems  # noqa: E402
-from selfid_jax import design, dls, manipulability  # noqa: E402
-from selfid_jax import refine as refine_lib, selfid  # noqa: E402
-from selfid_jax.estimator import (  # noqa: E402
+from selfid_jax import baselines, control, design, systems  # noqa: E402
+from selfid_jax.control import dls, metrics, paths  # noqa: E402
+from selfid_jax.control.loop import ControllerParams, FollowResult, follow  # noqa: E402
+from selfid_jax.identify import algorithm as selfid  # noqa: E402
+from selfid_jax.identify import estimator, magnitude  # noqa: E402
+from selfid_jax.identify import refine as refine_lib  # noqa: E402
+from selfid_jax.identify.algorithm import SelfIDResult, self_identify, stateless  # noqa: E402
+from selfid_jax.identify.estimator import (  # noqa: E402
     EstimatorState,
     converged,
     init,
@@ -31,14 +39,23 @@ from selfid_jax.estimator import (  # noqa: E402
     signed_inverse_jacobian,
     update,
 )
-from selfid_jax.refine import refine  # noqa: E402
-from selfid_jax.selfid import SelfIDResult, self_identify, stateless  # noqa: E402
-from selfid_jax.control import ControllerParams, FollowResult, follow  # noqa: E402
+from selfid_jax.identify.refine import refine  # noqa: E402
+from selfid_jax.math import geometry  # noqa: E402
 from selfid_jax.systems import (  # noqa: E402
-    System, arm5, from_ets, from_mjcf, from_pose_fn, model_o, stewart_hand, two_link, ur5e,
+    System, arm5, from_ets, from_mjcf, from_pose_fn, manipulability, model_o, stewart_hand, two_link, ur5e,
 )
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """``sj.experiment``: the runner (:mod:`selfid_jax.runner`), imported on first use (it loads pandas and pydantic)."""
+    if name == "experiment":
+        import importlib
+
+        return importlib.import_module("selfid_jax.runner")
+    raise AttributeError(f"module 'selfid_jax' has no attribute {name!r}")
+
 
 __all__ = [
     "ControllerParams",

@@ -81,7 +81,8 @@ def test_summary_and_figures(run_dir):
 
 @slow
 def test_config_errors_name_key(tmp_path):
-    from selfid_jax.config import ConfigError, load_config
+    from selfid_jax.runner.errors import ConfigError
+    from selfid_jax.runner.registry import load as load_config
 
     bad = dict(CONFIG, rot_noise=[0.0])
     path = tmp_path / "bad.yaml"
@@ -144,7 +145,8 @@ def test_ekm_rows_end_to_end(tmp_path):
 
 
 def _ekm_error(tmp_path, match, **method):
-    from selfid_jax.config import ConfigError, load_config
+    from selfid_jax.runner.errors import ConfigError
+    from selfid_jax.runner.registry import load as load_config
 
     bad = dict(EKM_CONFIG, methods=[{"name": "true", "method": "true"}, {"name": "x", **method}])
     path = tmp_path / "bad.yaml"

@@ -7,11 +7,13 @@ import collections
 import numpy as np
 import pytest
 
-from selfid_jax import experiment, sweep
+from selfid_jax import runner as experiment
+
+from selfid_jax.runner import sweep
 
 
 def _cfg(chunk_size):
-    from experiments.articulated import ArticulatedConfig
+    from selfid_jax.experiments.articulated import ArticulatedConfig
 
     return ArticulatedConfig(objects={"prismatic": 3, "revolute": 1}, controllers=["tacman"], arms=["true"],
                              max_time=0.4, trace_points=4, selfid_iters=4, chunk_size=chunk_size, seed=3)

@@ -8,8 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax import control, experiment, paths, sweep
-from selfid_jax.config import ControllerConfig
+from selfid_jax import control, runner as experiment
+
+from selfid_jax.control import paths
+
+from selfid_jax.runner import sweep
+from selfid_jax.experiments.common.schema import ControllerConfig
 
 
 def _fn(p):
@@ -33,7 +37,7 @@ def test_compute_rows_matches_run_chunked_and_shares_its_compilation(tmp_path):
 
 @pytest.mark.slow
 def test_valid_region_feasibility_equals_control_feasible_starts():
-    from experiments import valid_region as vr
+    from selfid_jax.experiments import valid_region as vr
     from selfid_jax.systems import two_link
 
     system = two_link()
@@ -49,7 +53,7 @@ def test_valid_region_feasibility_equals_control_feasible_starts():
 @pytest.mark.slow
 def test_ablation_program_has_two_rollout_loops_whatever_the_methods(monkeypatch):
     """The fixed estimates of every method share one vmapped rollout; `true` has the other."""
-    from experiments import ablation
+    from selfid_jax.experiments import ablation
 
     calls = []
     follow = control.follow

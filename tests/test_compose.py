@@ -4,7 +4,7 @@ pose map, and each part (the other held) against the composed pose and Jacobian 
 import numpy as np
 import pytest
 
-from selfid_jax import geometry
+from selfid_jax.math import geometry
 from selfid_jax.systems import compose, hands
 from selfid_jax.systems import from_pose_fn
 from selfid_jax.systems.ur5e import ur5e

@@ -9,16 +9,11 @@ import numpy as np
 import pydantic
 import pytest
 
-from experiments.valid_region import ValidRegionConfig
-from selfid_jax import experiment
-from selfid_jax.config import (
-    BaseConfig,
-    ConfigError,
-    apply_overrides,
-    dump_config,
-    load_config,
-    parse_override,
-)
+from selfid_jax.experiments.valid_region import ValidRegionConfig
+from selfid_jax import runner as experiment
+from selfid_jax.runner.config import BaseConfig, apply_overrides, dump_config, parse_override
+from selfid_jax.runner.errors import ConfigError
+from selfid_jax.runner.registry import load as load_config
 
 VALID = textwrap.dedent(
     """\
@@ -187,7 +182,7 @@ def test_system_specs_name_the_problem_and_resolve_paths(cfg_file, tmp_path):
 def test_systems_entries_may_carry_their_own_protocol(cfg_file):
     cfg = load_config(cfg_file, ["systems=[two_link, {system: ur5e, path: {size: 0.05}, "
                                  "controller: {max_step: 0.0025, tol: 0.0005, steps: 435}}]"])
-    from experiments.valid_region import SystemRun, protocol
+    from selfid_jax.experiments.valid_region import SystemRun, protocol
 
     assert isinstance(cfg.systems[1], SystemRun)
     spec, path, controller = protocol(cfg, cfg.systems[1])

@@ -6,7 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax import control, paths, selfid
+from selfid_jax import control
+
+from selfid_jax.control import paths
+
+from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems import from_pose_fn, two_link, ur5e
 
 import numpy_reference as ref
@@ -201,7 +205,7 @@ def test_controller_params_are_traced_one_compilation_for_a_sweep():
 
 
 def test_follow_defaults_are_the_shipped_protocol():
-    from selfid_jax.config import ControllerConfig
+    from selfid_jax.experiments.common.schema import ControllerConfig
 
     cfg = ControllerConfig()
     assert cfg.traced() == {k: v for k, v in control.ControllerParams()._asdict().items() if k != "diverge_dist"}

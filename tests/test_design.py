@@ -11,8 +11,11 @@ import pandas as pd
 import pytest
 import yaml
 
-from selfid_jax import control, design, paths
-from selfid_jax.config import ConfigError, load_config
+from selfid_jax import control, design
+
+from selfid_jax.control import paths
+from selfid_jax.runner.errors import ConfigError
+from selfid_jax.runner.registry import load as load_config
 from selfid_jax.systems import from_pose_fn, two_link
 
 A = np.array([[0.5, 0.1, 0.0], [0.0, 0.4, 0.1], [0.1, 0.0, 0.3]])  # m/rad, well conditioned
@@ -32,7 +35,7 @@ def guarded_linear_pose(params, q):
 
 def rigid_pose(params, q):
     """A 6-D task: position ``A q[:3]`` [m], orientation ``exp(q[3:])`` (rotation vector, rad)."""
-    from selfid_jax import geometry
+    from selfid_jax.math import geometry
 
     return params @ q[:3], geometry.so3_exp(q[3:])
 

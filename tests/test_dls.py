@@ -10,7 +10,9 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy.optimize import lsq_linear, minimize_scalar  # noqa: E402
 
-from selfid_jax import dls, selfid  # noqa: E402
+from selfid_jax.control import dls  # noqa: E402
+
+from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems.ets import ARM5_HOME, arm5, from_ets  # noqa: E402
 
 # Seed 004's failure case: tool horizontal (q2 + q3 + q4 = pi/2) at radius 0.33 m, then 100 mm sideways at fixed

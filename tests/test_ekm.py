@@ -9,7 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax import baselines, control, paths
+from selfid_jax import baselines, control
+
+from selfid_jax.control import paths
 from selfid_jax.baselines import ekm
 from selfid_jax.systems.two_link import two_link
 

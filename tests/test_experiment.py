@@ -1,9 +1,12 @@
-"""The experiment contract: entry-point registry, one compilation per sweep, no back-edge into `experiments`."""
+"""The experiment contract: entry-point registry, one compilation per sweep, the layer contracts."""
 
 from __future__ import annotations
 
-import ast
 import json
+import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 from typing import NamedTuple
 
@@ -16,8 +19,10 @@ import pydantic
 import pytest
 
 import selfid_jax
-from selfid_jax import cli, experiment
-from selfid_jax.config import BaseConfig, ConfigError, ControllerConfig, EpsLimits, PathConfig
+from selfid_jax import cli, runner as experiment
+from selfid_jax.runner.config import BaseConfig
+from selfid_jax.runner.errors import ConfigError
+from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig
 
 PACKAGE = Path(selfid_jax.__file__).resolve().parent
 
@@ -33,33 +38,37 @@ def test_shipped_experiments_come_from_entry_points():
         experiment.get("nope")
 
 
-def test_library_never_imports_the_experiments_package():
-    """No module of selfid_jax imports `experiments` (statically or through importlib with that name)."""
-    offenders = []
-    for path in PACKAGE.rglob("*.py"):
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Import):
-                mods = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                mods = [node.module or ""]
-            elif isinstance(node, ast.Constant) and isinstance(node.value, str):
-                mods = [node.value] if node.value.startswith("experiments.") else []
-            else:
-                continue
-            offenders += [f"{path.name}: {m}" for m in mods if m == "experiments" or m.startswith("experiments.")]
-    assert offenders == []
+def test_layer_contracts_hold():
+    """import-linter's contracts of pyproject.toml: layers, a domain-free runner, a lean API, no import cycle."""
+    lint = shutil.which("lint-imports", path=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
+    assert lint is not None, "lint-imports (import-linter, in the test extra) is not installed"
+    out = subprocess.run([lint, "--no-cache"], cwd=PACKAGE.parent, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    assert "4 kept, 0 broken" in out.stdout
 
 
-def test_no_module_over_about_400_lines():
-    sizes = {p.relative_to(PACKAGE).as_posix(): len(p.read_text().splitlines()) for p in PACKAGE.rglob("*.py")}
-    assert max(sizes.values()) <= 440, {k: v for k, v in sizes.items() if v > 440}
+def test_experiments_install_under_the_package_namespace(tmp_path):
+    """An ``experiments`` folder in the user's working directory does not shadow the registered experiments."""
+    (tmp_path / "experiments").mkdir()
+    (tmp_path / "experiments" / "__init__.py").write_text("raise ImportError('the user package was imported')\n")
+    code = ("import selfid_jax as sj; e = sj.experiment.get('valid_region'); "
+            "print(type(e).__module__, e.config.__module__)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(PACKAGE.parent)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["selfid_jax.runner.contract", "selfid_jax.experiments.valid_region"]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = subprocess.run([sys.executable, "-c", "import importlib.util as u; print(u.find_spec('experiments'))"],
+                         cwd=bare, capture_output=True, text=True, timeout=60, env=env)
+    assert out.returncode == 0 and out.stdout.strip() == "None", out.stdout + out.stderr  # no top-level package installed
 
 
 @pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_valid_region_sweep_of_controller_and_eps_values_compiles_once():
     """Every sweepable number is a traced Params field: one trace for rows with different values."""
-    from experiments.valid_region import ValidRegionConfig
+    from selfid_jax.experiments.valid_region import ValidRegionConfig
 
     cfg = ValidRegionConfig(systems=["two_link"], eps_limits=EpsLimits(start=0.5, stop=1.5, num=2), n_configs=1,
                             n_trials=2, controller=ControllerConfig(max_step=0.01, tol=0.002, steps=200),
@@ -115,7 +124,7 @@ def _compute(static, p):
 def _plot(table, summary, out_dir):
     from matplotlib.figure import Figure
 
-    from selfid_jax.plots import save_figure
+    from selfid_jax.experiments.common.figures import save_figure
 
     fig = Figure(figsize=(2, 2))
     fig.subplots().plot(table["x"], table["y"], "o")

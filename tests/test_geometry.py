@@ -9,7 +9,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from selfid_jax import geometry  # noqa: E402
+from selfid_jax.math import geometry  # noqa: E402
 
 TOL = 1e-12
 

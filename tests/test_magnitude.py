@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax import estimator as E
-from selfid_jax import magnitude as M
+from selfid_jax.identify import estimator as E
+from selfid_jax.identify import magnitude as M
 
 V_TOL = 1e-9
 # jitted once per state shape: eager dispatch of the sorts and scans is slower than compiling

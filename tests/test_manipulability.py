@@ -9,7 +9,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from selfid_jax import manipulability as mp  # noqa: E402
+from selfid_jax.systems import manipulability as mp  # noqa: E402
 from selfid_jax.systems.ets import arm5  # noqa: E402
 from selfid_jax.systems.two_link import two_link  # noqa: E402
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from selfid_jax import metrics, paths
+from selfid_jax.control import metrics, paths
 
 
 def numpy_closest(points, vertices, samples=2001):

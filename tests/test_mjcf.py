@@ -7,7 +7,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from selfid_jax import control, paths, selfid
+from selfid_jax import control
+
+from selfid_jax.control import paths
+
+from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems import from_mjcf
 
 # A 3-hinge arm (j1 yaw, j2/j3 pitch), a passive hinge jf = 0.5 j3 (joint equality), a wrist pair ja/jb

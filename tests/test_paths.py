@@ -1,4 +1,4 @@
-"""Geometry of the waypoint paths in selfid_jax.paths."""
+"""Geometry of the waypoint paths in selfid_jax.control.paths."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax import paths
+from selfid_jax.control import paths
 
 # float32 outputs when x64 is off; distances are O(0.1 m).
 TOL = 1e-6

@@ -5,7 +5,7 @@ positions; bad layouts are rejected before any compute."""
 import numpy as np
 import pytest
 
-from selfid_jax import experiment
+from selfid_jax import runner as experiment
 
 pytestmark = pytest.mark.slow  # compiles the UR5e + Model O pipeline (float64)
 

@@ -8,7 +8,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import selfid_jax as sj
-from selfid_jax import estimator as E
+from selfid_jax.identify import estimator as E
 
 update = jax.jit(E.update)
 closed_form = jax.jit(lambda s: sj.refine(s, sj.initial_guess(s), method="closed_form"))

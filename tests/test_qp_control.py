@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from scipy.optimize import lsq_linear, minimize
 
-from selfid_jax import control, paths, qp_control
+from selfid_jax import control
+
+from selfid_jax.control import paths, qp as qp_control
 from selfid_jax.systems.two_link import two_link
 
 solve = jax.jit(jax.vmap(qp_control.solve))

@@ -26,7 +26,7 @@ def test_readme_python_block_runs(index, tmp_path):
 
 
 def test_readme_cli_subcommands_exist():
-    from selfid_jax.cli import _parser
+    from selfid_jax.runner.cli import _parser
 
     commands = set(re.findall(r"^selfid-jax (\w+)", README.read_text(), re.M))
     known = set(_parser()._subparsers._group_actions[0].choices)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import selfid_jax as sj
-from selfid_jax import estimator as E
+from selfid_jax.identify import estimator as E
 
 
 def make_state(rng, J, K, noise=0.0, capacity=32, scale=0.05):

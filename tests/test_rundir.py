@@ -31,11 +31,15 @@ from test_sweep import (
     synthetic_fn,
 )
 
-from selfid_jax import cli, experiment, plots, sweep
-from selfid_jax.config import BaseConfig
-from selfid_jax.lock import RunDirBusy, RunDirError, hold
-from selfid_jax.results import create_run_dir, load_results, write_json, write_summary
-from selfid_jax.sweep import SweepResumeError, grid_table, row_keys, run_chunked
+from selfid_jax import cli, runner as experiment
+
+from selfid_jax.experiments.common import figures as plots
+
+from selfid_jax.runner import sweep
+from selfid_jax.runner.config import BaseConfig
+from selfid_jax.runner.lock import RunDirBusy, RunDirError, hold
+from selfid_jax.runner.rundir import create_run_dir, load_results, write_json, write_summary
+from selfid_jax.runner.sweep import SweepResumeError, grid_table, row_keys, run_chunked
 
 # --------------------------------------------------------------------------- helpers
 

@@ -14,9 +14,9 @@ import pytest
 
 import selfid_jax as sj
 from selfid_jax import baselines as B
-from selfid_jax import estimator as E
+from selfid_jax.identify import estimator as E
 
-RF = sys.modules["selfid_jax.refine"]  # the module (selfid_jax.refine is also the re-exported function)
+RF = sys.modules["selfid_jax.identify.refine"]  # the module (selfid_jax.identify.refine is also the re-exported function)
 
 
 def stream(seed, n, m, K, noise=1e-3, scale=0.05, rank=None):

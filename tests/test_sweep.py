@@ -20,12 +20,12 @@ import pandas as pd
 import pydantic
 import pytest
 
-import selfid_jax.sweep as sweep
-from selfid_jax import cli, experiment
-from selfid_jax.config import BaseConfig
-from selfid_jax.plots import save_figure
-from selfid_jax.results import load_results, read_summary
-from selfid_jax.sweep import SweepResumeError, grid_table, row_keys, run_chunked
+import selfid_jax.runner.sweep as sweep
+from selfid_jax import cli, runner as experiment
+from selfid_jax.runner.config import BaseConfig
+from selfid_jax.experiments.common.figures import save_figure
+from selfid_jax.runner.rundir import load_results, read_summary
+from selfid_jax.runner.sweep import SweepResumeError, grid_table, row_keys, run_chunked
 
 TESTS = Path(__file__).resolve().parent
 
@@ -146,7 +146,7 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     import sys
     sys.path.insert(0, {tests!r})
     import jax, pandas as pd
-    import selfid_jax.sweep as sweep
+    import selfid_jax.runner.sweep as sweep
     from test_sweep import make_inputs, synthetic_fn
     assert len(jax.devices()) == 2, jax.devices()
     out = {out!r}
@@ -195,7 +195,7 @@ KILL_SCRIPT = textwrap.dedent(
     import sys, time
     sys.path.insert(0, {tests!r})
     import jax
-    import selfid_jax.sweep as sweep
+    import selfid_jax.runner.sweep as sweep
     from test_sweep import make_inputs, synthetic_fn
 
     def slow_fn(p):

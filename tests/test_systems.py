@@ -168,7 +168,7 @@ def test_ur5e_jacobian_matches_mj_jacsite(ur6):
 
 
 def test_ur5e_jacobian_matches_finite_differences(ur6):
-    # Independent of MuJoCo and of selfid_jax.geometry: central differences of
+    # Independent of MuJoCo and of selfid_jax.math.geometry: central differences of
     # [p - p0, rotvec(R R0^T)] with scipy's rotation vector.
     from scipy.spatial.transform import Rotation
 
@@ -481,7 +481,7 @@ def test_vmap_over_chain_model_field(ur6):
 
 
 def test_small_inverse_matches_numpy_and_flags_singular_matrices():
-    from selfid_jax.linalg import small_inverse
+    from selfid_jax.math.linalg import small_inverse
 
     rng = np.random.default_rng(3)
     for k in (1, 2, 3):

@@ -5,7 +5,11 @@ import jax
 import numpy as np
 import pytest
 
-from selfid_jax import control, geometry, paths
+from selfid_jax import control
+
+from selfid_jax.math import geometry
+
+from selfid_jax.control import paths
 from selfid_jax.systems.ur5e import ur5e
 from selfid_jax.systems.validation import check_task_axes
 

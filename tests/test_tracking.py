@@ -4,8 +4,10 @@ per-axis error columns against an independent numpy distance to the path on the 
 import numpy as np
 import pytest
 
-from selfid_jax import experiment, paths
-from selfid_jax.config import ConfigError
+from selfid_jax import runner as experiment
+
+from selfid_jax.control import paths
+from selfid_jax.runner.errors import ConfigError
 
 pytestmark = pytest.mark.slow  # an end-to-end experiment
 

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from selfid_jax import cli, control
-from selfid_jax.config import load_config
+from selfid_jax.runner.registry import load as load_config
 
 pytestmark = pytest.mark.slow  # end-to-end sweep through the CLI
 
@@ -73,7 +73,7 @@ def test_plot_redraws_from_saved_results_without_simulating(run_dir, monkeypatch
 
 
 def test_resume_gives_identical_table(run_dir, tmp_path):
-    from selfid_jax import experiment
+    from selfid_jax import runner as experiment
 
     exp = experiment.get("valid_region")
     cfg = load_config(run_dir / "config.yaml")

@@ -92,7 +92,7 @@ class RolloutResult(NamedTuple):
     progress_trace: jax.Array  # (S,) progress
     dev_trace: jax.Array  # (S,) contact deviation [m]
     scene_id: jax.Array  # () int32 constant identifying the scene template: the host callback is invisible in the
-    # lowered program text, and selfid_jax.sweep shares compiled programs by that text, so without it two kinds
+    # lowered program text, and selfid_jax.runner.sweep shares compiled programs by that text, so without it two kinds
     # with equal shapes (prismatic, revolute) would share one callback
 
 

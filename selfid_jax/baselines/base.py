@@ -29,11 +29,11 @@ function that calls the factory compiles once for all their values.
 Every method is put together by :func:`assemble` from its own ``init``,
 ``fold`` (a valid sample) and ``read`` functions, so the eager shape checks,
 the dtype casts and the sample screen
-(:func:`selfid_jax.estimator.guarded_update`, shared with the paper's
-:func:`selfid_jax.estimator.update`) are one code path for all. Accepted and
+(:func:`selfid_jax.identify.estimator.guarded_update`, shared with the paper's
+:func:`selfid_jax.identify.estimator.update`) are one code path for all. Accepted and
 rejected samples are counted in the state's int32 fields ``count`` and
 ``rejected``; the buffer-based methods keep them in their
-:class:`~selfid_jax.estimator.EstimatorState`, not a second time.
+:class:`~selfid_jax.identify.estimator.EstimatorState`, not a second time.
 :func:`scan` and :func:`run_stream` feed a sample stream to an estimator.
 """
 
@@ -46,8 +46,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax import estimator as _estimator
-from selfid_jax._checks import check_array, check_positive_int, float_dtype
+from selfid_jax.identify import estimator as _estimator
+from selfid_jax.math.checks import check_array, check_positive_int, float_dtype
 
 
 class Estimator(NamedTuple):
@@ -91,7 +91,7 @@ def assemble(
       tally: ``(state, ok) -> state`` counting the sample where the state keeps
         its counters (default: its own ``count``/``rejected`` fields).
       admit, zero_is_identity: passed to
-        :func:`~selfid_jax.estimator.guarded_update`: an extra acceptance test
+        :func:`~selfid_jax.identify.estimator.guarded_update`: an extra acceptance test
         ``(state, dtheta, V) -> () bool`` (e.g. that sums stay finite), and
         whether ``fold`` leaves the state unchanged for the all-zero sample
         (which saves selecting between the old and the folded state).

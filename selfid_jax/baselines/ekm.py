@@ -33,7 +33,7 @@ offered (``formulation``):
   tasks only (task dimension 2 or 3).
 
 Control: :func:`follow` runs the Eq. 10-11 controller of
-:mod:`selfid_jax.qp_control` with that Jacobian at every step, in one of two
+:mod:`selfid_jax.control.qp` with that Jacobian at every step, in one of two
 modes: ``"fixed"`` (GP learned during self-ID only) or ``"online"`` (also
 from every executed control step, as in the seed's look-and-move loop).
 
@@ -61,13 +61,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from selfid_jax import qp_control
-from selfid_jax._checks import check_array, check_positive_int
+from selfid_jax.control import qp as qp_control
+from selfid_jax.math.checks import check_array, check_positive_int
 from selfid_jax.baselines import sogp
 from selfid_jax.baselines.base import Estimator, assemble, check_bool, check_choice, check_number
-from selfid_jax.control import DEFAULT_STEPS, ControllerParams, FollowResult
-from selfid_jax.estimator import guarded_update
-from selfid_jax.linalg import pseudo_inverse
+from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult
+from selfid_jax.identify.estimator import guarded_update
+from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.kinematics import ChainModel
 from selfid_jax.systems.system import System
 
@@ -259,7 +259,7 @@ def follow(mdl: EKMModel, state: EKMState, system: System, path, controller: Con
 
     The arm is back at ``q0`` (``q = q0``, ``s = 0``); each step linearises the
     E-KM at the current ``q`` (:func:`linearise`) and solves the QP
-    (:func:`selfid_jax.qp_control.follow`, weights ``weights``, box: joint
+    (:func:`selfid_jax.control.qp.follow`, weights ``weights``, box: joint
     limits and ``dq_max``). ``mode="online"`` also learns from every executed
     step (:func:`observe`). Returns the metrics and the final E-KM state.
     """

@@ -3,7 +3,7 @@
 :func:`sign_true_mag`: the estimated signed inverse Jacobian (Eq. 6-10) times
 the true element magnitudes, isolating the sign estimate. :func:`true`: the
 true inverse Jacobian itself, the upper bound of the ablation. Both keep an
-:class:`~selfid_jax.estimator.EstimatorState` without a sample buffer (only the
+:class:`~selfid_jax.identify.estimator.EstimatorState` without a sample buffer (only the
 sign weights and the counters are read) and count accepted and rejected
 samples like every method.
 """
@@ -13,7 +13,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from selfid_jax import estimator
+from selfid_jax.identify import estimator
 from selfid_jax.baselines.base import Estimator, assemble, check_number
 
 
@@ -28,7 +28,7 @@ def _init_for(v_tol):
 def sign_true_mag(*, v_tol: ArrayLike = 1e-9) -> Estimator:
     """Sign x true magnitude: ``signed(state) * |truth|`` ``(n, m)`` (Eq. 6-10 with the true Eq. 12).
 
-    State: an :class:`~selfid_jax.estimator.EstimatorState` (no sample buffer).
+    State: an :class:`~selfid_jax.identify.estimator.EstimatorState` (no sample buffer).
 
     Args:
       v_tol: task units; the estimator's Eq. 11 threshold. It does not change
@@ -47,7 +47,7 @@ def sign_true_mag(*, v_tol: ArrayLike = 1e-9) -> Estimator:
 def true() -> Estimator:
     """The true inverse Jacobian ``truth (n, m)`` itself, whatever the samples; the ablation's upper bound.
 
-    State: an :class:`~selfid_jax.estimator.EstimatorState` (no sample buffer)
+    State: an :class:`~selfid_jax.identify.estimator.EstimatorState` (no sample buffer)
     that only counts samples.
     """
     return assemble("true", init=_init_for(1e-9), fold=lambda state, dtheta, V: state,

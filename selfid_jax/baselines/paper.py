@@ -1,14 +1,14 @@
 """The paper's estimator and its direct-optimisation baseline: Eq. 14 on the buffered self-ID samples.
 
 :func:`ours`: the signed x magnitude guess (Eq. 6-13) refined by least squares
-(Eq. 14), with the magnitude variant of :mod:`selfid_jax.magnitude`
+(Eq. 14), with the magnitude variant of :mod:`selfid_jax.identify.magnitude`
 selectable. :func:`direct`: Eq. 14 from a fixed start (zero or random) instead
 of the signed x magnitude guess, the first baseline of Sec. V-A.
 
-Both fold samples with :func:`selfid_jax.estimator.accumulate` (sign weights,
+Both fold samples with :func:`selfid_jax.identify.estimator.accumulate` (sign weights,
 magnitude sums and the statistics ``S_vv``, ``S_tv`` of Eq. 14, in constant
 memory); the state of ``ours`` is the
-:class:`~selfid_jax.estimator.EstimatorState` itself, and ``direct`` adds its
+:class:`~selfid_jax.identify.estimator.EstimatorState` itself, and ``direct`` adds its
 start ``J_init`` next to one. Their refinements (closed form, gradient steps,
 sign projection) read the statistics and so cover every accepted sample; only
 the buffered magnitude variants of ``ours`` (median, weighted, Kalman) keep a
@@ -26,8 +26,8 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from selfid_jax import estimator
-from selfid_jax import magnitude as _magnitude
+from selfid_jax.identify import estimator
+from selfid_jax.identify import magnitude as _magnitude
 from selfid_jax.baselines.base import (
     Estimator,
     assemble,
@@ -36,8 +36,8 @@ from selfid_jax.baselines.base import (
     check_count,
     check_number,
 )
-from selfid_jax.estimator import EstimatorState
-from selfid_jax.refine import refine as _refine
+from selfid_jax.identify.estimator import EstimatorState
+from selfid_jax.identify.refine import refine as _refine
 
 REFINE_METHODS = ("closed_form", "optax")
 INITS = ("zero", "random")
@@ -99,7 +99,7 @@ def ours(
 ) -> Estimator:
     """The paper's estimator: ``refine(signed * magnitude)`` ``(n, m)`` (Eq. 6-14).
 
-    State: the :class:`~selfid_jax.estimator.EstimatorState`, constant-size
+    State: the :class:`~selfid_jax.identify.estimator.EstimatorState`, constant-size
     (no sample buffer, whatever ``capacity`` ``init`` is given) unless the
     magnitude variant reads samples (median, weighted, Kalman: the last
     ``capacity`` samples). Estimate: ``J0 = signed * magnitude`` (Eq. 13), then
@@ -109,7 +109,7 @@ def ours(
     Args:
       magnitude: the magnitude inverse Jacobian: ``"mean"`` (the paper's
         Eq. 12, over every accepted sample), ``"median"``, ``"weighted"`` or
-        ``"kalman"`` (over the buffer; :mod:`selfid_jax.magnitude`).
+        ``"kalman"`` (over the buffer; :mod:`selfid_jax.identify.magnitude`).
       refine: ``False`` returns ``J0`` itself (Eq. 13 alone).
       refine_method: ``"closed_form"`` (min-norm least squares from ``J0``) or
         ``"optax"`` (preconditioned gradient descent, 100 steps).
@@ -124,9 +124,9 @@ def ours(
         ratio (Eq. 11). May be traced.
       magnitude_q, magnitude_r: dimensionless process and measurement noise
         variances of the ``"kalman"`` magnitude, relative to the running
-        estimate (:func:`selfid_jax.magnitude.kalman`). May be traced.
+        estimate (:func:`selfid_jax.identify.magnitude.kalman`). May be traced.
       forget: exponential forgetting factor in ``(0, 1]`` of the sums
-        (:func:`selfid_jax.estimator.init`); 1 (default) never forgets. May be
+        (:func:`selfid_jax.identify.estimator.init`); 1 (default) never forgets. May be
         traced.
     """
     name = "ours"

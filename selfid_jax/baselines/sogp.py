@@ -66,7 +66,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax._checks import check_array, check_positive_int, check_scalar, float_dtype
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, float_dtype
 
 __all__ = ["RBF", "SOGPState", "init", "update", "predict", "mean", "size", "kernel_matrix"]
 

@@ -5,6 +5,7 @@ from selfid_jax.systems.hands import model_o, stewart_hand
 from selfid_jax.systems.mjcf import from_mjcf
 from selfid_jax.systems.system import System, from_pose_fn
 from selfid_jax.systems.two_link import two_link
+from selfid_jax.systems import manipulability  # noqa: E402,F401
 from selfid_jax.systems.ur5e import ur5e
 
 __all__ = ["BUILTIN", "System", "arm5", "from_ets", "from_pose_fn", "from_mjcf", "model_o", "stewart_hand", "two_link",

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax import geometry
+from selfid_jax.math import geometry
 from selfid_jax.systems.system import System, make_system
 
 __all__ = ["MountedPose", "ToolPose", "BasePose", "mount", "arm_part", "hand_part"]

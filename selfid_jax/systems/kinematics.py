@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
-from selfid_jax import geometry
+from selfid_jax.math import geometry
 from selfid_jax.systems.actuation import QposMap, joint_label, joint_type_name
 
 __all__ = ["ChainModel", "ChainSitePose", "MjxSitePose", "chain_site_pose", "kinematic_mjx_model"]

@@ -38,8 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax import geometry
-from selfid_jax.linalg import pseudo_inverse
+from selfid_jax.math import geometry
+from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.validation import check_task_axes, check_task_dim, default_axes, validate
 
 __all__ = ["System", "from_pose_fn", "PositionOnlyPose"]

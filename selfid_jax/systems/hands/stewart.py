@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax import geometry
+from selfid_jax.math import geometry
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
 

@@ -33,7 +33,7 @@ from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
 
-from selfid_jax.config import unique
+from selfid_jax.runner.config import unique
 from selfid_jax.systems.system import System
 
 __all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "entry_spec",

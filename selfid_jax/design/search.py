@@ -2,7 +2,7 @@
 
 Too small an ``m_a`` and tracker noise swamps the pose changes; too large and the samples leave the linear region.
 :func:`design_loss` scores ``log m_a`` (scalar or per actuator) by the tracking error of the controller using the
-estimate: Algorithm 1 (:func:`selfid_jax.selfid.run`, ``dtheta = m_a * u``, ``u ~ uniform(-1, 1)``, Gaussian
+estimate: Algorithm 1 (:func:`selfid_jax.identify.algorithm.run`, ``dtheta = m_a * u``, ``u ~ uniform(-1, 1)``, Gaussian
 tracker noise, closed-form estimate, Eq. 14), then :func:`selfid_jax.control.follow` along a path from where self-ID
 left the robot; the loss is the mean over starts and trials of ``log(mse + floor)``, ``mse`` the mean squared
 distance [m^2] of the POM's task position to the path over the steps used (the log keeps divergent trials from
@@ -29,9 +29,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from selfid_jax import control, metrics, selfid
-from selfid_jax._checks import check_array, check_positive_int, check_scalar, is_traced
-from selfid_jax.control import DEFAULT_STEPS, ControllerParams
+from selfid_jax import control
+
+from selfid_jax.control import metrics
+
+from selfid_jax.identify import algorithm as selfid
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, is_traced
+from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams
 from selfid_jax.systems.system import System
 
 __all__ = ["FOLLOW_FROM", "DesignInfo", "DesignParams", "DesignResult", "GridResult", "RefineResult",

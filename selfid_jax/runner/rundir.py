@@ -1,21 +1,10 @@
-"""Run directories: resolved config, versions, results table, summary, figures.
+"""Run directories: create or resume one, record versions, read and write its table and summary.
 
-Layout of a run directory ``RUN``::
-
-    RUN/config.yaml       resolved config (every default filled in)
-    RUN/versions.json     package versions, git revision, devices, command
-    RUN/parts/<part>/     per compiled part of an experiment (e.g. per system):
-                          manifest.json (what its chunks hold) and chunks/, one
-                          Parquet file per finished chunk (sweep.run_chunked)
-    RUN/results.parquet   tidy table, one row per batch element (rollout)
-    RUN/summary.json      per-system summaries (e.g. valid-region bounds)
-    RUN/figures/          PNG and PDF figures, redrawn by ``selfid-jax plot RUN``
-    RUN/.lock             lock of the process running in RUN (selfid_jax.lock); never removed
-
+The layout is :mod:`selfid_jax.runner.layout`'s.
 Files are written atomically (temporary file + ``os.replace``), so a killed run
 never leaves a half-written file under its final name, with the permissions
 the user's umask gives. ``RUN/.lock`` is the lock of a running sweep
-(:mod:`selfid_jax.lock`). A file that cannot be read raises
+(:mod:`selfid_jax.runner.lock`). A file that cannot be read raises
 :class:`RunDirError` naming it and the command that rebuilds it; an ``OSError``
 while writing names the file it was writing.
 """
@@ -39,15 +28,20 @@ import pandas as pd
 import pyarrow as pa
 import yaml
 
-from selfid_jax.config import dump_config, flatten_dict, yaml_load
-from selfid_jax.lock import (
-    RunDirError,
-    _jsonable,
-    atomic_write_bytes,
-    atomic_write_text,
-    hold,
-    write_json,
+from selfid_jax.runner.config import dump_config, flatten_dict, yaml_load
+from selfid_jax.runner.errors import RunDirError
+from selfid_jax.runner.files import atomic_write_bytes, atomic_write_text, jsonable, write_json
+from selfid_jax.runner.layout import (
+    CHUNKS_DIR,
+    CONFIG_FILE,
+    OWNED,
+    PARTS_DIR,
+    RESULTS_FILE,
+    SUMMARY_FILE,
+    VERSIONS_FILE,
 )
+from selfid_jax.runner.lock import is_held
+from selfid_jax.runner.manifest import finished_tables
 
 __all__ = [
     "RESULTS_FILE",
@@ -66,17 +60,6 @@ __all__ = [
     "write_summary",
 ]
 
-CONFIG_FILE = "config.yaml"
-VERSIONS_FILE = "versions.json"
-MANIFEST_FILE = "manifest.json"
-CHUNKS_DIR = "chunks"
-PARTS_DIR = "parts"
-RESULTS_FILE = "results.parquet"
-SUMMARY_FILE = "summary.json"
-FIGURES_DIR = "figures"
-
-# Everything create_run_dir/run_chunked may write; --fresh removes exactly these.
-_OWNED = (CONFIG_FILE, VERSIONS_FILE, MANIFEST_FILE, CHUNKS_DIR, PARTS_DIR, RESULTS_FILE, SUMMARY_FILE, FIGURES_DIR)
 
 
 # --------------------------------------------------------------------------- versions
@@ -100,7 +83,7 @@ def _git(*args: str, cwd: str | Path | None = None) -> str | None:
 
 def collect_versions(cwd: str | Path | None = None) -> dict[str, Any]:
     """Package versions, git revision of ``cwd`` (None outside a repo or before a commit) and devices."""
-    import jax  # local: keep `selfid_jax.results` cheap to import for plotting
+    import jax  # local: keep `selfid_jax.runner.rundir` cheap to import for plotting
 
     rev = _git("rev-parse", "HEAD", cwd=cwd)
     dirty = None
@@ -164,7 +147,7 @@ def read_run_config(run_dir: str | Path) -> dict:
 def clear_run_dir(run_dir: str | Path) -> None:
     """Remove everything a run writes in ``run_dir`` (and nothing else)."""
     run_dir = Path(run_dir)
-    for name in _OWNED:
+    for name in OWNED:
         p = run_dir / name
         if p.is_dir():
             shutil.rmtree(p)
@@ -193,7 +176,7 @@ def _attempt(config_path, overrides) -> dict[str, Any]:
         command=list(sys.argv),
         created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     )
-    return _jsonable(info)
+    return jsonable(info)
 
 
 _ATTEMPTS: dict[Path, dict] = {}  # resolved run dir -> this process's latest entry in its versions.json
@@ -246,9 +229,9 @@ def create_run_dir(
 
     Writes ``config.yaml`` (the resolved config, from :func:`dump_config`) and
     ``versions.json`` (:func:`collect_versions`, plus the source config path,
-    the overrides, the command line and a UTC timestamp), holding the
-    directory's lock (:func:`selfid_jax.lock.hold`) before anything is deleted
-    or written.
+    the overrides, the command line and a UTC timestamp). The caller holds the
+    directory's lock (:func:`selfid_jax.runner.lock.hold`; :func:`selfid_jax.runner.execute.run`
+    takes it once per run) before anything is deleted or written.
 
     Reopening a directory whose ``config.yaml`` equals the resolved config keeps
     its results (so a sweep can resume); the versions of each resumption are
@@ -273,7 +256,10 @@ def create_run_dir(
         return run_dir
     resolved = dump_config(cfg) if not isinstance(cfg, Mapping) else dict(cfg)
     cfg_file = run_dir / CONFIG_FILE
-    with hold(run_dir):
+    if not is_held(run_dir):
+        raise RuntimeError(f"create_run_dir({run_dir}): hold the run directory's lock first "
+                           "(selfid_jax.runner.lock.hold)")
+    if True:  # under the caller's lock
         if fresh:
             clear_run_dir(run_dir)
         elif cfg_file.exists():
@@ -315,7 +301,6 @@ def load_results(run_dir: str | Path, *, partial: bool = False) -> pd.DataFrame:
       FileNotFoundError: no results (naming the file looked for).
       RunDirError: ``results.parquet`` is unreadable (naming the command that rebuilds it).
     """
-    from selfid_jax.chunks import finished_tables
 
     run_dir = Path(run_dir)
     path = run_dir / RESULTS_FILE

@@ -20,9 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax import geometry
-from selfid_jax._checks import check_array, check_positive_int, check_scalar, is_traced
-from selfid_jax.linalg import pseudo_inverse
+from selfid_jax.math import geometry
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, is_traced
+from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.system import System
 
 JinvFn = Callable[[jax.Array], jax.Array]
@@ -33,7 +33,7 @@ class ControllerParams(NamedTuple):
     """Traced controller settings of :func:`follow` (sweepable: any field may carry a batch axis under ``vmap``).
 
     The defaults are the shipped configs' UR5e protocol
-    (:class:`selfid_jax.config.ControllerConfig` has the same ones).
+    (:class:`selfid_jax.runner.config.ControllerConfig` has the same ones).
     """
 
     max_step: jax.Array | float = 0.0025  # () largest POM position step per control step [m]
@@ -246,7 +246,7 @@ def follow(
       jinv: where ``Jinv (n, m)`` comes from: :func:`fixed`,
         :func:`true_inverse`, :func:`scaled_true_inverse`, any object with
         ``pose_and_jinv(system, q)``, or a plain ``jinv_fn(q) -> (n, m)``.
-      path: waypoint offsets from the start pose (:mod:`selfid_jax.paths`):
+      path: waypoint offsets from the start pose (:mod:`selfid_jax.control.paths`):
         positions [m] added to the start position, rotation vectors ``r``
         [rad] giving ``exp(r) R_start``.
       q0: ``(n,)`` start actuator positions.

@@ -1,8 +1,8 @@
 """Experiment configs: YAML -> dotted overrides -> validated, frozen pydantic model.
 
 A config file names its experiment at the top level (``experiment: valid_region``);
-that name picks the experiment (:func:`selfid_jax.experiment.get`, the one
-registry) and so its pydantic model. Every model forbids unknown keys, checks
+that name picks the experiment and so its pydantic model
+(:func:`selfid_jax.runner.registry.load`; this module knows no experiment). Every model forbids unknown keys, checks
 types strictly (``3`` is not a string, ``2.0`` is not an integer) and is frozen.
 Any problem raises :class:`ConfigError` whose message names the file, the dotted
 key, the problem, the offending value and what is allowed, before any compute.
@@ -24,29 +24,26 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import annotated_types
-import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo
+
+from selfid_jax.runner.errors import ConfigError
 
 __all__ = [
+    "STRICT",
     "BaseConfig",
     "ConfigError",
-    "ControllerConfig",
-    "EpsLimits",
-    "PathConfig",
     "apply_overrides",
     "dump_config",
     "flatten_dict",
     "load_config",
     "parse_override",
-    "check_noise_pairs",
+    "read_config",
+    "stop_after_start",
     "unique",
+    "validate",
     "yaml_load",
 ]
-
-
-class ConfigError(ValueError):
-    """A config file, override or run directory that cannot be used; the message says why."""
 
 
 # --------------------------------------------------------------------------- YAML
@@ -74,26 +71,18 @@ def yaml_load(text: str) -> Any:
 # --------------------------------------------------------------------------- models
 
 # Every float field is finite (allow_inf_nan=False): .inf/.nan are refused with the key's name.
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class BaseConfig(BaseModel):
     """Fields every experiment config has."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     experiment: str
     seed: int = Field(0, ge=0, le=2**32 - 1, description="PRNG seed (JAX keys hold 32 bits)")
     chunk_size: int = Field(256, gt=0, le=10**7, description="rollouts per compiled chunk")
     name: str | None = None
-
-    @model_validator(mode="after")
-    def _controller_fits_path(self):
-        """Experiments with a ``path`` and a ``controller``: the tolerance must fit the path."""
-        path, controller = getattr(self, "path", None), getattr(self, "controller", None)
-        if isinstance(path, PathConfig) and isinstance(controller, ControllerConfig):
-            path.check_controller(controller)
-        return self
 
 
 def stop_after_start(stop: float, info: ValidationInfo) -> float:
@@ -102,66 +91,6 @@ def stop_after_start(stop: float, info: ValidationInfo) -> float:
     if start is not None and not stop > start:
         raise ValueError(f"must be greater than start ({start})")
     return stop
-
-
-class EpsLimits(BaseModel):
-    """A linspace grid of inverse-Jacobian error scalings ``eps_limit`` (dimensionless)."""
-
-    model_config = _STRICT
-
-    start: float = Field(ge=0, le=100)
-    stop: float = Field(le=100, description="greater than start")
-    num: int = Field(ge=2, le=10**5, description="number of grid points")
-
-    _stop_after_start = field_validator("stop")(stop_after_start)
-
-    def values(self) -> np.ndarray:
-        """The grid, shape ``(num,)``, float64."""
-        return np.linspace(self.start, self.stop, self.num)
-
-
-class ControllerConfig(BaseModel):
-    """Inverse-Jacobian path-following protocol (state it beside every bound).
-
-    The defaults are :class:`selfid_jax.control.ControllerParams`' and
-    ``control.follow``'s (the UR5e protocol of the shipped configs). ``steps``
-    is static (the scan length); the rest are traced, see :meth:`traced`.
-    """
-
-    model_config = _STRICT
-
-    max_step: float = Field(0.0025, gt=0, le=1, description="largest POM step per control step [m]")
-    tol: float = Field(0.0005, gt=0, le=1, description="waypoint reached when closer than this [m]")
-    steps: int = Field(435, ge=1, le=10**6, description="control-step budget per rollout")
-    gain: float = Field(1.0, gt=0, le=10, description="fraction of the correction applied per step")
-    max_rot_step: float = Field(0.05, gt=0, le=3.14, description="largest rotation step per control step [rad] (6-D tasks)")
-    rot_tol: float = Field(0.01, gt=0, le=3.14, description="waypoint orientation reached within this [rad] (6-D tasks)")
-
-    def traced(self) -> dict[str, float]:
-        """The swept numbers (every field but ``steps``), the fields of ``control.ControllerParams``."""
-        return self.model_dump(exclude={"steps"})
-
-
-class PathConfig(BaseModel):
-    """Reference path traced by the point of manipulation."""
-
-    model_config = _STRICT
-
-    kind: Literal["star"] = "star"
-    size: float = Field(gt=0, le=10, description="path extent [m]")
-
-    def check_controller(self, controller: ControllerConfig) -> None:
-        """``ValueError`` unless the tolerance is below half the path's size (else waypoints count as reached at the start)."""
-        if not controller.tol < self.size / 2:
-            raise ValueError(f"controller.tol ({controller.tol}) must be below half of path.size ({self.size}): "
-                             "waypoints would count as reached without moving")
-
-
-def check_noise_pairs(pose_noise: list, rot_noise: list) -> None:
-    """``ValueError`` unless the tracker-noise lists pair up level by level (equal lengths)."""
-    if len(pose_noise) != len(rot_noise):
-        raise ValueError(f"pose_noise and rot_noise pair up level by level: lengths {len(pose_noise)} "
-                         f"and {len(rot_noise)} differ")
 
 
 def unique(values: list, what: str) -> list:
@@ -220,26 +149,16 @@ def _deepcopy(x: Any) -> Any:
 
 # --------------------------------------------------------------------------- loading
 
-def load_config(
-    path: str | Path,
-    overrides: Sequence[str] = (),
-    model: type[BaseConfig] | None = None,
-) -> BaseConfig:
-    """Read a YAML config, apply ``a.b=value`` overrides and validate it.
-
-    Args:
-      path: YAML file with a top-level ``experiment:`` key naming an installed
-        experiment (unless ``model`` is given).
-      overrides: dotted ``key=value`` strings, applied in order.
-      model: validate against this model instead of the registered one.
+def read_config(path: str | Path, overrides: Sequence[str] = ()) -> tuple[dict, dict[str, str]]:
+    """Read a YAML config file and apply ``a.b=value`` overrides.
 
     Returns:
-      The frozen, validated config model instance.
+      ``(data, set_keys)``: the mapping with the overrides applied, and the
+      dotted keys the overrides set (each with its override text, for error messages).
 
     Raises:
-      ConfigError: missing/unreadable file, bad YAML, bad override, unknown
-        experiment, unknown key, wrong type or out-of-range value. The message
-        names the file and the dotted key and says what is allowed.
+      ConfigError: missing/unreadable file, bad YAML, a top level that is not a
+        mapping, or a bad override; the message names the file.
     """
     path = Path(path)
     if not path.is_file():
@@ -258,27 +177,35 @@ def load_config(
         data = apply_overrides(data, overrides)
     except ValueError as err:
         raise ConfigError(f"{path}: {err}") from None
-    set_keys = {".".join(parse_override(o)[0]): o for o in overrides}
+    return data, {".".join(parse_override(o)[0]): o for o in overrides}
 
-    if model is None:
-        from selfid_jax.experiment import available, get  # the registry of experiments (and so of models)
 
-        name = data.get("experiment")
-        if name is None:
-            known = ", ".join(available()) or "(none installed)"
-            raise ConfigError(f"{path}: key 'experiment': required key is missing; allowed: one of {known}")
-        try:
-            model = get(name).config if isinstance(name, str) else None
-        except ConfigError:
-            model = None
-        if model is None:
-            known = ", ".join(available()) or "(none installed)"
-            raise ConfigError(f"{path}: key 'experiment': unknown experiment {name!r}; allowed: one of {known}")
+def validate(model: type[BaseConfig], data: Mapping, path: str | Path, set_keys: Mapping[str, str] = {}) -> BaseConfig:
+    """``model`` validated from ``data`` (read from ``path``); :class:`ConfigError` naming file, key and what is allowed."""
+    path = Path(path)
     try:
         return model.model_validate(data, context={"config_dir": path.parent.resolve()})
     except ValidationError as err:
         lines = [_format_error(path, model, e, set_keys) for e in err.errors()]
         raise ConfigError("\n".join(lines)) from None
+
+
+def load_config(path: str | Path, overrides: Sequence[str] = (), *, model: type[BaseConfig]) -> BaseConfig:
+    """Read a YAML config, apply ``a.b=value`` overrides and validate it against ``model``.
+
+    :func:`selfid_jax.runner.registry.load` picks the model from the file's
+    ``experiment`` key instead.
+
+    Returns:
+      The frozen, validated config model instance.
+
+    Raises:
+      ConfigError: missing/unreadable file, bad YAML, bad override, unknown
+        key, wrong type or out-of-range value. The message names the file and
+        the dotted key and says what is allowed.
+    """
+    data, set_keys = read_config(path, overrides)
+    return validate(model, data, path, set_keys)
 
 
 def dump_config(cfg: BaseModel) -> dict:

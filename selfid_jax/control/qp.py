@@ -47,8 +47,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax._checks import check_array, check_positive_int, check_scalar, is_traced
-from selfid_jax.control import DEFAULT_STEPS, ControllerParams, FollowResult
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, is_traced
+from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult
 from selfid_jax.systems.system import System
 
 __all__ = ["QPResult", "solve", "step_box", "follow"]

@@ -43,8 +43,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from selfid_jax import geometry
-from selfid_jax._checks import check_array, check_positive_int, check_scalar
+from selfid_jax.math import geometry
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
 from selfid_jax.systems.system import System
 
 __all__ = [

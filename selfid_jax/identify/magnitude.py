@@ -1,6 +1,6 @@
 """Variants of the magnitude inverse Jacobian (Eq. 11-12) for the estimation ablation.
 
-Every function maps an :class:`~selfid_jax.estimator.EstimatorState` to an
+Every function maps an :class:`~selfid_jax.identify.estimator.EstimatorState` to an
 ``(n, m)`` array of element magnitudes ``|Jinv_ij|`` in actuator units per task
 unit, built from the ratios ``r_kij = |dtheta_ki / V_kj|`` (Eq. 11) of the
 samples ``k`` that may enter column ``j`` (``|V_kj| > v_tol``):
@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax import estimator
-from selfid_jax.estimator import EstimatorState
+from selfid_jax.identify import estimator
+from selfid_jax.identify.estimator import EstimatorState
 
 VARIANTS = ("mean", "median", "weighted", "kalman")
 BUFFERED = ("median", "weighted", "kalman")

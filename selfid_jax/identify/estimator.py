@@ -10,7 +10,7 @@ weights and magnitude sums (Eq. 6-12) and the sufficient statistics of Eq. 14,
 ``S_vv = sum V V^T`` and ``S_tv = sum dtheta V^T``, optionally with exponential
 forgetting. :func:`signed_inverse_jacobian` (Eq. 6-10),
 :func:`magnitude_inverse_jacobian` (Eq. 11-12) and :func:`initial_guess`
-(Eq. 13) read estimates out of it; :func:`selfid_jax.refine.refine` (Eq. 14)
+(Eq. 13) read estimates out of it; :func:`selfid_jax.identify.refine.refine` (Eq. 14)
 fine-tunes an initial guess from the statistics (every accepted sample) or from
 the optional ring buffer of the last ``capacity`` samples (Huber, SLSQP, and the
 median, weighted and Kalman magnitudes); :func:`record` and :func:`converged`
@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax._checks import check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype, is_traced
+from selfid_jax.math.checks import check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype, is_traced
 
 
 class EstimatorState(NamedTuple):

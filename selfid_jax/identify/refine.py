@@ -44,9 +44,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from selfid_jax._checks import check_array, check_scalar, is_traced
-from selfid_jax.estimator import EstimatorState, samples, signed_inverse_jacobian, sizes
-from selfid_jax.linalg import _ldl_null_space, _small_matmul, _spd_right_solve, default_rcond, psd_pinv  # noqa: F401
+from selfid_jax.math.checks import check_array, check_scalar, is_traced
+from selfid_jax.identify.estimator import EstimatorState, samples, signed_inverse_jacobian, sizes
+from selfid_jax.math.linalg import _ldl_null_space, _small_matmul, _spd_right_solve, default_rcond, psd_pinv  # noqa: F401
 
 METHODS = ("closed_form", "optax", "slsqp")
 LOSSES = ("l2", "huber")

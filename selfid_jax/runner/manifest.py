@@ -1,4 +1,4 @@
-"""Chunk files and manifest of a :func:`selfid_jax.sweep.run_chunked` directory.
+"""Chunk files and manifest of a :func:`selfid_jax.runner.sweep.run_chunked` directory.
 
 ``DIR/manifest.json`` says what the chunks hold (rows, chunk size, float
 width, hashes of the parameters and labels) and, per chunk written, its row
@@ -29,24 +29,15 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from selfid_jax.results import (
-    CHUNKS_DIR,
-    MANIFEST_FILE,
-    RESULTS_FILE,
-    RunDirError,
-    atomic_write_bytes,
-    write_json,
-)
+from selfid_jax.runner.errors import RunDirError, SweepResumeError
+from selfid_jax.runner.files import atomic_write_bytes, write_json
+from selfid_jax.runner.layout import CHUNKS_DIR, MANIFEST_FILE, RESULTS_FILE
 
 __all__ = ["MANIFEST_FORMAT", "SweepResumeError", "assemble", "check_manifest", "chunk_path", "chunk_rows",
            "chunk_table", "finished_tables", "new_manifest", "params_hash", "prepare_dir", "record_chunk",
            "table_bytes", "verify"]
 
 MANIFEST_FORMAT = 3  # 2: params and outputs are named pytree leaves; 3: per-chunk row range and sha256, x64
-
-
-class SweepResumeError(RunDirError):
-    """``out_dir`` holds chunks of a different sweep; the message names what differs."""
 
 
 def chunk_path(out_dir: Path, i: int, n_chunks: int) -> Path:

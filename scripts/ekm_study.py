@@ -5,7 +5,7 @@ model-free self-ID, and when? For each start configuration and trial one
 self-ID stream (``selfid.run``: uniform actuations of magnitude ``m_a``) is
 fed to every method; each method's model after the first ``k`` samples
 follows a star (``control.follow`` for the inverse-Jacobian estimates, the
-Eq. 10-11 QP controller of :mod:`selfid_jax.qp_control` for the E-KM):
+Eq. 10-11 QP controller of :mod:`selfid_jax.control.qp` for the E-KM):
 
 * ``true``: the true inverse Jacobian at every step;
 * ``ours``: the paper's estimate (signed x magnitude, refined; Eq. 6-14),
@@ -22,7 +22,7 @@ joint offsets +0.6 / -0.6 rad (the issue's probe); ``easy`` = links 1.2 / 0.8 m
 (+-20 %), offsets +0.1 / -0.1 rad. Protocol (the 2-link valid-region one):
 0.2 m star, 10 mm steps, 2 mm tolerance, 435 steps, ``m_a = 0.05`` rad.
 
-    python -m experiments.ekm_study [--configs 10] [--trials 2] [--case hard|easy|both]
+    python -m selfid_jax.experiments.ekm_study [--configs 10] [--trials 2] [--case hard|easy|both]
 """
 
 from __future__ import annotations
@@ -35,7 +35,11 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 
-from selfid_jax import baselines, control, paths, selfid
+from selfid_jax import baselines, control
+
+from selfid_jax.control import paths
+
+from selfid_jax.identify import algorithm as selfid
 from selfid_jax.baselines import ekm
 from selfid_jax.systems.two_link import two_link
 

@@ -2,22 +2,22 @@
 
 The runner knows nothing of any experiment: it takes a pure batched function
 ``compute_fn(params_chunk) -> outputs`` over pytrees (``NamedTuple``s or dicts
-of arrays) and ``N`` parameter rows (:func:`selfid_jax.experiment.run` feeds it
+of arrays) and ``N`` parameter rows (:func:`selfid_jax.runner.contract.run` feeds it
 each part of an experiment). :func:`run_chunked` cuts the table into
 chunks of ``chunk_size`` rows, runs every chunk through ONE compiled function
 whose batch axis is sharded over the devices, writes each finished chunk to
 ``out_dir/chunks/chunk_00012.parquet`` atomically, and finally writes the tidy
 ``out_dir/results.parquet`` (one row per batch element). Re-running the same
 call skips the chunk files that match their record in the manifest (row
-range, SHA-256; :mod:`selfid_jax.chunks`) and recomputes the others, so an
+range, SHA-256; :mod:`selfid_jax.runner.manifest`) and recomputes the others, so an
 interrupted sweep (Ctrl-C, kill, lost machine) resumes without recomputing,
 losing or duplicating rows, and a damaged chunk file is recomputed, never used.
 
 One process at a time
     The writing process holds the lock of the run directory (``out_dir``, or
-    ``RUN`` for ``out_dir = RUN/parts/<name>``: :mod:`selfid_jax.lock`) from
+    ``RUN`` for ``out_dir = RUN/parts/<name>``: :mod:`selfid_jax.runner.lock`) from
     before it deletes or writes anything until the results are written; a
-    second process is refused with :class:`~selfid_jax.lock.RunDirBusy`.
+    second process is refused with :class:`~selfid_jax.runner.lock.RunDirBusy`.
 
 Devices and chunk size
     The compiled batch is ``chunk_size`` rounded up to a multiple of the number
@@ -70,9 +70,13 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from selfid_jax import chunks, lock
-from selfid_jax.chunks import SweepResumeError, params_hash
-from selfid_jax.results import CHUNKS_DIR, PARTS_DIR, RESULTS_FILE, atomic_write_bytes
+from selfid_jax.runner import lock
+from selfid_jax.runner import manifest as chunks
+from selfid_jax.runner.errors import SweepResumeError
+from selfid_jax.runner.files import atomic_write_bytes
+from selfid_jax.runner.layout import CHUNKS_DIR, PARTS_DIR, RESULTS_FILE
+from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.runner.manifest import params_hash
 
 __all__ = [
     "SweepInterrupted",
@@ -133,38 +137,6 @@ def named_leaves(tree) -> tuple[dict[str, Any], Any]:
 
 
 # --------------------------------------------------------------------------- grid helpers
-
-def grid_table(axes: Mapping[str, Sequence[Any]]) -> pd.DataFrame:
-    """Cartesian product of named axes, one row per combination, last axis fastest.
-
-    ``grid_table({"system": ["a", "b"], "trial": range(3)})`` has 6 rows with
-    columns ``system, trial``. Use it as the ``meta`` table of :func:`run_chunked`
-    and derive the parameter arrays from its columns.
-    """
-    if not axes:
-        raise ValueError("grid_table needs at least one axis")
-    index = pd.MultiIndex.from_product([list(v) for v in axes.values()], names=list(axes))
-    return index.to_frame(index=False)
-
-
-def row_keys(seed: int, rows: int | np.ndarray) -> np.ndarray:
-    """PRNG key data for each row, ``fold_in(key(seed), row)``: same numbers however rows are chunked.
-
-    Args:
-      seed: the config's seed.
-      rows: ``N`` (rows ``0..N-1``) or an array of global row indices, shape ``(N,)``.
-
-    Returns:
-      ``(N, k)`` uint32 key data (``k = 2`` for the default threefry PRNG); in
-      ``compute_fn`` turn a row back into a key with ``jax.random.wrap_key_data``.
-    """
-    idx = np.arange(rows) if np.ndim(rows) == 0 else np.asarray(rows)
-    if idx.size and (idx.min() < 0 or idx.max() >= 2**32):
-        raise ValueError("row indices must lie in [0, 2**32)")
-    base = jax.random.key(seed)
-    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(base, idx.astype(np.uint32))
-    return np.asarray(jax.random.key_data(keys))
-
 
 # --------------------------------------------------------------------------- files
 

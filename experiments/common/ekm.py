@@ -29,10 +29,12 @@ import jax
 import jax.numpy as jnp
 from pydantic import BaseModel
 
-from selfid_jax import baselines, estimator
+from selfid_jax import baselines
+
+from selfid_jax.identify import estimator
 from selfid_jax.baselines import ekm
 from selfid_jax.baselines.registry import MODEL_BASED
-from selfid_jax.linalg import pseudo_inverse
+from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems import System
 
 __all__ = ["NominalSpec", "EKMGroup", "check_methods", "capacity", "groups", "rollouts"]
@@ -76,7 +78,7 @@ def check_methods(methods, system_spec) -> None:
         if bad:
             raise ValueError(f"{where}.options: {', '.join(bad)} are set by the ablation (use nominal:), not options")
         if system is None:
-            from selfid_jax.systems.spec import build_system
+            from selfid_jax.experiments.common.specs import build_system
 
             system = build_system(system_spec)
         for key in ("scale", "offset"):

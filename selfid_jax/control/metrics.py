@@ -10,8 +10,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from selfid_jax import geometry
-from selfid_jax._checks import check_array
+from selfid_jax.math import geometry
+from selfid_jax.math.checks import check_array
 
 __all__ = ["axis_errors", "closest_points", "rotation_error", "rotation_errors_deg"]
 

@@ -29,7 +29,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from selfid_jax._checks import check_scalar
+from selfid_jax.math.checks import check_scalar
 
 __all__ = [
     "Metrics",

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax.font import FONT, FONT_CAP_UNITS
+from selfid_jax.control.font import FONT, FONT_CAP_UNITS
 
 __all__ = [
     "DIMS",
@@ -150,7 +150,7 @@ def star(*, size: float = 0.1, plane: str = "xy", dim: int = 3, inner_ratio: flo
 
 
 # ----------------------------------------------------------------------------
-# Text in the single-stroke font of selfid_jax.font
+# Text in the single-stroke font of selfid_jax.control.font
 # ----------------------------------------------------------------------------
 
 def supported_characters() -> str:

@@ -29,6 +29,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from selfid_jax.runner.figures import save_figure
+
 __all__ = [
     "VALID_REGION_COLUMNS",
     "ablation_figures",
@@ -128,16 +130,6 @@ def valid_region_summary(df: pd.DataFrame, threshold: float = 0.95, **extra: Any
             entry["failed_fraction"] = g.groupby("eps_limit")["failed"].mean().sort_index().to_numpy(float).tolist()
         systems[str(system)] = entry
     return {"completion_threshold": float(threshold), **extra, "systems": systems}
-
-
-def save_figure(fig: Figure, out_dir: str | Path, name: str, *, dpi: int = 150) -> list[Path]:
-    """Write ``fig`` as ``out_dir/name.png`` and ``out_dir/name.pdf``; returns both paths."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / f"{name}.png", out_dir / f"{name}.pdf"]
-    for p in paths:
-        fig.savefig(p, dpi=dpi, bbox_inches="tight")
-    return paths
 
 
 def _protocol_text(summary: Mapping[str, Any]) -> str:

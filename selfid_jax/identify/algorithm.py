@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax import estimator
-from selfid_jax._checks import check_positive_int, check_scalar, float_dtype
-from selfid_jax.refine import needs_samples, refine
+from selfid_jax.identify import estimator
+from selfid_jax.math.checks import check_positive_int, check_scalar, float_dtype
+from selfid_jax.identify.refine import needs_samples, refine
 
 Observe = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array]]
 """``observe(env, key, dtheta (n,)) -> (env, V (m,))``: apply an actuation, return the pose change."""
@@ -80,11 +80,11 @@ def self_identify(
         loss).
       v_tol: ``|V_j|`` threshold of the magnitude mean (Eq. 11).
       forget: exponential forgetting factor in ``(0, 1]`` of the estimator's
-        sums (:func:`selfid_jax.estimator.init`); 1 (default) never forgets.
-      method: refinement method of :func:`selfid_jax.refine.refine` (``"closed_form"`` or ``"optax"``).
+        sums (:func:`selfid_jax.identify.estimator.init`); 1 (default) never forgets.
+      method: refinement method of :func:`selfid_jax.identify.refine.refine` (``"closed_form"`` or ``"optax"``).
       stop_at_convergence: static; if True the estimator stops updating once
         converged (Algorithm 1 returns there), later iterations repeat that estimate.
-      refine_options: static keyword options for :func:`~selfid_jax.refine.refine`.
+      refine_options: static keyword options for :func:`~selfid_jax.identify.refine.refine`.
 
     ``m_a``, ``eps``, ``eps_rel``, ``v_tol`` and ``forget`` may be traced, so one compilation
     serves a sweep over them; vmap over ``key``, ``m_a``, ``eps`` or ``env``.
@@ -143,7 +143,7 @@ def self_identify(
 
 def noisy_pose(key, pose, pose_noise, rot_noise):
     """A tracker reading of ``pose = (p (3,), R (3, 3))``: ``p + N(0, pose_noise^2)`` (m), ``exp(N(0, rot_noise^2)) R`` (rad)."""
-    from selfid_jax import geometry
+    from selfid_jax.math import geometry
 
     p, R = pose
     kp, kr = jax.random.split(key)
@@ -182,7 +182,7 @@ def run(
     ``q0`` may be traced: vmap over them and over ``key``. Concrete noise levels must be
     finite and >= 0.
     """
-    from selfid_jax._checks import check_array
+    from selfid_jax.math.checks import check_array
 
     check_array("q0", q0, (system.n_act,))
     check_scalar("pose_noise", pose_noise, ge=0.0)

@@ -1,0 +1,342 @@
+"""``selfid-jax`` command line: ``sweep``, ``plot``, ``demo``, ``list``.
+
+    selfid-jax sweep CONFIG [--set key.sub=value ...] [--out DIR] [--fresh] [--no-progress]
+    selfid-jax plot RUN_DIR
+    selfid-jax demo [--out DIR]
+    selfid-jax list
+
+``sweep`` validates the config before any compute, creates the run directory
+(default ``runs/<config stem>``), runs the experiment named by the config's
+``experiment:`` key (found through the ``selfid_jax.experiments`` entry points,
+:mod:`selfid_jax.runner.contract`), prints its report, then draws the figures from
+the saved results, exactly as ``plot`` would. Interrupt it (Ctrl-C or ``kill``)
+and run the same command again to resume; ``--fresh`` starts over.
+
+Several hosts: run the same ``sweep`` command on every host with
+``--distributed`` (SLURM/Open MPI/Kubernetes auto-detection) or with
+``--coordinator HOST:PORT --num-processes P --process-id I``; see
+``selfid_jax.runner.sweep`` for how the batch is sharded and who writes what.
+
+Bad input (missing file, invalid config, run directory of another config or
+in use by another process, unreadable run files, unwritable or full disk) is
+reported on stderr as one line naming the path and what to do, with exit code
+2 and no traceback; an interrupted sweep exits with 130 (Ctrl-C) or 143
+(SIGTERM). A first SIGTERM lets the chunk in flight finish and be saved;
+``kill -9`` loses at most that chunk. ``sweep`` and ``demo`` hold the run
+directory's lock (:mod:`selfid_jax.runner.lock`) from before anything in it is
+deleted or written until the figures are drawn.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import errno
+import signal
+import sys
+import threading
+import time
+import functools
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+
+__all__ = ["main"]
+
+_PROG = "selfid-jax"
+
+
+class _UsageError(Exception):
+    """Bad input the user can fix; printed without traceback, exit code 2."""
+
+
+class _Terminated(Exception):
+    """A second SIGTERM: stop now, between Python bytecodes."""
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=_PROG, description="Self-identified inverse Jacobians: sweeps and figures.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser(
+        "sweep", help="run an experiment sweep from a YAML config (resumable)",
+        description="Validate CONFIG, run its experiment in resumable chunks into a run directory, print the "
+        "report and draw the figures. Run the same command again after an interruption to resume.",
+    )
+    s.add_argument("config", type=Path, help="YAML config with a top-level 'experiment:' key (see 'selfid-jax list')")
+    s.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a config value by dotted key, e.g. --set controller.tol=1e-3 (repeatable)",
+    )
+    s.add_argument("--out", type=Path, default=None, help="run directory (default: runs/<config stem>)")
+    s.add_argument("--fresh", action="store_true", help="discard earlier results in the run directory")
+    s.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    g = s.add_argument_group(
+        "several hosts (jax.distributed)",
+        "run the same command on every host; only process 0 writes the run directory",
+    )
+    g.add_argument("--distributed", action="store_true",
+                   help="call jax.distributed.initialize() (auto-detects SLURM, Open MPI, Kubernetes)")
+    g.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 (implies --distributed)")
+    g.add_argument("--num-processes", type=int, metavar="P", help="number of processes (implies --distributed)")
+    g.add_argument("--process-id", type=int, metavar="I", help="this process, 0..P-1 (implies --distributed)")
+
+    pl = sub.add_parser(
+        "plot", help="redraw every figure of a run from its saved results",
+        description="Redraw every figure of RUN_DIR into RUN_DIR/figures from results.parquet and summary.json "
+        "(no simulation).",
+    )
+    pl.add_argument("run_dir", type=Path, help="a run directory written by 'selfid-jax sweep' or 'selfid-jax demo'")
+
+    d = sub.add_parser(
+        "demo", help="the main job: UR5e and Model O self-ID, then a star with each estimate (about 50 s on 2 CPU cores)",
+        description="Self-identify a UR5e and a Model O hand, each from 4 start configurations in one compiled call, "
+        "follow a star (5 cm, 1.5 mm) with each estimate and with the true inverse Jacobian, print a summary and write the run directory "
+        "(results.parquet, summary.json, figures/demo.png). Always starts fresh.",
+    )
+    d.add_argument("--out", type=Path, default=Path("runs/demo"), help="run directory (default: runs/demo)")
+
+    sub.add_parser(
+        "list", help="list the experiments, built-in systems and shipped configs",
+        description="List the installed experiments (entry-point group selfid_jax.experiments), the built-in "
+        "systems and the configs under ./configs.",
+    )
+    return p
+
+
+@contextlib.contextmanager
+def _graceful_sigterm() -> Iterator[list[int]]:
+    """First SIGTERM: let the sweep save the chunk in flight and stop; second: stop at once.
+
+    Raising straight from the handler could land inside a JAX host callback,
+    where the exception is wrapped into an XLA runtime error.
+    """
+    from selfid_jax.runner.sweep import clear_stop, request_stop
+
+    received: list[int] = []
+    clear_stop()
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+
+    def handler(signum, frame):  # noqa: ARG001
+        received.append(signum)
+        if len(received) > 1:
+            raise _Terminated()
+        request_stop()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield received
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        clear_stop()
+
+
+def _saved_summary(exp, df, run_dir: Path) -> dict:
+    """``summary.json``, or when it is missing the summary recomputed from the table and ``config.yaml``."""
+    from selfid_jax.runner.config import load_config
+    from selfid_jax.runner.errors import ConfigError
+    from selfid_jax.runner.layout import CONFIG_FILE
+    from selfid_jax.runner.rundir import read_run_config, read_summary
+
+    summary = read_summary(run_dir, missing_ok=True)
+    if summary:
+        return summary
+    try:
+        return exp.summarize(df, load_config(run_dir / CONFIG_FILE, model=exp.config))
+    except ConfigError:  # a config.yaml this version cannot validate: keep at least the configured threshold
+        threshold = read_run_config(run_dir).get("completion_threshold")
+        return {"completion_threshold": threshold} if isinstance(threshold, (int, float)) else {}
+
+
+def _draw(exp, run_dir: Path) -> list[Path]:
+    from selfid_jax.runner.layout import FIGURES_DIR
+    from selfid_jax.runner.rundir import load_results
+
+    if exp.plot is None:
+        return []
+    df = load_results(run_dir)
+    return [Path(p) for p in exp.plot(df, _saved_summary(exp, df, run_dir), run_dir / FIGURES_DIR)]
+
+
+def _init_distributed(args: argparse.Namespace) -> None:
+    manual = (args.coordinator, args.num_processes, args.process_id)
+    if not args.distributed and all(v is None for v in manual):
+        return
+    import jax
+
+    # CPU hosts need a cross-process collectives backend; GPU/TPU ignore this flag
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(
+        coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
+    )
+
+
+def _build(exp, cfg, source: str):
+    """``exp.parts(cfg)``, before any run directory exists; a ``ValueError`` (infeasible path, bad robot) is a usage error."""
+    try:
+        return exp.parts(cfg)
+    except ValueError as err:
+        raise _UsageError(f"{source}: cannot set up experiment {exp.name!r}: {err}") from None
+
+
+def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progress: bool) -> int:
+    """Build the parts (every check before the run directory is made), run the experiment into ``run_dir``
+    (:func:`selfid_jax.runner.execute.run`, which locks it) under SIGTERM handling, report, draw."""
+    from selfid_jax.runner.execute import run
+
+    parts = _build(exp, cfg, str(config_path) if config_path is not None else exp.name)
+    received: list[int] = []
+    t0 = time.perf_counter()
+    try:
+        with _graceful_sigterm() as received:
+            out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts, config_path=config_path,
+                      overrides=overrides)
+    except (KeyboardInterrupt, _Terminated):
+        print(
+            f"{_PROG}: interrupted; finished chunks are kept in {run_dir}. "
+            "Run the same command again to resume (add --fresh to start over).",
+            file=sys.stderr,
+        )
+        return 143 if received else 130
+    if out is None:  # not process 0 of a jax.distributed run
+        return 0
+    _, summary = out
+    if exp.report is not None:
+        print(exp.report(summary))
+    figures = _draw(exp, run_dir)
+    print(f"results: {run_dir} ({time.perf_counter() - t0:.1f} s)")
+    for f in figures:
+        print(f"figure:  {f}")
+    return 0
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from selfid_jax.runner import registry
+
+    cfg = registry.load(args.config, args.overrides)
+    exp = registry.get(cfg.experiment)
+    run_dir = args.out if args.out is not None else Path("runs") / args.config.stem
+    _init_distributed(args)  # after validation, before any JAX computation
+    return _run(exp, cfg, run_dir, config_path=args.config, overrides=args.overrides, fresh=args.fresh,
+                progress=args.progress)
+
+
+def _plot(args: argparse.Namespace) -> int:
+    from selfid_jax.runner import registry
+    from selfid_jax.runner.rundir import read_run_config
+
+    run_dir: Path = args.run_dir
+    if not run_dir.is_dir():
+        raise _UsageError(f"{run_dir}: run directory not found")
+    name = read_run_config(run_dir).get("experiment")
+    if not isinstance(name, str):
+        raise _UsageError(f"{run_dir / 'config.yaml'}: no 'experiment' key")
+    exp = registry.get(name)
+    if exp.plot is None:
+        raise _UsageError(f"experiment {name!r} draws no figures")
+    for f in _draw(exp, run_dir):
+        print(f"figure: {f}")
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from selfid_jax.runner import registry
+
+    exp = registry.get("demo")
+    return _run(exp, exp.config(), args.out, config_path=None, overrides=(), fresh=True, progress=False)
+
+
+def _list(args: argparse.Namespace, catalogues: Mapping[str, Callable[[], Mapping[str, str]]]) -> int:  # noqa: ARG001
+    from selfid_jax.runner import registry
+
+    print("experiments (selfid-jax sweep CONFIG with 'experiment: NAME'):")
+    for name in registry.available():
+        exp = registry.get(name)
+        print(f"  {name:14s} {exp.description}")
+    for title, entries in catalogues.items():
+        print(f"{title}:")
+        for name, doc in entries().items():
+            print(f"  {name:14s} {doc}")
+    configs = sorted(Path("configs").glob("*.yaml"))
+    print("configs (./configs):" if configs else "configs: none in ./configs")
+    for path in configs:
+        print(f"  {path}")
+    return 0
+
+
+def _enable_compilation_cache() -> None:
+    """Keep compiled XLA programs on disk so a re-run (or a resumed sweep) skips compilation.
+
+    Directory: ``$SELFID_JAX_CACHE_DIR``, else ``~/.cache/selfid_jax/xla``; set
+    ``SELFID_JAX_CACHE_DIR=off`` to disable. A directory the user already gave
+    JAX (``JAX_COMPILATION_CACHE_DIR``) is left alone.
+    """
+    import os
+
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return
+    where = os.environ.get("SELFID_JAX_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "selfid_jax", "xla"))
+    if where.lower() in ("off", "0", "none", ""):
+        return
+    try:
+        os.makedirs(where, exist_ok=True)
+    except OSError:
+        return  # read-only home: run without the cache
+    jax.config.update("jax_compilation_cache_dir", where)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+_DENIED = (errno.EACCES, errno.EPERM, errno.EROFS)
+
+
+def _os_error(err: OSError, command: str) -> str:
+    """One line for an ``OSError``: the path, what went wrong, what to do."""
+    if err.errno is None:  # raised with a message of ours, e.g. FileNotFoundError("CONFIG: not found")
+        return " ".join(str(err).split())
+    where = f"{err.filename}: " if err.filename is not None else ""
+    if err.errno in _FULL:
+        todo = "free some disk space, then run the same command again" + (
+            " to resume (finished chunks are kept)" if command == "sweep" else "")
+    elif err.errno in _DENIED:
+        folder = Path(err.filename).parent if err.filename is not None else "it"
+        todo = f"make {folder} writable" + (", or choose another --out" if command != "plot" else "")
+    elif err.errno in (errno.ENOTDIR, errno.EISDIR, errno.EEXIST):
+        todo = "a file is in the way of a directory (or the reverse); choose another path"
+    else:
+        todo = "check the path, then run the same command again"
+    return f"{where}{err.strerror or err}; {todo}"
+
+
+def main(argv: Sequence[str] | None = None,
+         catalogues: Mapping[str, Callable[[], Mapping[str, str]]] | None = None) -> int:
+    """The ``selfid-jax`` command line; returns the exit code.
+
+    ``catalogues``: extra sections of ``selfid-jax list``, title -> a function
+    returning ``{name: one-line description}`` (the package adds its built-in systems).
+    """
+    from selfid_jax.runner.errors import ConfigError
+
+    args = _parser().parse_args(argv)
+    if args.command in ("sweep", "demo"):
+        _enable_compilation_cache()
+    command = {"sweep": _sweep, "plot": _plot, "demo": _demo,
+               "list": functools.partial(_list, catalogues=catalogues or {})}[args.command]
+    try:
+        return command(args)
+    except (_UsageError, ConfigError) as err:
+        print(f"{_PROG} {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"{_PROG} {args.command}: error: {_os_error(err, args.command)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{_PROG}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

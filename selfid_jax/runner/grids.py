@@ -1,0 +1,44 @@
+"""Sweep grids: the label table of a Cartesian product and per-row PRNG keys that do not depend on chunking."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import numpy as np
+import pandas as pd
+
+__all__ = ["grid_table", "row_keys"]
+
+
+def grid_table(axes: Mapping[str, Sequence[Any]]) -> pd.DataFrame:
+    """Cartesian product of named axes, one row per combination, last axis fastest.
+
+    ``grid_table({"system": ["a", "b"], "trial": range(3)})`` has 6 rows with
+    columns ``system, trial``. Use it as the ``meta`` table of :func:`run_chunked`
+    and derive the parameter arrays from its columns.
+    """
+    if not axes:
+        raise ValueError("grid_table needs at least one axis")
+    index = pd.MultiIndex.from_product([list(v) for v in axes.values()], names=list(axes))
+    return index.to_frame(index=False)
+
+
+def row_keys(seed: int, rows: int | np.ndarray) -> np.ndarray:
+    """PRNG key data for each row, ``fold_in(key(seed), row)``: same numbers however rows are chunked.
+
+    Args:
+      seed: the config's seed.
+      rows: ``N`` (rows ``0..N-1``) or an array of global row indices, shape ``(N,)``.
+
+    Returns:
+      ``(N, k)`` uint32 key data (``k = 2`` for the default threefry PRNG); in
+      ``compute_fn`` turn a row back into a key with ``jax.random.wrap_key_data``.
+    """
+    idx = np.arange(rows) if np.ndim(rows) == 0 else np.asarray(rows)
+    if idx.size and (idx.min() < 0 or idx.max() >= 2**32):
+        raise ValueError("row indices must lie in [0, 2**32)")
+    base = jax.random.key(seed)
+    keys = jax.vmap(jax.random.fold_in, in_axes=(None, 0))(base, idx.astype(np.uint32))
+    return np.asarray(jax.random.key_data(keys))
