@@ -1,4 +1,4 @@
-"""Self-ID design (``selfid_jax.design``): which self-ID magnitude ``m_a`` should a robot use, given its tracker's noise?
+"""Self-ID design experiment (``selfid_jax.design``): the self-ID magnitude ``m_a`` a robot should use at its tracker's noise.
 
 For each system and tracker-noise level (one row of the sweep), one compiled
 program (:func:`selfid_jax.design.optimize`) evaluates the design loss (mean

@@ -1,4 +1,4 @@
-"""selfid_jax: model-free self-identification of inverse Jacobians in JAX.
+"""selfid_jax: model-free self-identification of inverse Jacobians in JAX; ``import selfid_jax as sj`` is its API.
 
 ``import selfid_jax as sj`` gives the functional API: the estimator
 (``sj.init``/``sj.update``/``sj.initial_guess``/``sj.refine``/``sj.record``,

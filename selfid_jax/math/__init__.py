@@ -1,4 +1,4 @@
-"""Numeric foundations: small PSD linear algebra, SE(3) pose differences, argument checks, XLA-CPU kernels.
+"""Numeric foundations: small dense linear algebra, SO(3) helpers and pose differences, eager argument checks.
 
 The bottom layer: it imports nothing else of ``selfid_jax``.
 """

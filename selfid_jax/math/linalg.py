@@ -1,5 +1,8 @@
-"""Small dense linear algebra: the Jacobian pseudo-inverse, the adjugate inverse of k x k matrices (k <= 3),
-and the unrolled rank-revealing pseudo-inverse and solve of small PSD matrices behind Eq. 14's closed form.
+"""Small dense linear algebra: pseudo-inverses, adjugate inverses and the unrolled PSD solves behind Eq. 14.
+
+The Jacobian pseudo-inverse, the adjugate inverse of k x k matrices (k <= 3),
+and the unrolled rank-revealing pseudo-inverse and solve of small PSD matrices
+behind Eq. 14's closed form.
 
 Pure ``jax.numpy``, one matrix per call (``vmap`` for batches). Units are the
 caller's: ``pseudo_inverse`` of a task Jacobian (task units per actuator unit)
