@@ -119,7 +119,7 @@ def render() -> str:
 
 def section(readme_text: str) -> str:
     """The body of README.md's Layout section (after its heading, up to the next ``## `` heading or the end)."""
-    match = re.search(rf"^{re.escape(HEADING)}\n\n(.*?)(?=^## |\Z)", readme_text, re.S | re.M)
+    match = re.search(rf"^{re.escape(HEADING)}\n\n(.*?)(?=^## |\Z)", readme_text, re.DOTALL | re.MULTILINE)
     if match is None:
         raise SystemExit(f"README.md has no {HEADING!r} section")
     return match.group(1).rstrip("\n") + "\n"

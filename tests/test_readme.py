@@ -1,33 +1,187 @@
-"""Every Python block of README.md runs as written, and the CLI commands it shows exist."""
+"""README.md tells the truth: its Python blocks print what their comments say, its Layout is the tree, its names exist.
 
+Stated outputs. Every ``print(...)`` line of a README Python block ends in a
+comment that is exactly the line it prints (an explanation goes on a comment
+line of its own). The block runs in a fresh interpreter, as a reader pasting
+it would (default float32, no test config), and its k-th stdout line is
+compared with the k-th print's comment:
+
+* the text with every number taken out must be equal (words, ``True``,
+  brackets and units);
+* the numbers, in order, must agree by kind of number, as written in the README:
+
+  - an integer (``8``, a shape ``(50, 3, 3)``): exactly; these are counts and
+    shapes, which do not move with rounding;
+  - a number in scientific notation (``1.8e-07``): the README's way of writing
+    a rounding-level quantity, such as float32 noise; within an order of
+    magnitude, ``0.1 <= printed / stated <= 10``;
+  - any other decimal (``1.1``, ``1.00``): within 10% relative, plus half a
+    unit of the last digit written (``1.1`` accepts 0.94-1.26, ``0.0`` only
+    values that print as 0.0 to 0.05).
+
+The two blocks take about 30 s and 45 s on the 2 shared CPU cores (most of it
+compiling and dispatching), so running them is marked slow; parsing the
+blocks, the Layout check and the name checks are in the fast tier.
+"""
+
+import importlib
+import io
+import math
 import re
 import subprocess
 import sys
+import tokenize
 from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), re.S)
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+TEXT = README.read_text()
+BLOCKS = re.findall(r"```python\n(.*?)```", TEXT, re.DOTALL)
+
+# A number not glued to a word or another number: 8, -3, 1.00, .5, 1.8e-07 (not the 32 of float32, the 3 of 3rd).
+NUMBER = re.compile(r"(?<![\w.])[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?(?![\w.])")
+TOLERANCE_RULE = "integers exactly; scientific notation within 10x; other decimals 10% + half a last digit"
+
+
+def stated_outputs(block: str) -> list[str]:
+    """The trailing comment of every line that starts a ``print(`` statement, in order."""
+    comments = {}
+    for tok in tokenize.generate_tokens(io.StringIO(block).readline):
+        if tok.type == tokenize.COMMENT:
+            comments[tok.start[0]] = tok.string[1:].strip()
+    stated = []
+    for lineno, line in enumerate(block.splitlines(), start=1):
+        if line.lstrip().startswith("print("):
+            assert lineno in comments, f"README print without its stated output: {line.strip()!r}"
+            stated.append(comments[lineno])
+    return stated
+
+
+def _decimals(token: str) -> int:
+    return len(token.split(".")[1]) if "." in token else 0
+
+
+def number_agrees(stated: str, printed: str) -> bool:
+    """The tolerance rule of this module's docstring, for one stated and one printed number."""
+    s, p = float(stated), float(printed)
+    if not math.isfinite(p):
+        return False
+    if re.fullmatch(r"[-+]?\d+", stated):
+        return p == s
+    if "e" in stated.lower():
+        return s != 0 and p / s > 0 and 0.1 <= p / s <= 10
+    return abs(p - s) <= 0.1 * abs(s) + 0.5 * 10.0 ** -_decimals(stated)
+
+
+def compare_line(stated: str, printed: str) -> list[str]:
+    """What differs between a stated and a printed line (empty when they agree)."""
+    problems = []
+    if NUMBER.sub("#", stated).split() != NUMBER.sub("#", printed).split():
+        problems.append(f"text differs: README says {stated!r}, the block prints {printed!r}")
+        return problems
+    for s, p in zip(NUMBER.findall(stated), NUMBER.findall(printed), strict=True):
+        if not number_agrees(s, p):
+            problems.append(f"README says {s}, the block prints {p} (in {printed!r}; rule: {TOLERANCE_RULE})")
+    return problems
 
 
 def test_readme_has_python_blocks():
     assert len(BLOCKS) >= 2
 
 
+@pytest.mark.parametrize("index", range(len(BLOCKS)))
+def test_readme_block_states_its_outputs(index):
+    """Every block prints something, and each print says what it prints."""
+    assert stated_outputs(BLOCKS[index])
+
+
+def test_tolerance_rule():
+    assert number_agrees("8", "8") and not number_agrees("8", "9")
+    assert number_agrees("1.8e-07", "1.7881393e-07") and not number_agrees("6e-06", "1.7881393e-07")
+    assert number_agrees("1.8e-07", "1e-06") and not number_agrees("1.8e-07", "-1.8e-07")
+    assert number_agrees("1.1", "1.2") and not number_agrees("1.1", "1.3")
+    assert number_agrees("1.00", "1.00") and not number_agrees("1.00", "0.89")
+    assert number_agrees("0.0", "0.04") and not number_agrees("0.0", "0.1")
+    assert compare_line("(3, 3) (50, 3, 3) 5", "(3, 3) (50, 3, 3) 5") == []
+    assert compare_line("True 1e-07", "False 1e-07") and compare_line("(3, 3)", "(3, 4)")
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("index", range(len(BLOCKS)))
-def test_readme_python_block_runs(index, tmp_path):
+def test_readme_python_block_prints_what_it_says(index, tmp_path):
     """Run in a fresh interpreter, as a reader pasting it would (default float32, no test config)."""
     script = tmp_path / f"block_{index}.py"
     script.write_text(BLOCKS[index])
     res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
+    printed = res.stdout.splitlines()
+    stated = stated_outputs(BLOCKS[index])
+    assert len(printed) == len(stated), (stated, printed)
+    problems = [problem for s, p in zip(stated, printed, strict=True) for problem in compare_line(s, p)]
+    assert not problems, "\n".join(problems)
 
 
 def test_readme_cli_subcommands_exist():
     from selfid_jax.runner.cli import _parser
 
-    commands = set(re.findall(r"^selfid-jax (\w+)", README.read_text(), re.M))
+    commands = set(re.findall(r"^selfid-jax (\w+)", TEXT, re.MULTILINE))
     known = set(_parser()._subparsers._group_actions[0].choices)
     assert commands and commands <= known, commands - known
+
+
+def test_readme_layout_is_the_tree():
+    """The Layout section equals what scripts/readme_layout.py generates from the tree (every module, no stale path)."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import readme_layout
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    assert readme_layout.section(TEXT) == readme_layout.render(), (
+        "README.md's Layout section is out of date: run python scripts/readme_layout.py --write"
+    )
+
+
+def _resolve(dotted: str):
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for part in parts[i:]:
+            obj = getattr(obj, part)
+        return obj
+    raise ImportError(dotted)
+
+
+def test_readme_names_exist():
+    """Every ``selfid_jax.x.y`` and ``sj.x`` the README names resolves (no old module path survives a move)."""
+    names = set(re.findall(r"\bselfid_jax(?:\.[A-Za-z_]\w*)+", TEXT))
+    names |= {"selfid_jax" + name[2:] for name in re.findall(r"\bsj(?:\.[A-Za-z_]\w*)+", TEXT)}
+    missing = []
+    for name in sorted(names):
+        try:
+            _resolve(name)
+        except (ImportError, AttributeError) as err:
+            missing.append(f"{name}: {err}")
+    assert not missing, missing
+
+
+# Paths the README names as things a command writes, not files of the repository.
+WRITTEN = {"benchmarks/results.json"}
+
+
+def test_readme_paths_exist():
+    """Every repository path the README names exists: ``(_full)`` names both configs, ``<name>`` any name."""
+    tops = "|".join(["selfid_jax", "experiments", "scripts", "configs", "benchmarks", "docs", "tests", r"\.ci"])
+    paths = set(re.findall(rf"(?<![\w/.])((?:{tops})/(?:[\w./*-]|\(_full\)|<\w+>)*[\w*>])", TEXT)) - WRITTEN
+    assert len(paths) > 10, paths
+    missing = []
+    for path in sorted(paths):
+        path = re.sub(r"<\w+>", "*", path)
+        for variant in {path.replace("(_full)", ""), path.replace("(_full)", "_full")}:
+            if not (list(ROOT.glob(variant)) if "*" in variant else (ROOT / variant).exists()):
+                missing.append(variant)
+    assert not missing, missing
