@@ -34,6 +34,7 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
 
 from selfid_jax.runner.config import unique
+from selfid_jax.runner.layout import SAFE_NAME
 from selfid_jax.systems.system import System
 
 __all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "entry_spec",
@@ -96,7 +97,7 @@ class MjcfSystem(BaseModel):
     sample_half_width: float | None = Field(None, gt=0, description="half-width of the start box around home")
     sample_box: SampleBox | None = Field(None, description="explicit start box (instead of home +- half-width)")
     min_sigma: float = Field(1e-3, ge=0, description="start configurations need sigma_min(J) above this")
-    name: str | None = Field(None, min_length=1, description="label (default: the file's stem)")
+    name: str | None = Field(None, pattern=SAFE_NAME, description="label (default: the file's stem); letters, digits, '.', '_', '-'")
     x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
     @field_validator("mjcf")
@@ -135,7 +136,7 @@ class PoseFnSystem(BaseModel):
     m_a: Numbers = 0.03
     sample_box: SampleBox | None = None
     min_sigma: float = Field(1e-3, ge=0)
-    name: str | None = Field(None, min_length=1)
+    name: str | None = Field(None, pattern=SAFE_NAME, description="label; letters, digits, '.', '_', '-'")
     x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
 
@@ -210,12 +211,20 @@ def unique_system_names(entries: list) -> list:
     unique([system_name(entry_spec(e)) for e in entries], "system names")
     return entries
 
+def _one_line(text: str, limit: int = 300) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _import(target: str):
     module, _, attr = target.partition(":")
     try:
         fn = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as err:
-        raise ValueError(f"pose_fn {target!r}: cannot import ({err})") from None
+    except KeyboardInterrupt:
+        raise
+    except BaseException as err:  # the module's own code runs here: a SyntaxError, any exception or a sys.exit
+        what = f"exit({err.code!r})" if isinstance(err, SystemExit) else f"{type(err).__name__}: {err}"
+        raise ValueError(f"pose_fn {target!r}: importing module {module!r} failed ({_one_line(what)})") from None
     if not callable(fn):
         raise ValueError(f"pose_fn {target!r} is not callable")
     return fn

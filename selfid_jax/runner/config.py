@@ -17,6 +17,7 @@ values and numeric parameter arrays before ``jit`` (STYLE.md rule 6).
 from __future__ import annotations
 
 import re
+import reprlib
 import types
 import typing
 from collections.abc import Iterable, Mapping, Sequence
@@ -49,7 +50,29 @@ __all__ = [
 # --------------------------------------------------------------------------- YAML
 
 class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads ``1e-3`` / ``1E6`` as floats (YAML 1.2), not strings."""
+    """SafeLoader that reads ``1e-3`` / ``1E6`` as floats (YAML 1.2), not strings, and refuses duplicate keys."""
+
+    def construct_mapping(self, node, deep=False):
+        """The mapping of ``node``; a key written twice in one mapping (any depth) is an error naming both lines."""
+        if isinstance(node, yaml.MappingNode):
+            first: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *base' may be overridden key by key
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    line = first.get(key)
+                except TypeError:  # an unhashable key: the base class reports it
+                    continue
+                first[key] = key_node.start_mark.line
+                if line is not None:
+                    raise yaml.constructor.ConstructorError(
+                        None, None,
+                        f"duplicate key {_summary(key)} (line {line + 1} and line {key_node.start_mark.line + 1}); "
+                        "each key may appear once in a mapping",
+                        key_node.start_mark,
+                    )
+        return super().construct_mapping(node, deep=deep)
 
 
 _FLOAT_RE = re.compile(
@@ -64,8 +87,34 @@ _Loader.add_implicit_resolver("tag:yaml.org,2002:float", _FLOAT_RE, list("-+0123
 
 
 def yaml_load(text: str) -> Any:
-    """Parse YAML text safely, reading exponent floats such as ``1e-3`` as floats."""
+    """Parse YAML text safely: exponent floats such as ``1e-3`` as floats; a duplicate key raises ``yaml.YAMLError``."""
     return yaml.load(text, Loader=_Loader)  # noqa: S506 - _Loader is a SafeLoader
+
+
+MAX_VALUES = 1_000_000
+"""Most values (scalars, list items, mapping entries) a config may expand to; YAML aliases can multiply them."""
+
+_REPR = reprlib.Repr()
+_REPR.maxstring, _REPR.maxother, _REPR.maxlist, _REPR.maxdict, _REPR.maxlevel = 60, 60, 6, 6, 3
+
+
+def _summary(value: Any, limit: int = 200) -> str:
+    """A bounded ``repr`` of ``value`` for error messages (never a dump of a large or alias-expanded tree)."""
+    text = _REPR.repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def read_text_utf8(path: Path) -> str:
+    """The file's text decoded as UTF-8; :class:`ConfigError` naming the file and the first bad byte otherwise."""
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not UTF-8 text (byte 0x{data[err.start]:02x} at offset {err.start}); "
+                          "save the file as UTF-8") from None
 
 
 # --------------------------------------------------------------------------- models
@@ -139,11 +188,17 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
     return out
 
 
-def _deepcopy(x: Any) -> Any:
+def _deepcopy(x: Any, budget: list[int] | None = None) -> Any:
+    """A copy of nested dicts and lists; ``ValueError`` past :data:`MAX_VALUES` values (an alias bomb)."""
+    budget = [MAX_VALUES] if budget is None else budget
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise ValueError(f"the config expands to more than {MAX_VALUES:,} values (YAML aliases repeating "
+                         "large nodes?); write it out without them")
     if isinstance(x, dict):
-        return {k: _deepcopy(v) for k, v in x.items()}
+        return {k: _deepcopy(v, budget) for k, v in x.items()}
     if isinstance(x, list):
-        return [_deepcopy(v) for v in x]
+        return [_deepcopy(v, budget) for v in x]
     return x
 
 
@@ -163,12 +218,11 @@ def read_config(path: str | Path, overrides: Sequence[str] = ()) -> tuple[dict, 
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found" if not path.exists() else f"{path}: not a file")
+    text = read_text_utf8(path)
     try:
-        data = yaml_load(path.read_text())
+        data = yaml_load(text)
     except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: invalid YAML: {err}") from None
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read: {err}") from None
+        raise ConfigError(f"{path}: invalid YAML: {_summary_text(str(err))}") from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -187,6 +241,8 @@ def validate(model: type[BaseConfig], data: Mapping, path: str | Path, set_keys:
         return model.model_validate(data, context={"config_dir": path.parent.resolve()})
     except ValidationError as err:
         lines = [_format_error(path, model, e, set_keys) for e in err.errors()]
+        more = len(lines) - MAX_ERROR_LINES
+        lines = lines[:MAX_ERROR_LINES] + ([f"{path}: ... and {more} more errors"] if more > 0 else [])
         raise ConfigError("\n".join(lines)) from None
 
 
@@ -274,6 +330,15 @@ def _locate(model: type[BaseModel], loc: Sequence[Any]) -> tuple[type[BaseModel]
     return parent, tp, meta, doc
 
 
+MAX_ERROR_LINES = 20
+"""Most validation errors one :class:`ConfigError` lists (then a count of the rest)."""
+
+
+def _summary_text(text: str, limit: int = 500) -> str:
+    """``text`` cut to ``limit`` characters."""
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 _TYPE_NAMES = {int: "integer", float: "number", str: "string", bool: "true/false"}
 
 
@@ -328,7 +393,7 @@ def _format_error(path: Path, model: type[BaseModel], err: Mapping[str, Any], se
         if tp is not None:
             text += f"; allowed: {_describe(tp, meta, doc)}"
     else:
-        text = f"{msg} (got {err.get('input')!r})"
+        text = f"{_summary_text(msg)} (got {_summary(err.get('input'))})"
         if tp is not None and kind != "literal_error":
             text += f"; allowed: {_describe(tp, meta, doc)}"
     source = ""

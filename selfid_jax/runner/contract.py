@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -34,6 +35,7 @@ from typing import Any, NamedTuple
 import pandas as pd
 
 from selfid_jax.runner.config import BaseConfig
+from selfid_jax.runner.layout import SAFE_NAME
 
 __all__ = ["Experiment", "Part"]
 
@@ -78,6 +80,10 @@ class Experiment:
         names = [p.name for p in parts]
         if not parts or len(set(names)) != len(names):
             raise ValueError(f"experiment {self.name!r}: build must return parts with unique names, got {names}")
+        unsafe = [n for n in names if not (isinstance(n, str) and re.fullmatch(SAFE_NAME, n))]
+        if unsafe:
+            raise ValueError(f"experiment {self.name!r}: part names must be one path component (letters, digits, "
+                             f"'.', '_', '-'; not starting with '.'), got {unsafe}")
         return parts
 
     def batched(self, static) -> Callable[[Any], Any]:

@@ -1,9 +1,12 @@
-"""Saving figures into a run directory: PNG and PDF per figure."""
+"""Saving figures into a run directory: PNG and PDF per figure, each written whole (temporary file + rename)."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from selfid_jax.runner.files import atomic_write_bytes
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -12,10 +15,16 @@ __all__ = ["save_figure"]
 
 
 def save_figure(fig: Figure, out_dir: str | Path, name: str, *, dpi: int = 150) -> list[Path]:
-    """Write ``fig`` as ``out_dir/name.png`` and ``out_dir/name.pdf``; returns both paths."""
+    """Write ``fig`` as ``out_dir/name.png`` and ``out_dir/name.pdf``; returns both paths.
+
+    Each file is rendered in memory and written atomically, so an interrupted or
+    disk-full save leaves the previous figure (or none), never a partial one; an
+    ``OSError`` names the file.
+    """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     paths = [out_dir / f"{name}.png", out_dir / f"{name}.pdf"]
     for p in paths:
-        fig.savefig(p, dpi=dpi, bbox_inches="tight")
+        buf = io.BytesIO()
+        fig.savefig(buf, format=p.suffix[1:], dpi=dpi, bbox_inches="tight")
+        atomic_write_bytes(p, buf.getvalue())
     return paths
