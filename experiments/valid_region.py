@@ -53,7 +53,7 @@ SystemEntry = spec_or_run(SystemRun)
 """A ``systems`` entry: a system spec, or ``{system: spec, path: ..., controller: ...}``."""
 
 
-def protocol(cfg: "ValidRegionConfig", entry) -> tuple[object, PathConfig, ControllerConfig]:
+def protocol(cfg: ValidRegionConfig, entry) -> tuple[object, PathConfig, ControllerConfig]:
     """``(system spec, path, controller)`` of one ``systems`` entry, the top level filling what it leaves out."""
     if isinstance(entry, SystemRun):
         return entry.system, entry.path or cfg.path, entry.controller or cfg.controller

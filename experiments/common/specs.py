@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
 
@@ -42,7 +42,7 @@ __all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "Syst
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
-Numbers = Union[float, list[float]]
+Numbers = float | list[float]
 
 
 def _builtin():
@@ -150,11 +150,9 @@ def _kind(value) -> str | None:
 
 
 SystemSpec = Annotated[
-    Union[
-        Annotated[Literal[BUILTIN_FACTORIES], Tag("<builtin>")],  # type: ignore[valid-type]
-        Annotated[MjcfSystem, Tag("<mjcf>")],
-        Annotated[PoseFnSystem, Tag("<pose_fn>")],
-    ],
+    Annotated[Literal[BUILTIN_FACTORIES], Tag("<builtin>")]  # type: ignore[valid-type]
+    | Annotated[MjcfSystem, Tag("<mjcf>")]
+    | Annotated[PoseFnSystem, Tag("<pose_fn>")],
     Discriminator(
         _kind,
         custom_error_type="system_spec",
@@ -194,7 +192,7 @@ def spec_or_run(run_model: type[BaseModel]):
     ``system`` key is read as one.
     """
     return Annotated[
-        Union[Annotated[SystemSpec, Tag("<spec>")], Annotated[run_model, Tag("<run>")]],
+        Annotated[SystemSpec, Tag("<spec>")] | Annotated[run_model, Tag("<run>")],
         Discriminator(lambda v: "<run>" if isinstance(v, run_model) or (isinstance(v, dict) and "system" in v)
                       else "<spec>"),
     ]

@@ -54,7 +54,8 @@ estimator's ``capacity``. Float64 (the SOGP needs it).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Literal, NamedTuple
+from collections.abc import Callable
+from typing import Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp

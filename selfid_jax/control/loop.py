@@ -161,7 +161,7 @@ class _Task(NamedTuple):
     rot_axes: tuple[int, ...]  # static: the task's rotation-vector components (0-2)
 
     @staticmethod
-    def make(path, pose0, system: System) -> "_Task":
+    def make(path, pose0, system: System) -> _Task:
         pos, rot = system.position_axes, system.rotation_axes
         p_goal, R_goal = waypoint_poses(path, pose0, system.axes)
         targets = p_goal[:, list(pos)]

@@ -174,7 +174,7 @@ def _attempt(config_path, overrides) -> dict[str, Any]:
         config_source=str(Path(config_path).resolve()) if config_path is not None else None,
         overrides=list(overrides),
         command=list(sys.argv),
-        created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        created_utc=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     )
     return jsonable(info)
 

@@ -175,7 +175,7 @@ class EtsModel:
     rot: jax.Array  # (n + 1, 3, 3) rotations of the folded constants C_0..C_n
     pos: jax.Array  # (n + 1, 3) translations of C_0..C_n [m]
 
-    def replace(self, **changes) -> "EtsModel":
+    def replace(self, **changes) -> EtsModel:
         """``dataclasses.replace`` (e.g. other link lengths)."""
         return dataclasses.replace(self, **changes)
 
