@@ -156,7 +156,8 @@ SystemSpec = Annotated[
     Discriminator(
         _kind,
         custom_error_type="system_spec",
-        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o', 'arm5') or a "
+        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o', "
+        "'arm5') or a "
         "mapping with an 'mjcf' or a 'pose_fn' key",
     ),
 ]
@@ -204,7 +205,8 @@ def entry_spec(entry):
 
 
 def unique_system_names(entries: list) -> list:
-    """``entries`` (``systems`` entries of :func:`spec_or_run`) if their system names are distinct, else ``ValueError``."""
+    """``entries`` (``systems`` entries of :func:`spec_or_run`) if their system names are distinct, else
+    ``ValueError``."""
     unique([system_name(entry_spec(e)) for e in entries], "system names")
     return entries
 

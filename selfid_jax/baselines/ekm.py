@@ -122,14 +122,16 @@ def nominal_system(system: System, *, scale: ArrayLike = 1.0, offset: ArrayLike 
     if isinstance(params, ChainModel):
         nb = params.body_pos.shape[0]
         if not (np.ndim(scale) == 0 or np.shape(scale) == (nb,)):
-            raise ValueError(f"nominal_system: scale: expected shape () or ({nb},) for a ChainModel, got {np.shape(scale)}")
+            raise ValueError(f"nominal_system: scale: expected shape () or ({nb},) for a ChainModel, "
+                             f"got {np.shape(scale)}")
         params = params.replace(body_pos=params.body_pos * jnp.broadcast_to(jnp.asarray(scale), (nb,))[:, None])
     elif isinstance(params, (jax.Array, np.ndarray)):
         if not (np.ndim(scale) == 0 or np.shape(scale) == np.shape(params)):
             raise ValueError(f"nominal_system: scale: expected shape () or {np.shape(params)}, got {np.shape(scale)}")
         params = params * jnp.asarray(scale, params.dtype)
     elif not (np.ndim(scale) == 0 and float(scale) == 1.0):
-        raise ValueError(f"nominal_system: scale: only array or ChainModel params can be scaled, not {type(params).__name__}")
+        raise ValueError("nominal_system: scale: only array or ChainModel params can be scaled, "
+                         f"not {type(params).__name__}")
     wrap = OffsetChainPose if hasattr(system.pose_fn, "jacobian") else OffsetPose
     off = jnp.broadcast_to(jnp.asarray(offset, system.q_low.dtype), (system.n_act,))
     return system.replace(params=(params, off), pose_fn=wrap(system.pose_fn), name=f"{system.name}_nominal")
@@ -187,7 +189,8 @@ def _task_pos(nominal: System, q):
 
 
 def init(mdl: EKMModel, q0, *, capacity: int = 30) -> EKMState:
-    """An E-KM with an empty GP of ``capacity`` basis elements at the start ``q0 (n,)`` (absolute: knows ``g(q0) = 0``)."""
+    """An E-KM with an empty GP of ``capacity`` basis elements at the start ``q0 (n,)`` (absolute: knows
+    ``g(q0) = 0``)."""
     nom = mdl.nominal
     n, m = nom.n_act, nom.task_dim
     check_array("q0", q0, (n,))
@@ -310,8 +313,8 @@ def ekm(
     """
     check_choice("ekm", "mode", mode, MODES)
     check_choice("ekm", "formulation", formulation, FORMULATIONS)
-    settings = dict(formulation=formulation, symmetric=check_bool("ekm", "symmetric", symmetric), length_q=length_q, length_da=length_da, signal=signal, noise=noise,
-                    novelty_tol=novelty_tol)
+    settings = dict(formulation=formulation, symmetric=check_bool("ekm", "symmetric", symmetric), length_q=length_q,
+                    length_da=length_da, signal=signal, noise=noise, novelty_tol=novelty_tol)
     mdl = None if nominal is None else model(nominal, **settings)
     if nominal is None:
         for name in ("length_q", "length_da", "signal", "noise", "novelty_tol"):
@@ -319,7 +322,8 @@ def ekm(
 
     def init_fn(n, m, key, capacity, dtype):
         if mdl is None:
-            raise ValueError("ekm: nominal: init needs the nominal System: ekm(nominal=ekm.nominal_system(system, ...))")
+            raise ValueError("ekm: nominal: init needs the nominal System: "
+                             "ekm(nominal=ekm.nominal_system(system, ...))")
         if q0 is None:
             raise ValueError("ekm: q0: init needs the start configuration q0 (n,): ekm(nominal=..., q0=...)")
         if (n, m) != (mdl.nominal.n_act, mdl.nominal.task_dim):

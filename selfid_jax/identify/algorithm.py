@@ -142,7 +142,8 @@ def self_identify(
 
 
 def noisy_pose(key, pose, pose_noise, rot_noise):
-    """A tracker reading of ``pose = (p (3,), R (3, 3))``: ``p + N(0, pose_noise^2)`` (m), ``exp(N(0, rot_noise^2)) R`` (rad)."""
+    """A tracker reading of ``pose = (p (3,), R (3, 3))``: ``p + N(0, pose_noise^2)`` (m), ``exp(N(0, rot_noise^2)) R``
+    (rad)."""
     from selfid_jax.math import geometry
 
     p, R = pose

@@ -31,7 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax.math.checks import check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype, is_traced
+from selfid_jax.math.checks import (check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype,
+                                    is_traced)
 
 
 class EstimatorState(NamedTuple):
@@ -301,7 +302,8 @@ def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorS
 
 
 def signed_inverse_jacobian(state: EstimatorState) -> jax.Array:
-    """Signed inverse Jacobian ``(n, m)`` in {-1, +1}: the heavier sign bucket (``sign_net >= 0``), ties -> +1 (Eq. 10)."""
+    """Signed inverse Jacobian ``(n, m)`` in {-1, +1}: the heavier sign bucket (``sign_net >= 0``), ties -> +1
+    (Eq. 10)."""
     return jnp.where(state.sign_net >= 0, 1.0, -1.0).astype(state.sign_net.dtype)
 
 
@@ -349,7 +351,8 @@ def buffer_objective(state: EstimatorState, J: jax.Array) -> jax.Array:
 
 
 def check_thresholds(eps, eps_rel=0.0):
-    """Eager check of the Sec. IV-D thresholds where they are concrete: ``eps >= 0``, ``eps_rel >= 0``, not both 0, no NaN."""
+    """Eager check of the Sec. IV-D thresholds where they are concrete: ``eps >= 0``, ``eps_rel >= 0``, not both 0,
+    no NaN."""
     check_scalar("eps", eps, ge=0.0, finite=False)
     check_scalar("eps_rel", eps_rel, ge=0.0, finite=False)
     if not (is_concrete_zero(eps) and is_concrete_zero(eps_rel)):

@@ -58,7 +58,8 @@ def ratios(state: EstimatorState) -> tuple[jax.Array, jax.Array]:
 
 
 def mean(state: EstimatorState) -> jax.Array:
-    """Mean ratio ``(n, m)`` over all accepted samples: the paper's Eq. 12 (= ``estimator.magnitude_inverse_jacobian``)."""
+    """Mean ratio ``(n, m)`` over all accepted samples: the paper's Eq. 12
+    (= ``estimator.magnitude_inverse_jacobian``)."""
     return estimator.magnitude_inverse_jacobian(state)
 
 

@@ -98,7 +98,8 @@ def statistics_closed_form(S_vv, S_tv, J0, *, ridge=0.0, rcond=None):
     ``J0 + (S_tv - J0 S_vv) pinv(S_vv)``, which is ``S_tv P + J0 N`` with
     ``(P, N) = psd_pinv(S_vv)``, computed without forming ``P`` (see the code)
     so that a large ``J0`` does not cancel against itself (in float32,
-    ``J0 - J0 S_vv S_vv^-1`` leaves errors of ``eps |J0| cond(S_vv)``); equal to :func:`closed_form` on the samples themselves, and
+    ``J0 - J0 S_vv S_vv^-1`` leaves errors of ``eps |J0| cond(S_vv)``); equal to :func:`closed_form` on the samples
+    themselves, and
     to ``S_tv S_vv^-1`` whatever ``J0`` is once ``S_vv`` has full rank.
     ``ridge > 0``: ``(S_tv + ridge J0) (S_vv + ridge I)^-1``, the exact ridge
     solution. ``ridge`` and ``rcond`` may be traced; a literal 0 skips the
@@ -139,7 +140,8 @@ def gradient_refine(
     sign_project: bool = False,
     precondition: bool | None = None,
 ):
-    """Gradient descent with optax on :func:`refine_objective` from ``J0 (n, m)``, on samples ``theta (K, n)``, ``V (K, m)``.
+    """Gradient descent with optax on :func:`refine_objective` from ``J0 (n, m)``, on samples ``theta (K, n)``,
+    ``V (K, m)``.
 
     ``precondition=True`` (default without ``sign_project``): each gradient
     ``G (n, m)`` is right-multiplied by ``P = (V^T V + ridge I)^+`` restricted to
@@ -288,7 +290,8 @@ def slsqp_refine(theta, V, J0, *, numeric_grad: bool = False, ftol: float = 1e-1
 
 
 def needs_samples(method: str, loss: str = "l2") -> bool:
-    """Whether :func:`refine` with ``method`` and ``loss`` reads the ring buffer (Huber loss, SLSQP) rather than the statistics."""
+    """Whether :func:`refine` with ``method`` and ``loss`` reads the ring buffer (Huber loss, SLSQP) rather than the
+    statistics."""
     return method == "slsqp" or loss == "huber"
 
 

@@ -88,9 +88,11 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("run_dir", type=Path, help="a run directory written by 'selfid-jax sweep' or 'selfid-jax demo'")
 
     d = sub.add_parser(
-        "demo", help="the main job: UR5e and Model O self-ID, then a star with each estimate (about 50 s on 2 CPU cores)",
+        "demo",
+        help="the main job: UR5e and Model O self-ID, then a star with each estimate (about 50 s on 2 CPU cores)",
         description="Self-identify a UR5e and a Model O hand, each from 4 start configurations in one compiled call, "
-        "follow a star (5 cm, 1.5 mm) with each estimate and with the true inverse Jacobian, print a summary and write the run directory "
+        "follow a star (5 cm, 1.5 mm) with each estimate and with the true inverse Jacobian, print a summary and write "
+        "the run directory "
         "(results.parquet, summary.json, figures/demo.png). Always starts fresh.",
     )
     d.add_argument("--out", type=Path, default=Path("runs/demo"), help="run directory (default: runs/demo)")
@@ -173,7 +175,8 @@ def _init_distributed(args: argparse.Namespace) -> None:
 
 
 def _build(exp, cfg, source: str):
-    """``exp.parts(cfg)``, before any run directory exists; a ``ValueError`` (infeasible path, bad robot) is a usage error."""
+    """``exp.parts(cfg)``, before any run directory exists; a ``ValueError`` (infeasible path, bad robot) is a usage
+    error."""
     try:
         return exp.parts(cfg)
     except ValueError as err:

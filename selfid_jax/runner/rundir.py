@@ -140,7 +140,8 @@ def read_run_config(run_dir: str | Path) -> dict:
     except (yaml.YAMLError, ValueError) as err:
         raise _unreadable(path, err, f"restore it, or start over with {_rerun(run_dir, '--fresh')}") from None
     if not isinstance(data, dict):
-        raise _unreadable(path, TypeError("not a mapping"), f"restore it, or start over with {_rerun(run_dir, '--fresh')}")
+        raise _unreadable(path, TypeError("not a mapping"),
+                          f"restore it, or start over with {_rerun(run_dir, '--fresh')}")
     return data
 
 
