@@ -72,8 +72,8 @@ from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.kinematics import ChainModel
 from selfid_jax.systems.system import System
 
-FORMULATIONS = ("incremental", "absolute")
-MODES = ("fixed", "online")
+FORMULATIONS: tuple[Literal["incremental", "absolute"], ...] = ("incremental", "absolute")
+MODES: tuple[Literal["fixed", "online"], ...] = ("fixed", "online")
 
 __all__ = ["FORMULATIONS", "MODES", "EKMModel", "EKMState", "nominal_system", "model", "init", "observe",
            "linearise", "update", "fold", "follow", "ekm"]
@@ -129,12 +129,13 @@ def nominal_system(system: System, *, scale: ArrayLike = 1.0, offset: ArrayLike 
         if not (np.ndim(scale) == 0 or np.shape(scale) == np.shape(params)):
             raise ValueError(f"nominal_system: scale: expected shape () or {np.shape(params)}, got {np.shape(scale)}")
         params = params * jnp.asarray(scale, params.dtype)
-    elif not (np.ndim(scale) == 0 and float(scale) == 1.0):
+    elif not (np.ndim(scale) == 0 and float(scale) == 1.0):  # type: ignore[arg-type]  # ArrayLike admits complex
         raise ValueError("nominal_system: scale: only array or ChainModel params can be scaled, "
                          f"not {type(params).__name__}")
     wrap = OffsetChainPose if hasattr(system.pose_fn, "jacobian") else OffsetPose
     off = jnp.broadcast_to(jnp.asarray(offset, system.q_low.dtype), (system.n_act,))
-    return system.replace(params=(params, off), pose_fn=wrap(system.pose_fn), name=f"{system.name}_nominal")
+    # a System without a pose_fn is only a placeholder of the dataclass default
+    return system.replace(params=(params, off), pose_fn=wrap(system.pose_fn), name=f"{system.name}_nominal")  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------------ the model
@@ -165,7 +166,7 @@ class EKMState(NamedTuple):
     q: jax.Array  # (n,) current configuration (dead-reckoned behind the protocol) [rad]
     s: jax.Array  # (m,) task displacement p(q) - p(q0), the sum of observed V [task units]
     p0_nom: jax.Array  # (m,) nominal task position at q0 [task units]
-    count: jax.Array  # () int32 accepted samples
+    count: jax.Array  # type: ignore[assignment]  # () int32 accepted samples
     rejected: jax.Array  # () int32 rejected samples
 
 
@@ -313,8 +314,9 @@ def ekm(
     """
     check_choice("ekm", "mode", mode, MODES)
     check_choice("ekm", "formulation", formulation, FORMULATIONS)
-    settings = dict(formulation=formulation, symmetric=check_bool("ekm", "symmetric", symmetric), length_q=length_q,
-                    length_da=length_da, signal=signal, noise=noise, novelty_tol=novelty_tol)
+    settings: dict[str, Any] = dict(formulation=formulation, symmetric=check_bool("ekm", "symmetric", symmetric),
+                                    length_q=length_q, length_da=length_da, signal=signal, noise=noise,
+                                    novelty_tol=novelty_tol)
     mdl = None if nominal is None else model(nominal, **settings)
     if nominal is None:
         for name in ("length_q", "length_da", "signal", "noise", "novelty_tol"):

@@ -90,7 +90,7 @@ class SOGPState(NamedTuple):
     variance: jax.Array  # () float: kernel signal variance [output units^2]
     noise: jax.Array  # () float: observation noise sd [output units]
     novelty_tol: jax.Array  # () float: add x iff gamma > novelty_tol * variance [dimensionless]
-    count: jax.Array  # () int32: accepted samples
+    count: jax.Array  # type: ignore[assignment]  # () int32: accepted samples
     rejected: jax.Array  # () int32: rejected samples (non-finite entries)
     unstable: jax.Array  # () int32: accepted samples whose update broke the invariants and was discarded
 

@@ -52,7 +52,8 @@ class EstimatorState(NamedTuple):
     s_tt: jax.Array  # () float: sum ||dtheta||^2, actuator units^2 (constant term of Eq. 14's objective)
     dtheta_buf: jax.Array  # (capacity, n) float: ring buffer of accepted actuations (capacity may be 0)
     v_buf: jax.Array  # (capacity, m) float: ring buffer of accepted pose changes
-    count: jax.Array  # () int32: accepted samples so far (the buffer holds min(count, capacity))
+    # () int32: accepted samples so far (the buffer holds min(count, capacity))
+    count: jax.Array  # type: ignore[assignment]  # shadows tuple.count
     rejected: jax.Array  # () int32: samples rejected as non-finite, all-zero, or overflowing the sums
     v_tol: jax.Array  # () float: |V_j| at or below this does not enter the magnitude mean
     forget: jax.Array  # () float in (0, 1]: factor applied to every sum before a sample is added
@@ -146,8 +147,7 @@ def small_sum(x: jax.Array, axis=None) -> jax.Array:
     ``||J_t - J_{t-1}||_F``).
     """
     axes = tuple(range(x.ndim)) if axis is None else ((axis,) if isinstance(axis, int) else tuple(axis))
-    axes = sorted(a % x.ndim for a in axes)
-    for a in reversed(axes):
+    for a in reversed(sorted(a % x.ndim for a in axes)):
         parts = [jax.lax.index_in_dim(x, k, a, keepdims=False) for k in range(x.shape[a])]
         x = parts[0] if parts else jnp.zeros(x.shape[:a] + x.shape[a + 1 :], x.dtype)
         for p in parts[1:]:

@@ -247,7 +247,9 @@ def _demo(args: argparse.Namespace) -> int:
     from selfid_jax.runner import registry
 
     exp = registry.get("demo")
-    return _run(exp, exp.config(), args.out, config_path=None, overrides=(), fresh=True, progress=False)
+    # exp.config is typed as BaseConfig, whose experiment has no default; the demo's model sets it.
+    cfg = exp.config()  # type: ignore[call-arg]
+    return _run(exp, cfg, args.out, config_path=None, overrides=(), fresh=True, progress=False)
 
 
 def _list(args: argparse.Namespace, catalogues: Mapping[str, Callable[[], Mapping[str, str]]]) -> int:  # noqa: ARG001
@@ -279,7 +281,7 @@ def _enable_compilation_cache() -> None:
 
     import jax
 
-    if jax.config.jax_compilation_cache_dir:
+    if jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
         return
     where = os.environ.get("SELFID_JAX_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "selfid_jax", "xla"))
     if where.lower() in ("off", "0", "none", ""):
@@ -326,8 +328,9 @@ def main(argv: Sequence[str] | None = None,
     args = _parser().parse_args(argv)
     if args.command in ("sweep", "demo"):
         _enable_compilation_cache()
-    command = {"sweep": _sweep, "plot": _plot, "demo": _demo,
-               "list": functools.partial(_list, catalogues=catalogues or {})}[args.command]
+    commands: dict[str, Callable[[argparse.Namespace], int]] = {
+        "sweep": _sweep, "plot": _plot, "demo": _demo, "list": functools.partial(_list, catalogues=catalogues or {})}
+    command = commands[args.command]
     try:
         return command(args)
     except (_UsageError, ConfigError) as err:
