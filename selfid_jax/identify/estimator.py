@@ -29,6 +29,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 
 from selfid_jax.math.checks import (check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype,
@@ -285,7 +286,7 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> Estima
     )
 
 
-def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
+def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike) -> EstimatorState:
     """Fold one self-ID sample ``(dtheta (n,) [actuator units], V (m,) [task units])`` into the state.
 
     Accumulates the sign weights (Eq. 6-9), the magnitude ratios
@@ -330,7 +331,7 @@ def samples(state: EstimatorState) -> tuple[jax.Array, jax.Array, jax.Array]:
     return state.dtheta_buf, state.v_buf, buffer_mask(state)
 
 
-def objective(state: EstimatorState, J: jax.Array) -> jax.Array:
+def objective(state: EstimatorState, J: ArrayLike) -> jax.Array:
     """Eq. 14 objective ``sum_k w_k ||dtheta_k - J V_k||^2`` over every accepted sample (scalar, actuator units^2).
 
     From the statistics: ``s_tt - 2 <J, S_tv> + <J S_vv, J>`` (Frobenius inner
@@ -370,7 +371,7 @@ def _both_within(deltas: jax.Array, norms: jax.Array, fresh: jax.Array, eps, eps
     return jnp.all(fresh & (deltas <= eps + eps_rel * norms), axis=-1)
 
 
-def record(state: EstimatorState, J: jax.Array, eps, eps_rel=0.0) -> EstimatorState:
+def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLike = 0.0) -> EstimatorState:
     """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
 
     Stores ``delta_t = ||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1
@@ -405,7 +406,7 @@ def record(state: EstimatorState, J: jax.Array, eps, eps_rel=0.0) -> EstimatorSt
     )
 
 
-def converged(state: EstimatorState, eps, eps_rel=0.0) -> jax.Array:
+def converged(state: EstimatorState, eps: ArrayLike, eps_rel: ArrayLike = 0.0) -> jax.Array:
     """True iff the last two records pass the Sec. IV-D test of :func:`record` (``()`` bool, ``(...)`` if batched)."""
     check_thresholds(eps, eps_rel)
     return _both_within(state.last_deltas, state.last_norms, state.last_fresh, eps, eps_rel)

@@ -39,8 +39,11 @@ With no samples every method returns ``J0``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 import optax
 
@@ -297,19 +300,19 @@ def needs_samples(method: str, loss: str = "l2") -> bool:
 
 def refine(
     state: EstimatorState,
-    J0,
+    J0: ArrayLike,
     *,
     method: str = "optax",
     steps: int = 100,
     tol: float | None = None,
     loss: str = "l2",
-    huber_delta=1.0,
-    ridge=0.0,
+    huber_delta: ArrayLike = 1.0,
+    ridge: ArrayLike = 0.0,
     sign_project: bool = False,
     precondition: bool | None = None,
     numeric_grad: bool = False,
-    rcond=None,
-):
+    rcond: ArrayLike | None = None,
+) -> jax.Array:
     """Refined inverse Jacobian ``(n, m)`` from ``J0 (n, m)`` (Eq. 14).
 
     ``"closed_form"`` and ``"optax"`` with the L2 loss read the statistics
@@ -345,7 +348,8 @@ def refine(
         return statistics_closed_form(state.S_vv, state.S_tv, J0, ridge=ridge, rcond=rcond)
     if method == "optax":
         S = signed_inverse_jacobian(state)
-        options = dict(steps=steps, tol=tol, ridge=ridge, sign_project=sign_project, precondition=precondition)
+        options: dict[str, Any] = dict(steps=steps, tol=tol, ridge=ridge, sign_project=sign_project,
+                                       precondition=precondition)
         if loss == "l2":
             return statistics_gradient_refine(state.S_vv, state.S_tv, J0, S, **options)
         theta, V, _ = _masked(state)
