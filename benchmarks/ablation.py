@@ -115,7 +115,8 @@ def report(res: dict) -> str:
                      f"{f['peak_rss_mib']:.0f} MiB (goal < {GOAL_RSS_MIB:.0f}), run {f['run_s']:.1f} s, "
                      f"projected full run {f['projected_full_run_s']:.0f} s")
     if "updates_per_s" in res:
-        lines.append("estimator updates per second (estimate read after every update, vmap over 256 streams, n=6, m=3):")
+        lines.append("estimator updates per second (estimate read after every update, vmap over 256 streams, "
+                     "n=6, m=3):")
         for name, r in res["updates_per_s"].items():
             lines.append(f"  {name:28s} {r['rate']:12.0f} /s   {r['vs_ours']:6.2f}x ours")
     return "\n".join(lines)

@@ -104,7 +104,8 @@ def variants(batch):
 
 
 def scan_fn(batch, init, step, read, shard: bool = False):
-    """``jit(run)``: ``run(d (T, batch, n), V (T, batch, m)) -> read(final state)``; ``shard``: batch split over devices."""
+    """``jit(run)``: ``run(d (T, batch, n), V (T, batch, m)) -> read(final state)``; ``shard``: batch split over
+    devices."""
     n_dev = jax.device_count() if shard else 1
     vstep = jax.vmap(step)
 

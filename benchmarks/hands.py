@@ -65,7 +65,8 @@ def main():
         "native": (1, 100, 1000),
     }
     print(f"devices: {jax.devices()}  (float64)")
-    print(f"{'hand':14s} {'backend':10s} {'batch':>7s} {'poses/s':>11s} {'x native':>9s} {'compile s':>10s} {'NaN':>5s}")
+    print(f"{'hand':14s} {'backend':10s} {'batch':>7s} {'poses/s':>11s} {'x native':>9s} {'compile s':>10s} "
+          f"{'NaN':>5s}")
     with jax.enable_x64(True):
         for hname, factory in _hands().items():
             rates = {}

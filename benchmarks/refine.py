@@ -78,7 +78,7 @@ def main():
 
     results = {}
     for method in ("optax", "closed_form"):
-        fn = jax.jit(jax.vmap(lambda s, j: sj.refine(s, j, method=method, steps=args.steps)))
+        fn = jax.jit(jax.vmap(lambda s, j, method=method: sj.refine(s, j, method=method, steps=args.steps)))
         _, t_first = timed(fn, states, J0)
         out, t_run = timed(fn, states, J0)
         results[method] = (out, t_run / args.batch, t_first - t_run)

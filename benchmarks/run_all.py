@@ -92,13 +92,15 @@ def table(res: dict) -> list[dict]:
         before = r["rows"].get("ours, 64-sample buffer (before)")
         if before:
             _row(rows, "  ... against the 64-sample buffer (before)", ours["steps_per_s"] / before["steps_per_s"],
-                 "x before", "", None, f"before {before['steps_per_s']:.1f} steps/s = {before['ratio_to_rls']:.3f}x RLS")
+                 "x before", "", None,
+                 f"before {before['steps_per_s']:.1f} steps/s = {before['ratio_to_rls']:.3f}x RLS")
     if "rollouts" in res:
         r = res["rollouts"]["result"]
         jax_rows = {k: v for k, v in r.items() if k.startswith("JAX")}
         name, best = max(jax_rows.items(), key=lambda kv: int(kv[0].split()[-1]))
         _row(rows, f"UR5e 200-step rollout, {name}", best["ms_per_rollout"], "ms/rollout", "<= 0.1",
-             best["ms_per_rollout"] <= 0.1, f"{best['vs_numpy']:.0f}x the numpy loop, compile {best['compile_s']:.1f} s")
+             best["ms_per_rollout"] <= 0.1,
+             f"{best['vs_numpy']:.0f}x the numpy loop, compile {best['compile_s']:.1f} s")
     if "refine" in res:
         r = res["refine"]["result"]["rows"]
         _row(rows, "closed-form refinement vs SLSQP (analytic grad)", r["closed_form"]["vs_slsqp_analytic"], "x SLSQP",

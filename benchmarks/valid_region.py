@@ -65,7 +65,8 @@ def report(res: dict) -> str:
         warm = f"{e['warm']['wall_s']:6.1f}s" if "warm" in e else f"{'-':>7s}"
         label = name + (f" ({c['rows']} of {e['rows_full']})" if "projected_full_run_s" in e else "")
         lines.append(f"{label:34s} {c['rows']:8d} {c['wall_s']:6.1f}s {warm} {c['import_s']:6.1f}s "
-                     f"{c['build_s']:5.1f}s {c['run_s']:5.1f}s {c['rows'] / c['run_s']:8.0f} {c['peak_rss_mib']:7.0f}MiB")
+                     f"{c['build_s']:5.1f}s {c['run_s']:5.1f}s {c['rows'] / c['run_s']:8.0f} "
+                     f"{c['peak_rss_mib']:7.0f}MiB")
         if "projected_full_run_s" in e:
             lines.append(f"{'':34s} projected full map: {e['projected_full_run_s']:.0f} s of run")
     first = next(iter(res.values()))["cold"]

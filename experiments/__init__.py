@@ -1,1 +1,2 @@
-"""The experiments: one module per registered experiment (config schema, build, compute, summary, figures), plus common/."""
+"""The experiments: one module per registered experiment (config schema, build, compute, summary, figures), plus
+common/."""

@@ -60,7 +60,8 @@ class MethodSpec(BaseModel):
         default_factory=dict, description="keyword options of the method's factory in selfid_jax.baselines"
     )
     nominal: NominalSpec | None = Field(None, description="model-based methods (ekm) only, and required there: "
-                                        "the nominal model's length scale and joint offsets (experiments/ablation_ekm.py)")
+                                        "the nominal model's length scale and joint offsets "
+                                        "(experiments/ablation_ekm.py)")
 
 
 class AblationConfig(StudyConfig):
@@ -297,7 +298,8 @@ def summarize(df: pd.DataFrame, cfg: AblationConfig) -> dict[str, Any]:
 
 def report(summary: dict[str, Any]) -> str:
     """A table: iterations to the completion threshold and convergence iteration per method."""
-    lines = [f"{'method':24s} {'iters to ' + format(summary['completion_threshold'], '.0%'):>14s} {'converged at':>16s}"]
+    to = "iters to " + format(summary["completion_threshold"], ".0%")
+    lines = [f"{'method':24s} {to:>14s} {'converged at':>16s}"]
     for name, s in summary["methods"].items():
         conv = s["convergence_iteration_mean"]
         conv_txt = f"{conv:.1f} +- {s['convergence_iteration_sd']:.1f}" if conv is not None else "never"

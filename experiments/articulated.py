@@ -193,7 +193,7 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
         meta["order"] = pop.order[o]
         meta["fit_error_mm"] = 1e3 * pop.fit_error[o]
         n = len(meta)
-        full = lambda v: np.full((n,), float(v))  # noqa: E731
+        full = lambda v, n=n: np.full((n,), float(v))  # noqa: E731
         rollout = sim.RolloutParams(
             obj=scenes.ObjectParams(*(np.asarray(a)[o] for a in pop)),
             controller=np.asarray([sim.CONTROLLERS.index(c) for c in meta["controller"]], np.int32),

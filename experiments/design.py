@@ -67,12 +67,14 @@ from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
+from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
+                                                 unique_system_names)
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 EVAL_DESIGNS = ("default", "grid", "scalar", "per_actuator")
-"""The designs compared on held-out trials: the system's safe ``m_a``, the grid's best, the refined scalar, per actuator."""
+"""The designs compared on held-out trials: the system's safe ``m_a``, the grid's best, the refined scalar, per
+actuator."""
 
 Noise = Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)]
 
@@ -105,7 +107,8 @@ class RefineConfig(BaseModel):
 
 
 class SystemRun(BaseModel):
-    """A system with its own protocol (a hand needs mm paths, finer tracker noise and magnitudes): overrides the top level."""
+    """A system with its own protocol (a hand needs mm paths, finer tracker noise and magnitudes): overrides the top
+    level."""
 
     model_config = _STRICT
 
@@ -427,7 +430,7 @@ def summarize(table: pd.DataFrame, cfg: DesignConfig) -> dict[str, Any]:
         if t.empty:
             continue
         levels = []
-        for level, g in t.groupby("noise_level", sort=True):
+        for _level, g in t.groupby("noise_level", sort=True):
             grid = g[g["stage"] == "grid"]
             gb = grid.loc[grid["loss"].idxmin()]
             scalar = g[g["stage"] == "scalar"]
@@ -507,7 +510,8 @@ def report(summary: dict) -> str:
 # --------------------------------------------------------------------------- figures
 
 def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
-    """``design_curves``: grid loss vs m_a per noise level with the gradient paths; ``design_optimum``: optimum vs noise.
+    """``design_curves``: grid loss vs m_a per noise level with the gradient paths; ``design_optimum``: optimum vs
+    noise.
 
     Curves: one panel per system; each noise level's grid (line; crosses where
     the gradient is flagged unreliable), the scalar gradient path (dots, from
@@ -525,7 +529,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     axes = fig.subplots(1, len(names), squeeze=False)[0]
     for ax, name in zip(axes, names):
         t = table[table["system"] == name]
-        for k, (level, g) in enumerate(t.groupby("noise_level", sort=True)):
+        for k, (_level, g) in enumerate(t.groupby("noise_level", sort=True)):
             color = f"C{k}"
             grid = g[g["stage"] == "grid"].sort_values("index")
             noise = float(grid["pose_noise"].iloc[0])

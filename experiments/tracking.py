@@ -314,7 +314,7 @@ def report(summary: dict) -> str:
     for system, s in summary["systems"].items():
         for noise, level in s["pose_noise_mm"].items():
             for inverse, m in level.items():
-                def f(key, scale=1.0, fmt=".2f"):
+                def f(key, scale=1.0, fmt=".2f", m=m):
                     v = m[key]["mean"]
                     return "-" if v is None else format(scale * v, fmt)
                 wp = "-" if m["waypoint_error_mm"]["mean"] is None else \

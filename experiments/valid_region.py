@@ -36,7 +36,8 @@ from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
+from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
+                                                 unique_system_names)
 
 
 class SystemRun(BaseModel):
@@ -53,7 +54,7 @@ SystemEntry = spec_or_run(SystemRun)
 """A ``systems`` entry: a system spec, or ``{system: spec, path: ..., controller: ...}``."""
 
 
-def protocol(cfg: "ValidRegionConfig", entry) -> tuple[object, PathConfig, ControllerConfig]:
+def protocol(cfg: ValidRegionConfig, entry) -> tuple[object, PathConfig, ControllerConfig]:
     """``(system spec, path, controller)`` of one ``systems`` entry, the top level filling what it leaves out."""
     if isinstance(entry, SystemRun):
         return entry.system, entry.path or cfg.path, entry.controller or cfg.controller
@@ -70,7 +71,8 @@ class ValidRegionConfig(StudyConfig):
 
     experiment: Literal["valid_region"] = "valid_region"
     systems: Annotated[list[SystemEntry], Field(
-        min_length=1, description="built-in names, {mjcf: ...} / {pose_fn: ...}, or {system: ..., path: ..., controller: ...}")]
+        min_length=1,
+        description="built-in names, {mjcf: ...} / {pose_fn: ...}, or {system: ..., path: ..., controller: ...}")]
     eps_limits: EpsLimits
     n_configs: int = Field(ge=1, le=10**5)
     n_trials: int = Field(ge=1, le=10**5)

@@ -228,8 +228,8 @@ def summarize(table: pd.DataFrame, cfg: ValidRegionWorkspaceConfig) -> dict[str,
         "spearman_upper_vs_condition": spearman("upper", "condition"),
         "spearman_lower_vs_manipulability": spearman("lower", "manipulability"),
         "spearman_upper_vs_predicted_upper": spearman("upper", "predicted_upper"),
-        "median_abs_upper_minus_predicted": median("gap", valid.assign(gap=(valid["upper"].astype(float)
-                                                                            - valid["predicted_upper"].astype(float)).abs())),
+        "median_abs_upper_minus_predicted": median("gap", valid.assign(
+            gap=(valid["upper"].astype(float) - valid["predicted_upper"].astype(float)).abs())),
         "configs": per.to_dict(orient="list"),
     }
 

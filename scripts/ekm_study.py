@@ -66,19 +66,21 @@ def _rollouts(arm, nominal, path, ctrl, iterations, capacity, steps):
         true = control.follow(arm, control.true_inverse(arm), path, q0, ctrl, steps=steps)
         out["true"] = _metrics(true, checkpoints.shape)
         est = baselines.run_stream(baselines.ours(), None, sid.dtheta, sid.V, truth)[checkpoints]
-        out["ours"] = _metrics(jax.vmap(lambda J: control.follow(arm, control.fixed(J), path, q0, ctrl, steps=steps))(est))
+        out["ours"] = _metrics(jax.vmap(
+            lambda J: control.follow(arm, control.fixed(J), path, q0, ctrl, steps=steps))(est))
         empty = ekm.init(models["incremental"], q0, capacity=capacity)
         nom, _ = ekm.follow(models["incremental"], empty, arm, path, ctrl, steps=steps)
         out["nominal"] = _metrics(nom, checkpoints.shape)
         for f, mdl in models.items():
-            def body(s, x):
+            def body(s, x, mdl=mdl):
                 s = ekm.update(mdl, s, *x)
                 return s, s
 
             _, states = jax.lax.scan(body, ekm.init(mdl, q0, capacity=capacity), (sid.dtheta, sid.V))
             at = jax.tree.map(lambda a: a[checkpoints], states)
             for mode in ekm.MODES:
-                res = jax.vmap(lambda st: ekm.follow(mdl, st, arm, path, ctrl, mode=mode, steps=steps)[0])(at)
+                res = jax.vmap(lambda st, mdl=mdl, mode=mode:
+                               ekm.follow(mdl, st, arm, path, ctrl, mode=mode, steps=steps)[0])(at)
                 out[f"ekm {mode} ({f})"] = _metrics(res)
         return out
 

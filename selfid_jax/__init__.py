@@ -49,7 +49,8 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
-    """``sj.experiment``: the runner (:mod:`selfid_jax.runner`), imported on first use (it loads pandas and pydantic)."""
+    """``sj.experiment``: the runner (:mod:`selfid_jax.runner`), imported on first use (it loads pandas and
+    pydantic)."""
     if name == "experiment":
         import importlib
 

@@ -37,7 +37,8 @@ MIN_JAXLIB: dict[str, tuple[int, ...]] = {
 
 
 def jaxlib_version() -> tuple[int, ...] | None:
-    """The installed jaxlib's release as an int tuple (:func:`release_tuple`), None if unknown; jaxlib is not imported."""
+    """The installed jaxlib's release as an int tuple (:func:`release_tuple`), None if unknown; jaxlib is not
+    imported."""
     from importlib import metadata
 
     try:

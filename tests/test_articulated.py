@@ -19,7 +19,8 @@ def _random_pose(seed, angle=0.1, shift=0.003):
     rng = np.random.default_rng(seed)
     w = rng.normal(size=3)
     w *= angle / np.linalg.norm(w)
-    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.exp(jnp.asarray(w)), jnp.asarray(rng.normal(size=3) * shift))
+    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.exp(jnp.asarray(w)),
+                                                    jnp.asarray(rng.normal(size=3) * shift))
 
 
 @pytest.mark.slow  # > 1 s on 2 shared cores (first-use compilation of the eager jaxlie/SVD ops)

@@ -64,7 +64,8 @@ def test_unknown_key_lists_allowed_keys(cfg_file):
     assert str(cfg_file) in msg and "key 'foo'" in msg and "unknown key" in msg
     assert "n_trials" in msg and "controller" in msg
     msg = _error(cfg_file, text=VALID.replace("steps: 400", "steps: 400, kp: 2"))
-    assert "key 'controller.kp'" in msg and "allowed keys at 'controller': max_step, tol, steps, gain, max_rot_step, rot_tol" in msg
+    assert "key 'controller.kp'" in msg
+    assert "allowed keys at 'controller': max_step, tol, steps, gain, max_rot_step, rot_tol" in msg
 
 
 def test_wrong_type_names_key_value_and_type(cfg_file):
@@ -72,7 +73,8 @@ def test_wrong_type_names_key_value_and_type(cfg_file):
     assert str(cfg_file) in msg and "key 'n_configs'" in msg
     assert "valid integer" in msg and "'ten'" in msg and "allowed: integer >= 1" in msg
     msg = _error(cfg_file, text=VALID.replace("[two_link, ur5e]", "[two_link, panda]"))
-    assert "key 'systems[1]'" in msg and "'two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o' or 'arm5'" in msg and "'panda'" in msg
+    assert "key 'systems[1]'" in msg and "'panda'" in msg
+    assert "'two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o' or 'arm5'" in msg
 
 
 def test_out_of_range_value(cfg_file):
@@ -166,7 +168,8 @@ def test_ablation_refuses_infinite_eps_and_noise(tmp_path):
 
 def test_system_specs_name_the_problem_and_resolve_paths(cfg_file, tmp_path):
     msg = _error(cfg_file, ["systems=[{mjcf: robots/arm.xml, site: tip}]"])
-    assert "key 'systems[0].mjcf'" in msg and str(tmp_path / "robots" / "arm.xml") in msg and "relative to the config" in msg
+    assert "key 'systems[0].mjcf'" in msg and str(tmp_path / "robots" / "arm.xml") in msg
+    assert "relative to the config" in msg
     msg = _error(cfg_file, ["systems=[{site: tip}]"])
     assert "key 'systems[0]'" in msg and "'mjcf' or a 'pose_fn' key" in msg
     msg = _error(cfg_file, ["systems=[{pose_fn: 'not a target', n_act: 2}]"])

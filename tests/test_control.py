@@ -96,8 +96,8 @@ def test_steps_and_errors_match_closed_form_on_identity_system():
     assert float(res.completion) == 1.0 and float(res.max_error) < 1e-12
     # a skewed inverse Jacobian leaves the path; the numpy loop gives the same errors
     skew = jnp.array([[1.0, 0.0], [0.8, 1.0]])
-    res = control.follow(sys2, control.fixed(skew), path, jnp.zeros(2), control.ControllerParams(max_step=0.007, tol=1e-3),
-                         steps=200)
+    res = control.follow(sys2, control.fixed(skew), path, jnp.zeros(2),
+                         control.ControllerParams(max_step=0.007, tol=1e-3), steps=200)
     comp, mean_err, max_err, used, _, _ = ref.follow(
         lambda q: np.array([q[0], q[1], 0.0]), lambda q: np.asarray(skew), np.asarray(path), np.zeros(2),
         steps=200, max_step=0.007, tol=1e-3, dq_max=1.0, q_low=-9.0, q_high=9.0,

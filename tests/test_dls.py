@@ -12,7 +12,7 @@ from scipy.optimize import lsq_linear, minimize_scalar  # noqa: E402
 
 from selfid_jax.control import dls  # noqa: E402
 
-from selfid_jax.identify import algorithm as selfid
+from selfid_jax.identify import algorithm as selfid  # noqa: E402
 from selfid_jax.systems.ets import ARM5_HOME, arm5, from_ets  # noqa: E402
 
 # Seed 004's failure case: tool horizontal (q2 + q3 + q4 = pi/2) at radius 0.33 m, then 100 mm sideways at fixed
@@ -176,7 +176,8 @@ def test_both_controllers_with_a_self_identified_inverse_jacobian():
             assert float(res.success.mean()) >= 0.95, (solver.__name__, method, float(res.success.mean()))
             # the reported error is measured on the arm, not on the estimate
             p = jax.vmap(lambda q: s.pose(q)[0])(res.q)
-            np.testing.assert_allclose(res.position_error, np.linalg.norm(np.asarray(targets) - np.asarray(p), axis=1), atol=1e-12)
+            np.testing.assert_allclose(res.position_error, np.linalg.norm(np.asarray(targets) - np.asarray(p), axis=1),
+                                       atol=1e-12)
 
 
 # ------------------------------------------------------------------ input checks and tracing

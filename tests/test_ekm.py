@@ -108,7 +108,7 @@ def test_behind_the_estimator_protocol():
     batched = jax.jit(jax.vmap(final))(q0s, d, V)
     for i in range(2):
         one = jax.jit(final)(q0s[i], d[i], V[i])
-        chex.assert_trees_all_close(jax.tree.map(lambda a: a[i], batched), one, atol=1e-12)
+        chex.assert_trees_all_close(jax.tree.map(lambda a, i=i: a[i], batched), one, atol=1e-12)
         state, Jinv = one
         assert int(state.count) == 5 and int(state.rejected) == 1 and np.all(np.isfinite(Jinv))
         # the sample after the rejected one is learned from the wrong place, as dead reckoning says

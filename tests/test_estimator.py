@@ -266,7 +266,8 @@ def test_relative_threshold_scales_with_the_estimate():
     assert int(E.convergence_iteration(40.0 * seq, 0.05)) == -1  # the absolute eps does not scale
 
 
-@pytest.mark.parametrize("eps, eps_rel, match", [(-0.1, 0.0, "eps: must be >= 0"), (float("nan"), 0.0, "eps: must not be NaN"),
+@pytest.mark.parametrize("eps, eps_rel, match", [(-0.1, 0.0, "eps: must be >= 0"),
+                                                 (float("nan"), 0.0, "eps: must not be NaN"),
                                                  (0.0, 0.0, "both 0"), (0.1, -1.0, "eps_rel")])
 def test_bad_thresholds_raise(eps, eps_rel, match):
     state = E.init(1, 1)

@@ -62,7 +62,8 @@ def test_experiments_install_under_the_package_namespace(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     out = subprocess.run([sys.executable, "-c", "import importlib.util as u; print(u.find_spec('experiments'))"],
                          cwd=bare, capture_output=True, text=True, timeout=60, env=env)
-    assert out.returncode == 0 and out.stdout.strip() == "None", out.stdout + out.stderr  # no top-level package installed
+    # no top-level package installed
+    assert out.returncode == 0 and out.stdout.strip() == "None", out.stdout + out.stderr
 
 
 @pytest.mark.slow  # compile-heavy: the fast tier stays about a minute

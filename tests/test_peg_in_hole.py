@@ -29,7 +29,8 @@ def test_inserts_and_reports_table_iii(tmp_path):
         grasp, _, end = np.asarray(row.positions).reshape(3, 3)
         target = grasp + np.array([0.05, 0.02, 0.0])
         assert row.arm_pos_mm == pytest.approx(1e3 * np.linalg.norm(end - target), abs=1e-9)
-    assert {"arm_pos_mm", "arm_rot_deg", "hand_rot_deg", "inserted"} <= set(summary["pose_noise_mm"]["0"]["estimated"]["all"])
+    assert ({"arm_pos_mm", "arm_rot_deg", "hand_rot_deg", "inserted"}
+            <= set(summary["pose_noise_mm"]["0"]["estimated"]["all"]))
     written = exp.plot(table, summary, tmp_path)
     assert [p.name for p in written] == ["peg_in_hole.png", "peg_in_hole.pdf"]
 

@@ -54,14 +54,15 @@ def test_reachable_steps_match_slsqp(n, m):
 
 
 @pytest.mark.parametrize("n,m", [(3, 3), pytest.param(2, 2, marks=pytest.mark.slow),
-                                 pytest.param(5, 3, marks=pytest.mark.slow), pytest.param(6, 2, marks=pytest.mark.slow)])
+                                 pytest.param(5, 3, marks=pytest.mark.slow),
+                                 pytest.param(6, 2, marks=pytest.mark.slow)])
 def test_unreachable_steps_give_the_box_least_squares_step(n, m):
     J, v, lo, hi, w = problems(10 * n + m, 20, n, m, reachable=False)
     out = solve(J, v, lo, hi, w)
-    best = np.array([lsq_linear(*a, bounds=(l, h), tol=1e-14).cost for *a, l, h in zip(J, v, lo, hi)])
+    best = np.array([lsq_linear(*a, bounds=(lb, ub), tol=1e-14).cost for *a, lb, ub in zip(J, v, lo, hi)])
     np.testing.assert_allclose(0.5 * np.asarray(out.residual) ** 2, best, rtol=1e-6, atol=1e-9)
     if n <= m:  # the least-squares step is unique
-        ref = np.stack([lsq_linear(a, b, bounds=(l, h), tol=1e-14).x for a, b, l, h in zip(J, v, lo, hi)])
+        ref = np.stack([lsq_linear(a, b, bounds=(lb, ub), tol=1e-14).x for a, b, lb, ub in zip(J, v, lo, hi)])
         np.testing.assert_allclose(out.da, ref, atol=1e-6)
 
 

@@ -141,7 +141,7 @@ class RefineJitVmapTest(chex.TestCase):
         state, _, _ = make_state(rng, rng.normal(size=(3, 3)), K=6, noise=1e-3)
         J0 = sj.initial_guess(state)
         for method in ("closed_form", "optax"):
-            got = self.variant(lambda s, j: sj.refine(s, j, method=method))(state, J0)
+            got = self.variant(lambda s, j, method=method: sj.refine(s, j, method=method))(state, J0)
             np.testing.assert_allclose(got, sj.refine(state, J0, method=method), rtol=1e-9, atol=1e-12)
 
     def test_vmap_equals_loop_and_no_retrace_over_ridge(self):
@@ -157,7 +157,8 @@ class RefineJitVmapTest(chex.TestCase):
         for ridge in (0.0, 1e-4, 1e-2):
             out = run(batched, ridge)
             for b, s in enumerate(states):
-                np.testing.assert_allclose(out[b], sj.refine(s, sj.initial_guess(s), method="optax", ridge=ridge), rtol=1e-9)
+                np.testing.assert_allclose(out[b], sj.refine(s, sj.initial_guess(s), method="optax", ridge=ridge),
+                                           rtol=1e-9)
 
 
 def test_negative_huber_delta_and_ridge_raise():

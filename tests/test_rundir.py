@@ -332,7 +332,8 @@ def test_corrupt_files_in_plot_exit_2(tmp_path, capsys):
     for name, junk, expect in [
         ("results.parquet", b"PAR1 not parquet", rerun),
         ("summary.json", b'{"mean_final": ', rerun),
-        ("config.yaml", b"experiment: [unclosed\n", f"start over with 'selfid-jax sweep {cfg.resolve()} --out {out} --fresh'"),
+        ("config.yaml", b"experiment: [unclosed\n",
+         f"start over with 'selfid-jax sweep {cfg.resolve()} --out {out} --fresh'"),
     ]:
         good = (out / name).read_bytes()
         (out / name).write_bytes(junk)
@@ -359,7 +360,8 @@ def test_full_disk_exits_2_and_resumes(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sweep, "_write_chunk", full_disk)
     assert _sweep(cfg, out) == 2
     err = _one_line_error(capsys)
-    assert f"{calls[1]}: No space left on device; free some disk space, then run the same command again to resume" in err
+    assert (f"{calls[1]}: No space left on device; free some disk space, then run the same command again to resume"
+            in err)
     chunk_dir = out / "parts" / "synthetic" / "chunks"
     assert [p.name for p in chunk_dir.iterdir()] == ["chunk_00000.parquet"]  # no temporary file left
     monkeypatch.setattr(sweep, "_write_chunk", real_write)

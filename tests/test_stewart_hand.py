@@ -204,8 +204,8 @@ def test_three_backends_agree_on_a_short_rollout(hand):
     runs = {}
     for backend in ("kinematic", "mjx", "native"):
         system = hand if backend == "kinematic" else stewart_hand(backend=backend)
-        res = jax.jit(lambda q: sj.follow(system, sj.control.fixed(J), path, q, ctrl, steps=6,
-                                          return_trajectory=True))(q0)
+        res = jax.jit(lambda q, system=system: sj.follow(system, sj.control.fixed(J), path, q, ctrl, steps=6,
+                                                         return_trajectory=True))(q0)
         assert not bool(res.failed), backend
         runs[backend] = np.asarray(res.positions)
     for backend in ("mjx", "native"):

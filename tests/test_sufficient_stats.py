@@ -16,7 +16,8 @@ import selfid_jax as sj
 from selfid_jax import baselines as B
 from selfid_jax.identify import estimator as E
 
-RF = sys.modules["selfid_jax.identify.refine"]  # the module (selfid_jax.identify.refine is also the re-exported function)
+# the module (selfid_jax.identify.refine is also the re-exported function)
+RF = sys.modules["selfid_jax.identify.refine"]
 
 
 def stream(seed, n, m, K, noise=1e-3, scale=0.05, rank=None):
@@ -49,7 +50,8 @@ def rel(a, b):
     return float(np.max(np.abs(np.asarray(a) - np.asarray(b))) / max(np.max(np.abs(np.asarray(b))), 1e-300))
 
 
-@pytest.mark.parametrize("K", [1, pytest.param(2, marks=pytest.mark.slow), 3, pytest.param(4, marks=pytest.mark.slow), 40])
+@pytest.mark.parametrize("K", [1, pytest.param(2, marks=pytest.mark.slow), 3,
+                               pytest.param(4, marks=pytest.mark.slow), 40])
 # fewer samples than task dims (m = 3), square, overdetermined
 def test_statistics_closed_form_equals_buffered_and_numpy_float64(K):
     n, m = 4, 3
@@ -109,7 +111,8 @@ class PsdPinvJitVmapTest(chex.TestCase):
         S = jnp.asarray(np.einsum("bik,bjk->bij", X, X))
         out = self.variant(jax.vmap(RF.psd_pinv))(S)
         for b in range(4):
-            chex.assert_trees_all_close(jax.tree.map(lambda x: x[b], out), RF.psd_pinv(S[b]), rtol=1e-12, atol=1e-14)
+            chex.assert_trees_all_close(jax.tree.map(lambda x, b=b: x[b], out), RF.psd_pinv(S[b]),
+                                        rtol=1e-12, atol=1e-14)
         g = jax.grad(lambda s: jnp.sum(RF.statistics_closed_form(s, jnp.ones((2, 3)) @ s, jnp.ones((2, 3)))))(S[0])
         assert np.all(np.isfinite(g))
 
@@ -181,7 +184,8 @@ def test_state_size_is_independent_of_the_number_of_samples():
         return [(x.shape, x.dtype) for x in jax.tree.leaves(state)]
 
     d, V = stream(0, 4, 3, 500)
-    few, many = fold(jnp.asarray(d[:5]), jnp.asarray(V[:5]), capacity=0), fold(jnp.asarray(d), jnp.asarray(V), capacity=0)
+    few = fold(jnp.asarray(d[:5]), jnp.asarray(V[:5]), capacity=0)
+    many = fold(jnp.asarray(d), jnp.asarray(V), capacity=0)
     assert leaves(few) == leaves(many) == leaves(E.init(4, 3, capacity=0))
     # a whole self-ID run: the same state whatever the number of iterations
     system = _arm4()

@@ -258,14 +258,14 @@ def test_apply_clips_steps_and_limits():
 def test_three_link_from_pose_fn_closed_form(arm3):
     s = arm3
     assert (s.n_act, s.task_dim, s.has_rotation) == (3, 2, False)
-    l = np.array([1.0, 0.8, 0.5])
+    lengths = np.array([1.0, 0.8, 0.5])
     qs = random_q(3, 6, seed=6, low=-np.pi, high=np.pi)
     _, _, J, Jinv, _ = evaluate(s, qs)
     J, Jinv = np.asarray(J), np.asarray(Jinv)
     c = np.cumsum(qs, axis=1)
     # dx/dq_j = -sum_{i>=j} l_i sin(c_i), dy/dq_j = sum_{i>=j} l_i cos(c_i)
-    tail_s = np.cumsum((l * np.sin(c))[:, ::-1], axis=1)[:, ::-1]
-    tail_c = np.cumsum((l * np.cos(c))[:, ::-1], axis=1)[:, ::-1]
+    tail_s = np.cumsum((lengths * np.sin(c))[:, ::-1], axis=1)[:, ::-1]
+    tail_c = np.cumsum((lengths * np.cos(c))[:, ::-1], axis=1)[:, ::-1]
     np.testing.assert_allclose(J, np.stack([-tail_s, tail_c], axis=1), atol=1e-12)
     assert Jinv.shape == (6, 3, 2)
     np.testing.assert_allclose(Jinv, np.linalg.pinv(J), atol=1e-10)

@@ -14,7 +14,7 @@ import pytest  # noqa: E402
 from selfid_jax.experiments import workspace  # noqa: E402
 from selfid_jax import runner as experiment  # noqa: E402
 from selfid_jax.runner.errors import ConfigError  # noqa: E402
-from selfid_jax.runner.registry import load as load_config
+from selfid_jax.runner.registry import load as load_config  # noqa: E402
 from selfid_jax.systems.ets import ARM5_Q_HIGH, ARM5_Q_LOW  # noqa: E402
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

@@ -1,4 +1,5 @@
-"""The CPU XLA flags set at import: merged with the user's, opt-out honoured, gated by jaxlib release, active in a fresh process."""
+"""The CPU XLA flags set at import: merged with the user's, opt-out honoured, gated by jaxlib release, active in a fresh
+process."""
 
 import os
 import subprocess

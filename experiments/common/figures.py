@@ -191,7 +191,8 @@ def valid_region_figure(
         own = saved.get(system, {}).get("protocol")
         if isinstance(own, Mapping):  # a system with its own path and controller
             ctrl, path = own.get("controller", {}), own.get("path", {})
-            region += (f"\nstar {1e3 * path.get('size', float('nan')):g} mm, step {1e3 * ctrl.get('max_step', float('nan')):g} mm,"
+            region += (f"\nstar {1e3 * path.get('size', float('nan')):g} mm, "
+                       f"step {1e3 * ctrl.get('max_step', float('nan')):g} mm,"
                        f" tol {1e3 * ctrl.get('tol', float('nan')):g} mm, {ctrl.get('steps')} steps")
         ax_c.set_title(f"{system}\n{region}", fontsize=10 if own is None else 8)
         ax_e.set_xlabel(r"$\epsilon_{limit}$")

@@ -47,8 +47,10 @@ class ControllerConfig(BaseModel):
     tol: float = Field(0.0005, gt=0, le=1, description="waypoint reached when closer than this [m]")
     steps: int = Field(435, ge=1, le=10**6, description="control-step budget per rollout")
     gain: float = Field(1.0, gt=0, le=10, description="fraction of the correction applied per step")
-    max_rot_step: float = Field(0.05, gt=0, le=3.14, description="largest rotation step per control step [rad] (6-D tasks)")
-    rot_tol: float = Field(0.01, gt=0, le=3.14, description="waypoint orientation reached within this [rad] (6-D tasks)")
+    max_rot_step: float = Field(0.05, gt=0, le=3.14,
+                                description="largest rotation step per control step [rad] (6-D tasks)")
+    rot_tol: float = Field(0.01, gt=0, le=3.14,
+                           description="waypoint orientation reached within this [rad] (6-D tasks)")
 
     def traced(self) -> dict[str, float]:
         """The swept numbers (every field but ``steps``), the fields of ``control.ControllerParams``."""
@@ -64,7 +66,8 @@ class PathConfig(BaseModel):
     size: float = Field(gt=0, le=10, description="path extent [m]")
 
     def check_controller(self, controller: ControllerConfig) -> None:
-        """``ValueError`` unless the tolerance is below half the path's size (else waypoints count as reached at the start)."""
+        """``ValueError`` unless the tolerance is below half the path's size (else waypoints count as reached at the
+        start)."""
         if not controller.tol < self.size / 2:
             raise ValueError(f"controller.tol ({controller.tol}) must be below half of path.size ({self.size}): "
                              "waypoints would count as reached without moving")
@@ -90,7 +93,8 @@ class StudyConfig(BaseConfig):
 
 
 def controller_rows(controller: ControllerConfig, n_rows: int):
-    """The traced controller settings of ``controller`` repeated for ``n_rows`` rows: ``ControllerParams`` of ``(N,)``."""
+    """The traced controller settings of ``controller`` repeated for ``n_rows`` rows: ``ControllerParams`` of
+    ``(N,)``."""
     from selfid_jax.control import ControllerParams
 
     return ControllerParams(**{k: np.full((n_rows,), float(v)) for k, v in controller.traced().items()})

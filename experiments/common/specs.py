@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
 
@@ -43,7 +43,7 @@ __all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "Syst
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
-Numbers = Union[float, list[float]]
+Numbers = float | list[float]
 
 
 def _builtin():
@@ -151,15 +151,14 @@ def _kind(value) -> str | None:
 
 
 SystemSpec = Annotated[
-    Union[
-        Annotated[Literal[BUILTIN_FACTORIES], Tag("<builtin>")],  # type: ignore[valid-type]
-        Annotated[MjcfSystem, Tag("<mjcf>")],
-        Annotated[PoseFnSystem, Tag("<pose_fn>")],
-    ],
+    Annotated[Literal[BUILTIN_FACTORIES], Tag("<builtin>")]  # type: ignore[valid-type]
+    | Annotated[MjcfSystem, Tag("<mjcf>")]
+    | Annotated[PoseFnSystem, Tag("<pose_fn>")],
     Discriminator(
         _kind,
         custom_error_type="system_spec",
-        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o', 'arm5') or a "
+        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o', "
+        "'arm5') or a "
         "mapping with an 'mjcf' or a 'pose_fn' key",
     ),
 ]
@@ -195,7 +194,7 @@ def spec_or_run(run_model: type[BaseModel]):
     ``system`` key is read as one.
     """
     return Annotated[
-        Union[Annotated[SystemSpec, Tag("<spec>")], Annotated[run_model, Tag("<run>")]],
+        Annotated[SystemSpec, Tag("<spec>")] | Annotated[run_model, Tag("<run>")],
         Discriminator(lambda v: "<run>" if isinstance(v, run_model) or (isinstance(v, dict) and "system" in v)
                       else "<spec>"),
     ]
@@ -207,7 +206,8 @@ def entry_spec(entry):
 
 
 def unique_system_names(entries: list) -> list:
-    """``entries`` (``systems`` entries of :func:`spec_or_run`) if their system names are distinct, else ``ValueError``."""
+    """``entries`` (``systems`` entries of :func:`spec_or_run`) if their system names are distinct, else
+    ``ValueError``."""
     unique([system_name(entry_spec(e)) for e in entries], "system names")
     return entries
 

@@ -182,7 +182,7 @@ class _Phys(NamedTuple):
 
 def _phys_init(static: Static, obj):
     m = static.mj_model
-    f = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    f = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32  # type: ignore[attr-defined]
     qpos, qvel, warm = (jnp.asarray(a, f) for a in (m.qpos0, np.zeros(m.nv), np.zeros(m.nv)))
     data = None
     if static.backend == "mjx":
@@ -252,7 +252,7 @@ def _poses(sens):
 def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     """One closed-loop rollout of ``static.steps`` control steps (see the module docstring)."""
     arm, lay = static.arm, static.layout
-    f = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    f = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32  # type: ignore[attr-defined]
     dt = jnp.asarray(static.mj_model.opt.timestep * static.substeps, f)
     q0 = jnp.asarray(static.q0, f)
     ref = jnp.asarray(static.pads.ref, f)

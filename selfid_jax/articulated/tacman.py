@@ -227,7 +227,8 @@ def lead_update(s, speed, v_handle, dt, lead_max):
 
 
 def smooth_twist(xi_prev, xi, dt, tau):
-    """Exponential smoothing ``xi_prev + a (xi - xi_prev)``, ``a = 1 - exp(-dt / tau)`` (``a = 1`` at ``tau = 0``): ``(6,)``."""
+    """Exponential smoothing ``xi_prev + a (xi - xi_prev)``, ``a = 1 - exp(-dt / tau)`` (``a = 1`` at ``tau = 0``):
+    ``(6,)``."""
     a = jnp.where(tau > 0, -jnp.expm1(-dt / jnp.maximum(tau, 1e-12)), 1.0)
     return xi_prev + a * (xi - xi_prev)
 

@@ -36,7 +36,8 @@ class Pads(NamedTuple):
 
 def pads(*, rows: int = 8, cols: int = 8, pitch: float = 0.0025, bar_radius: float = 0.006,
          squeeze: float = 0.001) -> Pads:
-    """Two ``rows x cols`` grids (x: across the bar, ``cols``; z: along it, ``rows``) at ``y = +-surface``: ``M = 2 rows cols``."""
+    """Two ``rows x cols`` grids (x: across the bar, ``cols``; z: along it, ``rows``) at ``y = +-surface``:
+    ``M = 2 rows cols``."""
     if rows < 1 or cols < 1 or not pitch > 0 or not bar_radius > squeeze > 0:
         raise ValueError("pads need rows, cols >= 1, pitch > 0 and bar_radius > squeeze > 0")
     x = (np.arange(cols) - (cols - 1) / 2) * pitch

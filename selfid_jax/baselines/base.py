@@ -40,7 +40,7 @@ rejected samples are counted in the state's int32 fields ``count`` and
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple, TypeVar, overload
 
 import jax
 import jax.numpy as jnp
@@ -124,11 +124,14 @@ def assemble(
 # ---- eager option checks shared by the factories --------------------------------------------------
 
 
-def check_choice(method: str, option: str, value, allowed: Sequence[str]) -> str:
+_Choice = TypeVar("_Choice", bound=str)
+
+
+def check_choice(method: str, option: str, value, allowed: Sequence[_Choice]) -> _Choice:
     """``value`` if it is one of ``allowed``, else ``ValueError`` naming the option, the value and ``allowed``."""
     if not isinstance(value, str) or value not in allowed:
         raise ValueError(f"{method}: {option}: expected one of {tuple(allowed)}, got {value!r}")
-    return value
+    return value  # type: ignore[return-value]  # it is one of allowed
 
 
 def check_bool(method: str, option: str, value) -> bool:
@@ -138,6 +141,10 @@ def check_bool(method: str, option: str, value) -> bool:
     return bool(value)
 
 
+@overload
+def check_count(method: str, option: str, value, *, allow_none: Literal[False] = False) -> int: ...
+@overload
+def check_count(method: str, option: str, value, *, allow_none: bool) -> int | None: ...
 def check_count(method: str, option: str, value, *, allow_none: bool = False) -> int | None:
     """``value`` as a Python int if it is a positive integer (or ``None`` if allowed), else ``ValueError``."""
     if value is None and allow_none:

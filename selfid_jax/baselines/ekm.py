@@ -54,7 +54,8 @@ estimator's ``capacity``. Float64 (the SOGP needs it).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, Literal, NamedTuple
+from collections.abc import Callable
+from typing import Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -71,8 +72,8 @@ from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.kinematics import ChainModel
 from selfid_jax.systems.system import System
 
-FORMULATIONS = ("incremental", "absolute")
-MODES = ("fixed", "online")
+FORMULATIONS: tuple[Literal["incremental", "absolute"], ...] = ("incremental", "absolute")
+MODES: tuple[Literal["fixed", "online"], ...] = ("fixed", "online")
 
 __all__ = ["FORMULATIONS", "MODES", "EKMModel", "EKMState", "nominal_system", "model", "init", "observe",
            "linearise", "update", "fold", "follow", "ekm"]
@@ -121,17 +122,20 @@ def nominal_system(system: System, *, scale: ArrayLike = 1.0, offset: ArrayLike 
     if isinstance(params, ChainModel):
         nb = params.body_pos.shape[0]
         if not (np.ndim(scale) == 0 or np.shape(scale) == (nb,)):
-            raise ValueError(f"nominal_system: scale: expected shape () or ({nb},) for a ChainModel, got {np.shape(scale)}")
+            raise ValueError(f"nominal_system: scale: expected shape () or ({nb},) for a ChainModel, "
+                             f"got {np.shape(scale)}")
         params = params.replace(body_pos=params.body_pos * jnp.broadcast_to(jnp.asarray(scale), (nb,))[:, None])
     elif isinstance(params, (jax.Array, np.ndarray)):
         if not (np.ndim(scale) == 0 or np.shape(scale) == np.shape(params)):
             raise ValueError(f"nominal_system: scale: expected shape () or {np.shape(params)}, got {np.shape(scale)}")
         params = params * jnp.asarray(scale, params.dtype)
-    elif not (np.ndim(scale) == 0 and float(scale) == 1.0):
-        raise ValueError(f"nominal_system: scale: only array or ChainModel params can be scaled, not {type(params).__name__}")
+    elif not (np.ndim(scale) == 0 and float(scale) == 1.0):  # type: ignore[arg-type]  # ArrayLike admits complex
+        raise ValueError("nominal_system: scale: only array or ChainModel params can be scaled, "
+                         f"not {type(params).__name__}")
     wrap = OffsetChainPose if hasattr(system.pose_fn, "jacobian") else OffsetPose
     off = jnp.broadcast_to(jnp.asarray(offset, system.q_low.dtype), (system.n_act,))
-    return system.replace(params=(params, off), pose_fn=wrap(system.pose_fn), name=f"{system.name}_nominal")
+    # a System without a pose_fn is only a placeholder of the dataclass default
+    return system.replace(params=(params, off), pose_fn=wrap(system.pose_fn), name=f"{system.name}_nominal")  # type: ignore[arg-type]
 
 
 # ------------------------------------------------------------------------------------ the model
@@ -162,7 +166,7 @@ class EKMState(NamedTuple):
     q: jax.Array  # (n,) current configuration (dead-reckoned behind the protocol) [rad]
     s: jax.Array  # (m,) task displacement p(q) - p(q0), the sum of observed V [task units]
     p0_nom: jax.Array  # (m,) nominal task position at q0 [task units]
-    count: jax.Array  # () int32 accepted samples
+    count: jax.Array  # type: ignore[assignment]  # () int32 accepted samples
     rejected: jax.Array  # () int32 rejected samples
 
 
@@ -186,7 +190,8 @@ def _task_pos(nominal: System, q):
 
 
 def init(mdl: EKMModel, q0, *, capacity: int = 30) -> EKMState:
-    """An E-KM with an empty GP of ``capacity`` basis elements at the start ``q0 (n,)`` (absolute: knows ``g(q0) = 0``)."""
+    """An E-KM with an empty GP of ``capacity`` basis elements at the start ``q0 (n,)`` (absolute: knows
+    ``g(q0) = 0``)."""
     nom = mdl.nominal
     n, m = nom.n_act, nom.task_dim
     check_array("q0", q0, (n,))
@@ -309,8 +314,9 @@ def ekm(
     """
     check_choice("ekm", "mode", mode, MODES)
     check_choice("ekm", "formulation", formulation, FORMULATIONS)
-    settings = dict(formulation=formulation, symmetric=check_bool("ekm", "symmetric", symmetric), length_q=length_q, length_da=length_da, signal=signal, noise=noise,
-                    novelty_tol=novelty_tol)
+    settings: dict[str, Any] = dict(formulation=formulation, symmetric=check_bool("ekm", "symmetric", symmetric),
+                                    length_q=length_q, length_da=length_da, signal=signal, noise=noise,
+                                    novelty_tol=novelty_tol)
     mdl = None if nominal is None else model(nominal, **settings)
     if nominal is None:
         for name in ("length_q", "length_da", "signal", "noise", "novelty_tol"):
@@ -318,7 +324,8 @@ def ekm(
 
     def init_fn(n, m, key, capacity, dtype):
         if mdl is None:
-            raise ValueError("ekm: nominal: init needs the nominal System: ekm(nominal=ekm.nominal_system(system, ...))")
+            raise ValueError("ekm: nominal: init needs the nominal System: "
+                             "ekm(nominal=ekm.nominal_system(system, ...))")
         if q0 is None:
             raise ValueError("ekm: q0: init needs the start configuration q0 (n,): ekm(nominal=..., q0=...)")
         if (n, m) != (mdl.nominal.n_act, mdl.nominal.task_dim):

@@ -46,7 +46,8 @@ class RLSState(NamedTuple):
 
     J: jax.Array  # (n, m) float: estimate, actuator per task unit
     P: jax.Array  # (m, m) float: shared covariance (per unit measurement variance), task units^-2
-    count: jax.Array  # () int32: accepted samples (P is replaced by the data-scaled P_0 while 0)
+    # () int32: accepted samples (P is replaced by the data-scaled P_0 while 0)
+    count: jax.Array  # type: ignore[assignment]  # shadows tuple.count
     rejected: jax.Array  # () int32: rejected samples
 
 
@@ -55,7 +56,7 @@ class KalmanState(NamedTuple):
 
     J: jax.Array  # (n, m) float: posterior mean of the inverse Jacobian (x = vec(J), column-major)
     P: jax.Array  # (n m, n m) float: posterior covariance of vec(J), (actuator/task)^2
-    count: jax.Array  # () int32: accepted samples
+    count: jax.Array  # type: ignore[assignment]  # () int32: accepted samples
     rejected: jax.Array  # () int32: rejected samples
 
 

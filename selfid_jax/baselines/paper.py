@@ -39,8 +39,9 @@ from selfid_jax.baselines.base import (
 from selfid_jax.identify.estimator import EstimatorState
 from selfid_jax.identify.refine import refine as _refine
 
-REFINE_METHODS = ("closed_form", "optax")
-INITS = ("zero", "random")
+RefineMethod = Literal["closed_form", "optax"]
+REFINE_METHODS: tuple[RefineMethod, ...] = ("closed_form", "optax")
+INITS: tuple[Literal["zero", "random"], ...] = ("zero", "random")
 
 
 class DirectState(NamedTuple):
@@ -66,7 +67,7 @@ def refine_from(est: EstimatorState, J0, *, refine_method: str, refine_steps: in
     return _refine(est, J0, method="optax", sign_project=sign_project)
 
 
-def _check_refine(method: str, refine_method, refine_steps) -> tuple[str, int | None]:
+def _check_refine(method: str, refine_method, refine_steps) -> tuple[RefineMethod, int | None]:
     return (
         check_choice(method, "refine_method", refine_method, REFINE_METHODS),
         check_count(method, "refine_steps", refine_steps, allow_none=True),

@@ -57,7 +57,7 @@ class ParticleState(NamedTuple):
     particles: jax.Array  # (N, n, m) float: inverse-Jacobian hypotheses, actuator per task unit
     log_w: jax.Array  # (N,) float: normalised log weights (logsumexp = 0)
     key: jax.Array  # () PRNG key, split at every update
-    count: jax.Array  # () int32: accepted samples
+    count: jax.Array  # type: ignore[assignment]  # () int32: accepted samples
     rejected: jax.Array  # () int32: rejected samples
 
 

@@ -37,7 +37,7 @@ class BroydenState(NamedTuple):
     """State of :func:`broyden`."""
 
     J: jax.Array  # (n, m) float: current inverse-Jacobian estimate, actuator per task unit
-    count: jax.Array  # () int32: accepted samples
+    count: jax.Array  # type: ignore[assignment]  # () int32: accepted samples
     rejected: jax.Array  # () int32: rejected samples
 
 

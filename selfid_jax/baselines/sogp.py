@@ -90,7 +90,7 @@ class SOGPState(NamedTuple):
     variance: jax.Array  # () float: kernel signal variance [output units^2]
     noise: jax.Array  # () float: observation noise sd [output units]
     novelty_tol: jax.Array  # () float: add x iff gamma > novelty_tol * variance [dimensionless]
-    count: jax.Array  # () int32: accepted samples
+    count: jax.Array  # type: ignore[assignment]  # () int32: accepted samples
     rejected: jax.Array  # () int32: rejected samples (non-finite entries)
     unstable: jax.Array  # () int32: accepted samples whose update broke the invariants and was discarded
 
@@ -125,7 +125,8 @@ def init(
     if not isinstance(kernel, RBF):
         raise ValueError(f"sogp: kernel: expected an RBF(lengthscale, variance), got {kernel!r}")
     if np.ndim(kernel.lengthscale) not in (0, 1) or np.size(kernel.lengthscale) not in (1, dim_in):
-        raise ValueError(f"sogp: kernel.lengthscale: expected shape () or ({dim_in},), got {np.shape(kernel.lengthscale)}")
+        raise ValueError(f"sogp: kernel.lengthscale: expected shape () or ({dim_in},), "
+                         f"got {np.shape(kernel.lengthscale)}")
     check_scalar("sogp: kernel.lengthscale", kernel.lengthscale, gt=0.0)
     check_array("sogp: kernel.variance", kernel.variance, ())
     check_scalar("sogp: kernel.variance", kernel.variance, gt=0.0)

@@ -174,7 +174,8 @@ def _range_projector(J):
 
 
 def weighted_dls(J, e, damping, weights):
-    """``(H, g)`` of the DLS objective: ``H = J^T W J + lambda^2 I (n, n)``, ``g = J^T W e (n,)``, ``W = diag(weights)``."""
+    """``(H, g)`` of the DLS objective: ``H = J^T W J + lambda^2 I (n, n)``, ``g = J^T W e (n,)``,
+    ``W = diag(weights)``."""
     JW = J.T * weights[None, :]
     n = J.shape[1]
     return JW @ J + damping**2 * jnp.eye(n, dtype=J.dtype), JW @ e

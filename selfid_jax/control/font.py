@@ -1,4 +1,5 @@
-"""A small single-stroke (Hershey-like) font for the text paths of :func:`selfid_jax.control.paths.text`: A-Z, 0-9, '-', ' '."""
+"""A small single-stroke (Hershey-like) font for the text paths of :func:`selfid_jax.control.paths.text`: A-Z, 0-9,
+'-', ' '."""
 
 from __future__ import annotations
 

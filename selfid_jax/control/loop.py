@@ -41,7 +41,8 @@ class ControllerParams(NamedTuple):
     gain: jax.Array | float = 1.0  # () fraction of the error commanded per step (before clipping)
     max_rot_step: jax.Array | float = 0.05  # () largest rotation step per control step [rad] (6-D tasks)
     rot_tol: jax.Array | float = 0.01  # () waypoint orientation reached within this angle [rad] (6-D tasks)
-    diverge_dist: jax.Array | float | None = None  # () failed beyond this distance to the path [m]; None: 2 max|path| + 10 tol
+    # () failed beyond this distance to the path [m]; None: 2 max|path| + 10 tol
+    diverge_dist: jax.Array | float | None = None
 
 
 DEFAULT_STEPS = 435
@@ -64,7 +65,8 @@ class FollowResult(NamedTuple):
 
 
 # ------------------------------------------------------------------ inverse-Jacobian sources
-# Each has ``pose_and_jinv(system, q) -> ((p (3,), R (3, 3)), Jinv (n, m))``, the one call the controller makes per step.
+# Each has ``pose_and_jinv(system, q) -> ((p (3,), R (3, 3)), Jinv (n, m))``, the one call the controller makes per
+# step.
 
 class Fixed(NamedTuple):
     """A constant inverse Jacobian ``J (n, m)`` (e.g. a self-ID estimate)."""
@@ -161,7 +163,7 @@ class _Task(NamedTuple):
     rot_axes: tuple[int, ...]  # static: the task's rotation-vector components (0-2)
 
     @staticmethod
-    def make(path, pose0, system: System) -> "_Task":
+    def make(path, pose0, system: System) -> _Task:
         pos, rot = system.position_axes, system.rotation_axes
         p_goal, R_goal = waypoint_poses(path, pose0, system.axes)
         targets = p_goal[:, list(pos)]
@@ -186,7 +188,8 @@ class _Task(NamedTuple):
 
     def twist(self, e_p, e_r, ctrl: ControllerParams):
         """Commanded pose change ``V (m,)``: the gained error, position and rotation parts clipped separately."""
-        return jnp.concatenate([_clip_norm(ctrl.gain * e_p, ctrl.max_step), _clip_norm(ctrl.gain * e_r, ctrl.max_rot_step)])
+        return jnp.concatenate([_clip_norm(ctrl.gain * e_p, ctrl.max_step),
+                                _clip_norm(ctrl.gain * e_r, ctrl.max_rot_step)])
 
     def path_distance(self, p):
         """Distance of position ``p`` to the path polyline along the task's position axes [m] (0 without any)."""

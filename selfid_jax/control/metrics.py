@@ -40,12 +40,14 @@ def closest_points(points, vertices):
 
 
 def axis_errors(points, vertices):
-    """Per-axis absolute distance ``|p - c(p)|`` of ``points (T, d)`` to their closest path points: ``(T, d)`` (Table I)."""
+    """Per-axis absolute distance ``|p - c(p)|`` of ``points (T, d)`` to their closest path points: ``(T, d)``
+    (Table I)."""
     return jnp.abs(jnp.asarray(points) - closest_points(points, vertices))
 
 
 def rotation_error(R_goal, R):
-    """Angle [rad] of the rotation from ``R (..., 3, 3)`` to ``R_goal (..., 3, 3)``: ``|log(R_goal R^T)|`` (Table II)."""
+    """Angle [rad] of the rotation from ``R (..., 3, 3)`` to ``R_goal (..., 3, 3)``: ``|log(R_goal R^T)|``
+    (Table II)."""
     R_goal, R = jnp.asarray(R_goal), jnp.asarray(R)
     w = geometry.so3_log(R_goal @ jnp.swapaxes(R, -1, -2))
     return jnp.sqrt(jnp.sum(w * w, axis=-1))

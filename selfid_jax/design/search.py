@@ -1,4 +1,5 @@
-"""Differentiable self-ID design: the self-ID magnitude ``m_a`` chosen by gradient through self-ID, estimate and rollout.
+"""Differentiable self-ID design: the self-ID magnitude ``m_a`` chosen by gradient through self-ID, estimate and
+rollout.
 
 Too small an ``m_a`` and tracker noise swamps the pose changes; too large and the samples leave the linear region.
 :func:`design_loss` scores ``log m_a`` (scalar or per actuator) by the tracking error of the controller using the
@@ -107,7 +108,8 @@ class DesignResult(NamedTuple):
 
 
 def design_params(m_a, *, pose_noise=0.0, rot_noise=0.0, controller=ControllerParams()) -> DesignParams:
-    """:class:`DesignParams` from ``m_a`` (scalar or ``(n,)``, rad or m, > 0) and tracker noise sds [m], [rad] (>= 0)."""
+    """:class:`DesignParams` from ``m_a`` (scalar or ``(n,)``, rad or m, > 0) and tracker noise sds [m], [rad]
+    (>= 0)."""
     if np.ndim(m_a) > 1:
         raise ValueError(f"m_a: expected a scalar or one value per actuator (n,), got shape {np.shape(m_a)}")
     check_scalar("m_a", m_a, gt=0.0)

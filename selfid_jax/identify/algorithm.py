@@ -13,6 +13,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 
 from selfid_jax.identify import estimator
@@ -48,8 +49,8 @@ def stateless(fn: Callable[[jax.Array, jax.Array], jax.Array]) -> Observe:
 def self_identify(
     observe: Observe,
     key: jax.Array,
-    m_a,
-    eps,
+    m_a: ArrayLike,
+    eps: ArrayLike,
     *,
     n_act: int,
     task_dim: int,
@@ -142,7 +143,8 @@ def self_identify(
 
 
 def noisy_pose(key, pose, pose_noise, rot_noise):
-    """A tracker reading of ``pose = (p (3,), R (3, 3))``: ``p + N(0, pose_noise^2)`` (m), ``exp(N(0, rot_noise^2)) R`` (rad)."""
+    """A tracker reading of ``pose = (p (3,), R (3, 3))``: ``p + N(0, pose_noise^2)`` (m), ``exp(N(0, rot_noise^2)) R``
+    (rad)."""
     from selfid_jax.math import geometry
 
     p, R = pose

@@ -29,9 +29,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 
-from selfid_jax.math.checks import check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype, is_traced
+from selfid_jax.math.checks import (check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype,
+                                    is_traced)
 
 
 class EstimatorState(NamedTuple):
@@ -51,7 +53,8 @@ class EstimatorState(NamedTuple):
     s_tt: jax.Array  # () float: sum ||dtheta||^2, actuator units^2 (constant term of Eq. 14's objective)
     dtheta_buf: jax.Array  # (capacity, n) float: ring buffer of accepted actuations (capacity may be 0)
     v_buf: jax.Array  # (capacity, m) float: ring buffer of accepted pose changes
-    count: jax.Array  # () int32: accepted samples so far (the buffer holds min(count, capacity))
+    # () int32: accepted samples so far (the buffer holds min(count, capacity))
+    count: jax.Array  # type: ignore[assignment]  # shadows tuple.count
     rejected: jax.Array  # () int32: samples rejected as non-finite, all-zero, or overflowing the sums
     v_tol: jax.Array  # () float: |V_j| at or below this does not enter the magnitude mean
     forget: jax.Array  # () float in (0, 1]: factor applied to every sum before a sample is added
@@ -145,8 +148,7 @@ def small_sum(x: jax.Array, axis=None) -> jax.Array:
     ``||J_t - J_{t-1}||_F``).
     """
     axes = tuple(range(x.ndim)) if axis is None else ((axis,) if isinstance(axis, int) else tuple(axis))
-    axes = sorted(a % x.ndim for a in axes)
-    for a in reversed(axes):
+    for a in reversed(sorted(a % x.ndim for a in axes)):
         parts = [jax.lax.index_in_dim(x, k, a, keepdims=False) for k in range(x.shape[a])]
         x = parts[0] if parts else jnp.zeros(x.shape[:a] + x.shape[a + 1 :], x.dtype)
         for p in parts[1:]:
@@ -284,7 +286,7 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> Estima
     )
 
 
-def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
+def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike) -> EstimatorState:
     """Fold one self-ID sample ``(dtheta (n,) [actuator units], V (m,) [task units])`` into the state.
 
     Accumulates the sign weights (Eq. 6-9), the magnitude ratios
@@ -301,7 +303,8 @@ def update(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorS
 
 
 def signed_inverse_jacobian(state: EstimatorState) -> jax.Array:
-    """Signed inverse Jacobian ``(n, m)`` in {-1, +1}: the heavier sign bucket (``sign_net >= 0``), ties -> +1 (Eq. 10)."""
+    """Signed inverse Jacobian ``(n, m)`` in {-1, +1}: the heavier sign bucket (``sign_net >= 0``), ties -> +1
+    (Eq. 10)."""
     return jnp.where(state.sign_net >= 0, 1.0, -1.0).astype(state.sign_net.dtype)
 
 
@@ -328,7 +331,7 @@ def samples(state: EstimatorState) -> tuple[jax.Array, jax.Array, jax.Array]:
     return state.dtheta_buf, state.v_buf, buffer_mask(state)
 
 
-def objective(state: EstimatorState, J: jax.Array) -> jax.Array:
+def objective(state: EstimatorState, J: ArrayLike) -> jax.Array:
     """Eq. 14 objective ``sum_k w_k ||dtheta_k - J V_k||^2`` over every accepted sample (scalar, actuator units^2).
 
     From the statistics: ``s_tt - 2 <J, S_tv> + <J S_vv, J>`` (Frobenius inner
@@ -349,7 +352,8 @@ def buffer_objective(state: EstimatorState, J: jax.Array) -> jax.Array:
 
 
 def check_thresholds(eps, eps_rel=0.0):
-    """Eager check of the Sec. IV-D thresholds where they are concrete: ``eps >= 0``, ``eps_rel >= 0``, not both 0, no NaN."""
+    """Eager check of the Sec. IV-D thresholds where they are concrete: ``eps >= 0``, ``eps_rel >= 0``, not both 0,
+    no NaN."""
     check_scalar("eps", eps, ge=0.0, finite=False)
     check_scalar("eps_rel", eps_rel, ge=0.0, finite=False)
     if not (is_concrete_zero(eps) and is_concrete_zero(eps_rel)):
@@ -367,7 +371,7 @@ def _both_within(deltas: jax.Array, norms: jax.Array, fresh: jax.Array, eps, eps
     return jnp.all(fresh & (deltas <= eps + eps_rel * norms), axis=-1)
 
 
-def record(state: EstimatorState, J: jax.Array, eps, eps_rel=0.0) -> EstimatorState:
+def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLike = 0.0) -> EstimatorState:
     """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
 
     Stores ``delta_t = ||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1
@@ -402,7 +406,7 @@ def record(state: EstimatorState, J: jax.Array, eps, eps_rel=0.0) -> EstimatorSt
     )
 
 
-def converged(state: EstimatorState, eps, eps_rel=0.0) -> jax.Array:
+def converged(state: EstimatorState, eps: ArrayLike, eps_rel: ArrayLike = 0.0) -> jax.Array:
     """True iff the last two records pass the Sec. IV-D test of :func:`record` (``()`` bool, ``(...)`` if batched)."""
     check_thresholds(eps, eps_rel)
     return _both_within(state.last_deltas, state.last_norms, state.last_fresh, eps, eps_rel)

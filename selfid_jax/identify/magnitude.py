@@ -24,6 +24,8 @@ Python control flow on values).
 
 from __future__ import annotations
 
+from typing import Literal
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,7 +33,8 @@ import numpy as np
 from selfid_jax.identify import estimator
 from selfid_jax.identify.estimator import EstimatorState
 
-VARIANTS = ("mean", "median", "weighted", "kalman")
+Variant = Literal["mean", "median", "weighted", "kalman"]
+VARIANTS: tuple[Variant, ...] = ("mean", "median", "weighted", "kalman")
 BUFFERED = ("median", "weighted", "kalman")
 """The variants that read the ring buffer (need ``capacity > 0``)."""
 
@@ -58,7 +61,8 @@ def ratios(state: EstimatorState) -> tuple[jax.Array, jax.Array]:
 
 
 def mean(state: EstimatorState) -> jax.Array:
-    """Mean ratio ``(n, m)`` over all accepted samples: the paper's Eq. 12 (= ``estimator.magnitude_inverse_jacobian``)."""
+    """Mean ratio ``(n, m)`` over all accepted samples: the paper's Eq. 12
+    (= ``estimator.magnitude_inverse_jacobian``)."""
     return estimator.magnitude_inverse_jacobian(state)
 
 

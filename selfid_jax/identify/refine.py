@@ -39,8 +39,11 @@ With no samples every method returns ``J0``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 import optax
 
@@ -98,7 +101,8 @@ def statistics_closed_form(S_vv, S_tv, J0, *, ridge=0.0, rcond=None):
     ``J0 + (S_tv - J0 S_vv) pinv(S_vv)``, which is ``S_tv P + J0 N`` with
     ``(P, N) = psd_pinv(S_vv)``, computed without forming ``P`` (see the code)
     so that a large ``J0`` does not cancel against itself (in float32,
-    ``J0 - J0 S_vv S_vv^-1`` leaves errors of ``eps |J0| cond(S_vv)``); equal to :func:`closed_form` on the samples themselves, and
+    ``J0 - J0 S_vv S_vv^-1`` leaves errors of ``eps |J0| cond(S_vv)``); equal to :func:`closed_form` on the samples
+    themselves, and
     to ``S_tv S_vv^-1`` whatever ``J0`` is once ``S_vv`` has full rank.
     ``ridge > 0``: ``(S_tv + ridge J0) (S_vv + ridge I)^-1``, the exact ridge
     solution. ``ridge`` and ``rcond`` may be traced; a literal 0 skips the
@@ -139,7 +143,8 @@ def gradient_refine(
     sign_project: bool = False,
     precondition: bool | None = None,
 ):
-    """Gradient descent with optax on :func:`refine_objective` from ``J0 (n, m)``, on samples ``theta (K, n)``, ``V (K, m)``.
+    """Gradient descent with optax on :func:`refine_objective` from ``J0 (n, m)``, on samples ``theta (K, n)``,
+    ``V (K, m)``.
 
     ``precondition=True`` (default without ``sign_project``): each gradient
     ``G (n, m)`` is right-multiplied by ``P = (V^T V + ridge I)^+`` restricted to
@@ -288,25 +293,26 @@ def slsqp_refine(theta, V, J0, *, numeric_grad: bool = False, ftol: float = 1e-1
 
 
 def needs_samples(method: str, loss: str = "l2") -> bool:
-    """Whether :func:`refine` with ``method`` and ``loss`` reads the ring buffer (Huber loss, SLSQP) rather than the statistics."""
+    """Whether :func:`refine` with ``method`` and ``loss`` reads the ring buffer (Huber loss, SLSQP) rather than the
+    statistics."""
     return method == "slsqp" or loss == "huber"
 
 
 def refine(
     state: EstimatorState,
-    J0,
+    J0: ArrayLike,
     *,
     method: str = "optax",
     steps: int = 100,
     tol: float | None = None,
     loss: str = "l2",
-    huber_delta=1.0,
-    ridge=0.0,
+    huber_delta: ArrayLike = 1.0,
+    ridge: ArrayLike = 0.0,
     sign_project: bool = False,
     precondition: bool | None = None,
     numeric_grad: bool = False,
-    rcond=None,
-):
+    rcond: ArrayLike | None = None,
+) -> jax.Array:
     """Refined inverse Jacobian ``(n, m)`` from ``J0 (n, m)`` (Eq. 14).
 
     ``"closed_form"`` and ``"optax"`` with the L2 loss read the statistics
@@ -342,7 +348,8 @@ def refine(
         return statistics_closed_form(state.S_vv, state.S_tv, J0, ridge=ridge, rcond=rcond)
     if method == "optax":
         S = signed_inverse_jacobian(state)
-        options = dict(steps=steps, tol=tol, ridge=ridge, sign_project=sign_project, precondition=precondition)
+        options: dict[str, Any] = dict(steps=steps, tol=tol, ridge=ridge, sign_project=sign_project,
+                                       precondition=precondition)
         if loss == "l2":
             return statistics_gradient_refine(state.S_vv, state.S_tv, J0, S, **options)
         theta, V, _ = _masked(state)

@@ -51,7 +51,8 @@ def small_inverse(A):
 
 
 def default_rcond(m: int, dtype) -> float:
-    """Default relative eigenvalue cutoff of :func:`psd_pinv`: ``10 m eps`` of ``dtype`` (6.7e-15 in float64, 3.6e-6 in float32 for m = 3)."""
+    """Default relative eigenvalue cutoff of :func:`psd_pinv`: ``10 m eps`` of ``dtype`` (6.7e-15 in float64, 3.6e-6 in
+    float32 for m = 3)."""
     return 10.0 * m * float(jnp.finfo(dtype).eps)
 
 
@@ -64,7 +65,8 @@ def _small_matmul(A, B):
 
 
 def psd_pinv(S, *, rcond=None):
-    """Pseudo-inverse ``P (m, m)`` of a symmetric positive semi-definite ``S (m, m)`` and the projector ``N (m, m)`` onto its null space.
+    """Pseudo-inverse ``P (m, m)`` of a symmetric positive semi-definite ``S (m, m)`` and the projector ``N (m, m)``
+    onto its null space.
 
     Rank-revealing ``L D L^T`` factorisation without pivoting, unrolled over the
     static ``m`` (vmapped, it is elementwise work across the batch, with no
@@ -108,7 +110,8 @@ def psd_pinv(S, *, rcond=None):
 
 
 def _ldl(S, scale):
-    """Unrolled ``L D L^T`` of a symmetric ``S (m, m)`` without pivoting: ``(L, Li, dinv, keep)``, nested lists of scalars.
+    """Unrolled ``L D L^T`` of a symmetric ``S (m, m)`` without pivoting: ``(L, Li, dinv, keep)``, nested lists of
+    scalars.
 
     ``L`` unit lower triangular (``L[i][k]``, ``i > k``), ``Li = L^-1`` (row
     ``k`` is ``z_k^T``), ``dinv`` the inverse pivots, 0 for a dropped one, and

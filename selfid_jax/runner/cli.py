@@ -88,9 +88,11 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("run_dir", type=Path, help="a run directory written by 'selfid-jax sweep' or 'selfid-jax demo'")
 
     d = sub.add_parser(
-        "demo", help="the main job: UR5e and Model O self-ID, then a star with each estimate (about 50 s on 2 CPU cores)",
+        "demo",
+        help="the main job: UR5e and Model O self-ID, then a star with each estimate (about 50 s on 2 CPU cores)",
         description="Self-identify a UR5e and a Model O hand, each from 4 start configurations in one compiled call, "
-        "follow a star (5 cm, 1.5 mm) with each estimate and with the true inverse Jacobian, print a summary and write the run directory "
+        "follow a star (5 cm, 1.5 mm) with each estimate and with the true inverse Jacobian, print a summary and write "
+        "the run directory "
         "(results.parquet, summary.json, figures/demo.png). Always starts fresh.",
     )
     d.add_argument("--out", type=Path, default=Path("runs/demo"), help="run directory (default: runs/demo)")
@@ -173,7 +175,8 @@ def _init_distributed(args: argparse.Namespace) -> None:
 
 
 def _build(exp, cfg, source: str):
-    """``exp.parts(cfg)``, before any run directory exists; a ``ValueError`` (infeasible path, bad robot) is a usage error."""
+    """``exp.parts(cfg)``, before any run directory exists; a ``ValueError`` (infeasible path, bad robot) is a usage
+    error."""
     try:
         return exp.parts(cfg)
     except ValueError as err:
@@ -244,7 +247,9 @@ def _demo(args: argparse.Namespace) -> int:
     from selfid_jax.runner import registry
 
     exp = registry.get("demo")
-    return _run(exp, exp.config(), args.out, config_path=None, overrides=(), fresh=True, progress=False)
+    # exp.config is typed as BaseConfig, whose experiment has no default; the demo's model sets it.
+    cfg = exp.config()  # type: ignore[call-arg]
+    return _run(exp, cfg, args.out, config_path=None, overrides=(), fresh=True, progress=False)
 
 
 def _list(args: argparse.Namespace, catalogues: Mapping[str, Callable[[], Mapping[str, str]]]) -> int:  # noqa: ARG001
@@ -276,7 +281,7 @@ def _enable_compilation_cache() -> None:
 
     import jax
 
-    if jax.config.jax_compilation_cache_dir:
+    if jax.config.jax_compilation_cache_dir:  # type: ignore[attr-defined]
         return
     where = os.environ.get("SELFID_JAX_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "selfid_jax", "xla"))
     if where.lower() in ("off", "0", "none", ""):
@@ -323,8 +328,9 @@ def main(argv: Sequence[str] | None = None,
     args = _parser().parse_args(argv)
     if args.command in ("sweep", "demo"):
         _enable_compilation_cache()
-    command = {"sweep": _sweep, "plot": _plot, "demo": _demo,
-               "list": functools.partial(_list, catalogues=catalogues or {})}[args.command]
+    commands: dict[str, Callable[[argparse.Namespace], int]] = {
+        "sweep": _sweep, "plot": _plot, "demo": _demo, "list": functools.partial(_list, catalogues=catalogues or {})}
+    command = commands[args.command]
     try:
         return command(args)
     except (_UsageError, ConfigError) as err:

@@ -235,7 +235,8 @@ def read_config(path: str | Path, overrides: Sequence[str] = ()) -> tuple[dict, 
 
 
 def validate(model: type[BaseConfig], data: Mapping, path: str | Path, set_keys: Mapping[str, str] = {}) -> BaseConfig:
-    """``model`` validated from ``data`` (read from ``path``); :class:`ConfigError` naming file, key and what is allowed."""
+    """``model`` validated from ``data`` (read from ``path``); :class:`ConfigError` naming file, key and what is
+    allowed."""
     path = Path(path)
     try:
         return model.model_validate(data, context={"config_dir": path.parent.resolve()})

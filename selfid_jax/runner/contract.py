@@ -1,4 +1,5 @@
-"""The experiment contract: config model -> (static setup, traced params) -> pure compute -> table -> summary -> figures.
+"""The experiment contract: config model -> (static setup, traced params) -> pure compute -> table -> summary ->
+figures.
 
 An :class:`Experiment` is a frozen bundle of pure pieces:
 

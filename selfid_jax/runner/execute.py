@@ -1,4 +1,5 @@
-"""Running an experiment into a run directory: the lock taken once, the parts chunked and resumable, table and summary written.
+"""Running an experiment into a run directory: the lock taken once, the parts chunked and resumable, table and summary
+written.
 
 :func:`run` is the one place that takes the run directory's lock
 (:func:`selfid_jax.runner.lock.hold`) for a run; everything below it (creating or
@@ -58,7 +59,8 @@ def run(
     import jax
 
     if not isinstance(cfg, experiment.config):
-        raise TypeError(f"experiment {experiment.name!r} needs a {experiment.config.__name__}, got {type(cfg).__name__}")
+        raise TypeError(f"experiment {experiment.name!r} needs a {experiment.config.__name__}, "
+                        f"got {type(cfg).__name__}")
     out_dir = Path(out_dir)
     if jax.process_index() != 0:
         return _run_parts(experiment, cfg, out_dir, fresh, progress, parts)

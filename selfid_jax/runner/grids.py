@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import jax
 import numpy as np
@@ -36,7 +36,7 @@ def row_keys(seed: int, rows: int | np.ndarray) -> np.ndarray:
       ``(N, k)`` uint32 key data (``k = 2`` for the default threefry PRNG); in
       ``compute_fn`` turn a row back into a key with ``jax.random.wrap_key_data``.
     """
-    idx = np.arange(rows) if np.ndim(rows) == 0 else np.asarray(rows)
+    idx = np.arange(cast(int, rows)) if np.ndim(rows) == 0 else np.asarray(rows)
     if idx.size and (idx.min() < 0 or idx.max() >= 2**32):
         raise ValueError("row indices must lie in [0, 2**32)")
     base = jax.random.key(seed)

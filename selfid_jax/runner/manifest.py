@@ -187,7 +187,8 @@ def record_chunk(out_dir: Path, manifest: dict, i: int, data: bytes) -> None:
 # --------------------------------------------------------------------------- verification
 
 def _read_verified(path: Path, manifest: Mapping, i: int, columns=None) -> tuple[pa.Table | None, str | None]:
-    """``(table, None)`` if chunk file ``path`` matches its record and holds the rows of chunk ``i``, else ``(None, why)``."""
+    """``(table, None)`` if chunk file ``path`` matches its record and holds the rows of chunk ``i``, else
+    ``(None, why)``."""
     record = manifest.get("chunks", {}).get(str(i))
     start, stop = chunk_rows(manifest, i)
     if not isinstance(record, Mapping) or record.get("rows") != [start, stop]:

@@ -44,7 +44,7 @@ def available() -> list[str]:
     return sorted(set(_entry_points()) | set(_RUNTIME))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _load(name: str) -> Experiment:
     ep = _entry_points()[name]
     exp = ep.load()

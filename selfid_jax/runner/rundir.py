@@ -103,7 +103,7 @@ def collect_versions(cwd: str | Path | None = None) -> dict[str, Any]:
         "jax_backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()],
         "process_count": jax.process_count(),
-        "x64": bool(jax.config.jax_enable_x64),
+        "x64": bool(jax.config.jax_enable_x64),  # type: ignore[attr-defined]
     }
 
 
@@ -140,7 +140,8 @@ def read_run_config(run_dir: str | Path) -> dict:
     except (yaml.YAMLError, ValueError) as err:
         raise _unreadable(path, err, f"restore it, or start over with {_rerun(run_dir, '--fresh')}") from None
     if not isinstance(data, dict):
-        raise _unreadable(path, TypeError("not a mapping"), f"restore it, or start over with {_rerun(run_dir, '--fresh')}")
+        raise _unreadable(path, TypeError("not a mapping"),
+                          f"restore it, or start over with {_rerun(run_dir, '--fresh')}")
     return data
 
 
@@ -174,7 +175,7 @@ def _attempt(config_path, overrides) -> dict[str, Any]:
         config_source=str(Path(config_path).resolve()) if config_path is not None else None,
         overrides=list(overrides),
         command=list(sys.argv),
-        created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        created_utc=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
     )
     return jsonable(info)
 

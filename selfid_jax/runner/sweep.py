@@ -248,7 +248,7 @@ def run_chunked(
     rows_per_chunk = min(int(chunk_size), n_rows)
     batch = compiled_batch(n_rows, chunk_size, n_dev)
     n_chunks = math.ceil(n_rows / rows_per_chunk)  # = manifest["n_chunks"]
-    manifest = chunks.new_manifest(params, meta, rows_per_chunk, x64=bool(jax.config.jax_enable_x64))
+    manifest = chunks.new_manifest(params, meta, rows_per_chunk, x64=bool(jax.config.jax_enable_x64))  # type: ignore[attr-defined]
 
     writer = jax.process_index() == 0
     with contextlib.ExitStack() as held:
@@ -322,7 +322,8 @@ def _executables(rows_fn, params: Mapping[str, np.ndarray], devices):
         return local[size]
 
     def place(v: np.ndarray, idx: np.ndarray, size: int):
-        return jax.make_array_from_callback((size, *v.shape[1:]), in_sharding, lambda s, h=v[idx]: h[s])
+        h = v[idx]
+        return jax.make_array_from_callback((size, *v.shape[1:]), in_sharding, lambda s: h[s])
 
     return executable, place
 

@@ -361,7 +361,7 @@ def build_actuation(mj, *, actuators=None, joints_fixed=None, label="MJCF") -> A
     n = len(chosen)
     C = np.stack(rows)
     A, offset = _solve(C, np.asarray(rhs), qpos_ref, n)
-    for row, _, lb, nonlinear, x in eqs:
+    for _row, _, lb, nonlinear, x in eqs:
         if nonlinear and x is not None and np.any(x @ A != 0):
             raise ValueError(f"{lb} is a nonlinear polynomial coupling of driven joints; only a0 + a1 x is supported")
 

@@ -175,7 +175,7 @@ class EtsModel:
     rot: jax.Array  # (n + 1, 3, 3) rotations of the folded constants C_0..C_n
     pos: jax.Array  # (n + 1, 3) translations of C_0..C_n [m]
 
-    def replace(self, **changes) -> "EtsModel":
+    def replace(self, **changes) -> EtsModel:
         """``dataclasses.replace`` (e.g. other link lengths)."""
         return dataclasses.replace(self, **changes)
 
@@ -270,7 +270,8 @@ def _compile(elements: list) -> tuple[EtsPose, np.ndarray, np.ndarray, list]:
         consts.append(np.eye(4))
     n = len(joints)
     if n == 0:
-        raise ValueError("the ETS has no joint variable: give at least one of Rx, Ry, Rz, tx, ty, tz without a constant")
+        raise ValueError("the ETS has no joint variable: give at least one of Rx, Ry, Rz, tx, ty, tz "
+                         "without a constant")
     given = [el.jindex for el in joints]
     if all(g is None for g in given):
         qidx = tuple(range(n))
@@ -356,7 +357,8 @@ def from_ets(
 
 # ------------------------------------------------------------------ the seed's 5-DOF arm
 ARM5_ETS = ("tz(0.10)", "Rz", "Ry", "tz(0.15)", "Ry", "tz(0.15)", "Ry", "tz(0.06)", "Rz", "tz(0.04)")
-"""Seed 004's desktop arm: base yaw, shoulder, elbow and wrist pitch (``Ry``), wrist roll; links 0.10/0.15/0.15/0.10 m."""
+"""Seed 004's desktop arm: base yaw, shoulder, elbow and wrist pitch (``Ry``), wrist roll; links
+0.10/0.15/0.15/0.10 m."""
 
 ARM5_Q_LOW = (-2.6, -1.6, -2.4, -1.9, -2.6)
 ARM5_Q_HIGH = (2.6, 1.6, 2.4, 1.9, 2.6)

@@ -53,12 +53,12 @@ class ChainModel:
     site_quat: jax.Array
 
     @classmethod
-    def from_mjmodel(cls, mj) -> "ChainModel":
+    def from_mjmodel(cls, mj) -> ChainModel:
         """The arrays of a ``mujoco.MjModel``, in the default float dtype."""
         fl = jnp.result_type(float)
         return cls(**{f.name: jnp.asarray(np.asarray(getattr(mj, f.name)), fl) for f in dataclasses.fields(cls)})
 
-    def replace(self, **changes) -> "ChainModel":
+    def replace(self, **changes) -> ChainModel:
         """``dataclasses.replace`` (e.g. a batched ``site_pos``)."""
         return dataclasses.replace(self, **changes)
 

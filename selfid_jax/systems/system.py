@@ -32,7 +32,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -259,7 +260,7 @@ class System:
         return cand
 
     # ---------------------------------------------------------------- copies
-    def with_task_dim(self, task_dim: int, *, min_sigma: float | None = None) -> "System":
+    def with_task_dim(self, task_dim: int, *, min_sigma: float | None = None) -> System:
         """Copy of this system with another task dimension (and optionally ``min_sigma``)."""
         check_task_dim(task_dim, self.has_rotation)
         kw = dict(task_dim=int(task_dim), task_axes=None)
@@ -267,7 +268,7 @@ class System:
             kw["min_sigma"] = float(min_sigma)
         return dataclasses.replace(self, **kw)
 
-    def with_task_axes(self, axes, *, min_sigma: float | None = None) -> "System":
+    def with_task_axes(self, axes, *, min_sigma: float | None = None) -> System:
         """Copy of this system whose task is the chosen components of ``[dp, rotation vector]``.
 
         Args:
@@ -283,7 +284,7 @@ class System:
             kw["min_sigma"] = float(min_sigma)
         return dataclasses.replace(self, **kw)
 
-    def replace(self, **changes) -> "System":
+    def replace(self, **changes) -> System:
         """``dataclasses.replace`` (e.g. another ``m_a`` for a sweep)."""
         return dataclasses.replace(self, **changes)
 
@@ -296,7 +297,7 @@ jax.tree_util.register_dataclass(
 
 
 @functools.partial(jax.jit, static_argnums=(2, 3))
-def _sample_candidates(system: "System", key, k: int, oversample: int):
+def _sample_candidates(system: System, key, k: int, oversample: int):
     """``(k, n)`` configurations of ``system``, valid (``sigma_min > min_sigma``) first, and the ``(k,)`` mask."""
     low, high = system.sample_low, system.sample_high
     dtype = jnp.result_type(low, float)
