@@ -1,4 +1,4 @@
-"""Self-ID design experiment (``selfid_jax.design``): the self-ID magnitude ``m_a`` a robot should use at its tracker's noise.
+"""Self-ID design experiment (``selfid_jax.design``): the self-ID magnitude ``m_a`` to use at a tracker's noise.
 
 For each system and tracker-noise level (one row of the sweep), one compiled
 program (:func:`selfid_jax.design.optimize`) evaluates the design loss (mean

@@ -42,11 +42,12 @@ SKIP = {"__pycache__"}
 
 
 def first_line(path: Path) -> str:
-    """The first docstring line of a module, with reST markup reduced to plain text."""
+    """The first docstring line (its summary paragraph) of a module, with reST markup reduced to plain text."""
     doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8")))
     if not doc:
         raise SystemExit(f"{path.relative_to(ROOT)} has no module docstring: its first line states its one job")
-    line = doc.strip().splitlines()[0].strip()
+    lines = doc.strip().split("\n\n", 1)[0].splitlines()  # the summary, which a wrapped docstring spreads over lines
+    line = " ".join(s.strip() for s in lines)
     # reST roles as Sphinx shows them: :func:`a.b.c` -> a.b.c, :func:`~a.b.c` -> c
     line = re.sub(r":\w+:`(~?)([\w.]+)`", lambda m: m[2].rsplit(".", 1)[-1] if m[1] else m[2], line)
     return line.replace("``", "")
@@ -88,7 +89,8 @@ def _walk(folder: Path, depth: int, rows: list[tuple[str, str]]) -> None:
     for sub in subfolders:
         if sub.is_symlink():
             target = sub.readlink().as_posix().rstrip("/")
-            rows.append((f"{indent}  {sub.name}/", f"a link to {target}/: {rel}.{sub.name} is the top-level {sub.name}/ below"))
+            rows.append((f"{indent}  {sub.name}/",
+                         f"a link to {target}/: {rel}.{sub.name} is the top-level {sub.name}/ below"))
         else:
             _walk(sub, depth + 1, rows)
 
@@ -140,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     old = section(text)
     if args.check:
         if old != body:
-            print("README.md's Layout section is out of date: run python scripts/readme_layout.py --write", file=sys.stderr)
+            print("README.md's Layout section is out of date: run python scripts/readme_layout.py --write",
+                  file=sys.stderr)
             return 1
         return 0
     start = text.index(f"{HEADING}\n\n") + len(HEADING) + 2

@@ -97,7 +97,8 @@ class MjcfSystem(BaseModel):
     sample_half_width: float | None = Field(None, gt=0, description="half-width of the start box around home")
     sample_box: SampleBox | None = Field(None, description="explicit start box (instead of home +- half-width)")
     min_sigma: float = Field(1e-3, ge=0, description="start configurations need sigma_min(J) above this")
-    name: str | None = Field(None, pattern=SAFE_NAME, description="label (default: the file's stem); letters, digits, '.', '_', '-'")
+    name: str | None = Field(None, pattern=SAFE_NAME,
+                             description="label (default: the file's stem); letters, digits, '.', '_', '-'")
     x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
     @field_validator("mjcf")
