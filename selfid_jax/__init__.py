@@ -21,41 +21,81 @@ from selfid_jax._xla import apply_default_xla_flags as _apply_default_xla_flags
 
 _apply_default_xla_flags()
 
-from selfid_jax import baselines, control, design, systems  # noqa: E402
-from selfid_jax.control import dls, metrics, paths  # noqa: E402
-from selfid_jax.control.loop import ControllerParams, FollowResult, follow  # noqa: E402
-from selfid_jax.identify import algorithm as selfid  # noqa: E402
-from selfid_jax.identify import estimator, magnitude  # noqa: E402
-from selfid_jax.identify import refine as refine_lib  # noqa: E402
-from selfid_jax.identify.algorithm import SelfIDResult, self_identify, stateless  # noqa: E402
-from selfid_jax.identify.estimator import (  # noqa: E402
-    EstimatorState,
-    converged,
-    init,
-    initial_guess,
-    magnitude_inverse_jacobian,
-    objective,
-    record,
-    signed_inverse_jacobian,
-    update,
-)
-from selfid_jax.identify.refine import refine  # noqa: E402
-from selfid_jax.math import geometry  # noqa: E402
-from selfid_jax.systems import (  # noqa: E402
-    System, arm5, from_ets, from_mjcf, from_pose_fn, manipulability, model_o, stewart_hand, two_link, ur5e,
-)
+from typing import TYPE_CHECKING  # noqa: E402
+
+# name -> (module, attribute or None for the module itself): imported on first use (PEP 562), so that
+# ``import selfid_jax`` costs milliseconds and the command line can set up its signal handling before JAX loads.
+_LAZY: dict[str, tuple[str, str | None]] = {
+    "baselines": ("selfid_jax.baselines", None),
+    "control": ("selfid_jax.control", None),
+    "design": ("selfid_jax.design", None),
+    "systems": ("selfid_jax.systems", None),
+    "dls": ("selfid_jax.control.dls", None),
+    "metrics": ("selfid_jax.control.metrics", None),
+    "paths": ("selfid_jax.control.paths", None),
+    "selfid": ("selfid_jax.identify.algorithm", None),
+    "estimator": ("selfid_jax.identify.estimator", None),
+    "magnitude": ("selfid_jax.identify.magnitude", None),
+    "refine_lib": ("selfid_jax.identify.refine", None),
+    "geometry": ("selfid_jax.math.geometry", None),
+    "manipulability": ("selfid_jax.systems.manipulability", None),
+    "experiment": ("selfid_jax.runner", None),
+    **{name: ("selfid_jax.control.loop", name) for name in ("ControllerParams", "FollowResult", "follow")},
+    **{name: ("selfid_jax.identify.algorithm", name) for name in ("SelfIDResult", "self_identify", "stateless")},
+    **{name: ("selfid_jax.identify.estimator", name) for name in (
+        "EstimatorState", "converged", "init", "initial_guess", "magnitude_inverse_jacobian", "objective", "record",
+        "signed_inverse_jacobian", "update")},
+    "refine": ("selfid_jax.identify.refine", "refine"),
+    **{name: ("selfid_jax.systems", name) for name in (
+        "System", "arm5", "from_ets", "from_mjcf", "from_pose_fn", "model_o", "stewart_hand", "two_link", "ur5e")},
+}
+
+if TYPE_CHECKING:
+    from selfid_jax import baselines, control, design, systems
+    from selfid_jax import runner as experiment
+    from selfid_jax.control import dls, metrics, paths
+    from selfid_jax.control.loop import ControllerParams, FollowResult, follow
+    from selfid_jax.identify import algorithm as selfid
+    from selfid_jax.identify import estimator, magnitude
+    from selfid_jax.identify import refine as refine_lib
+    from selfid_jax.identify.algorithm import SelfIDResult, self_identify, stateless
+    from selfid_jax.identify.estimator import (
+        EstimatorState,
+        converged,
+        init,
+        initial_guess,
+        magnitude_inverse_jacobian,
+        objective,
+        record,
+        signed_inverse_jacobian,
+        update,
+    )
+    from selfid_jax.identify.refine import refine
+    from selfid_jax.math import geometry
+    from selfid_jax.systems import (
+        System, arm5, from_ets, from_mjcf, from_pose_fn, manipulability, model_o, stewart_hand, two_link, ur5e,
+    )
 
 __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
-    """``sj.experiment``: the runner (:mod:`selfid_jax.runner`), imported on first use (it loads pandas and
-    pydantic)."""
-    if name == "experiment":
-        import importlib
+    """The public names, imported on first use (``sj.experiment``, the runner, loads pandas and pydantic)."""
+    try:
+        module, attr = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module 'selfid_jax' has no attribute {name!r}") from None
+    import importlib
 
-        return importlib.import_module("selfid_jax.runner")
-    raise AttributeError(f"module 'selfid_jax' has no attribute {name!r}")
+    value = importlib.import_module(module)
+    if attr is not None:
+        value = getattr(value, attr)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
 
 
 __all__ = [

@@ -13,10 +13,18 @@ def _systems() -> Mapping[str, str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.cli.main` with the built-in systems; the exit code."""
+    """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.cli.main` with the built-in systems; the exit code.
+
+    As the console script (``argv`` None) it first takes over SIGINT and SIGTERM
+    (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported.
+    """
+    from selfid_jax.runner import signals
+
+    if argv is None:
+        signals.install()
     from selfid_jax.runner import cli
 
-    return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems})
+    return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None)
 
 
 if __name__ == "__main__":

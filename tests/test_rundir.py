@@ -127,7 +127,7 @@ def test_second_process_is_refused_and_fresh_deletes_nothing(tmp_path, capsys):
         with pytest.raises(RunDirBusy, match=f"process {holder.pid}"):
             run_chunked(synthetic_fn, params, chunk_size=5, out_dir=out / "parts" / "synthetic", meta=meta,
                         progress=False, fresh=True)
-        with pytest.raises(RunDirBusy):
+        with pytest.raises(RunDirBusy), hold(out):  # the run's one lock (execute.run), then the directory
             create_run_dir(out, {"experiment": "x"}, fresh=True)
         assert _snapshot(out, skip=(".lock",)) == before  # nothing deleted, nothing written
 
@@ -181,7 +181,7 @@ def _run(out: Path, seed: int = 0, **kw) -> pd.DataFrame:
 def test_manifest_records_row_range_and_hash_of_each_chunk(tmp_path):
     _run(tmp_path)
     manifest = json.loads((tmp_path / "manifest.json").read_text())
-    assert manifest["format"] == 3 and manifest["x64"] is True
+    assert manifest["format"] == 4 and manifest["x64"] is True
     for i, (start, stop) in enumerate([(0, 5), (5, 10), (10, 15), (15, 20), (20, 23)]):
         data = (tmp_path / "chunks" / f"chunk_0000{i}.parquet").read_bytes()
         assert manifest["chunks"][str(i)] == {"rows": [start, stop], "sha256": hashlib.sha256(data).hexdigest()}

@@ -83,6 +83,27 @@ def check_noise_pairs(pose_noise: list, rot_noise: list) -> None:
 class StudyConfig(BaseConfig):
     """Base of the experiment configs: :class:`BaseConfig`'s fields, and a tolerance that fits the path."""
 
+    def input_files(self) -> dict[str, str]:
+        """Every file the config's systems read (MJCF/URDF files and theirs, pose-function modules), path -> SHA-256."""
+        found: dict[str, str] = {}
+
+        def walk(value) -> None:
+            if isinstance(value, BaseModel):
+                if value is not self and hasattr(value, "input_files"):
+                    found.update(value.input_files())
+                    return
+                for name in type(value).model_fields:
+                    walk(getattr(value, name))
+            elif isinstance(value, (list, tuple)):
+                for v in value:
+                    walk(v)
+            elif isinstance(value, dict):
+                for v in value.values():
+                    walk(v)
+
+        walk(self)
+        return found
+
     @model_validator(mode="after")
     def _controller_fits_path(self):
         """Experiments with a ``path`` and a ``controller``: the tolerance must fit the path."""

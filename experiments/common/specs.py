@@ -28,6 +28,7 @@ In YAML::
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -101,6 +102,12 @@ class MjcfSystem(BaseModel):
                              description="label (default: the file's stem); letters, digits, '.', '_', '-'")
     x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
+    def input_files(self) -> dict[str, str]:
+        """The model file and every file it reads (includes, meshes, textures), path -> SHA-256."""
+        from selfid_jax.systems.model_files import file_sha256, model_files
+
+        return {str(p): file_sha256(p) for p in model_files(self.mjcf)}
+
     @field_validator("mjcf")
     @classmethod
     def _resolve(cls, value: str, info: ValidationInfo) -> str:
@@ -139,6 +146,20 @@ class PoseFnSystem(BaseModel):
     min_sigma: float = Field(1e-3, ge=0)
     name: str | None = Field(None, pattern=SAFE_NAME, description="label; letters, digits, '.', '_', '-'")
     x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
+
+    def input_files(self) -> dict[str, str]:
+        """The source file of the pose function's module, path -> SHA-256 (found without running the module)."""
+        from selfid_jax.systems.model_files import file_sha256
+
+        module = self.pose_fn.partition(":")[0]
+        try:
+            spec = importlib.util.find_spec(module)
+        except (ImportError, ValueError):
+            spec = None
+        origin = spec.origin if spec is not None else None
+        if origin is None or not Path(origin).is_file():
+            return {f"pose_fn module {module}": "not found"}
+        return {origin: file_sha256(origin)}
 
 
 def _kind(value) -> str | None:

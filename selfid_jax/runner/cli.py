@@ -188,25 +188,41 @@ def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progre
     (:func:`selfid_jax.runner.execute.run`, which locks it) under SIGTERM handling, report, draw."""
     from selfid_jax.runner.execute import run
 
+    from selfid_jax.runner import signals
+    from selfid_jax.runner.sweep import clear_stop, request_stop, stop_requested as sweep_stop_requested
+
+    signals.phase("setup")
     parts = _build(exp, cfg, str(config_path) if config_path is not None else exp.name)
     received: list[int] = []
     t0 = time.perf_counter()
+    again = ("run the same command again to resume (add --fresh to start over)" if config_path is not None
+             else f"{_PROG} {exp.name} always starts fresh: run it again")
+    message = f"{_PROG}: interrupted; finished chunks are kept in {run_dir}; {again}"
     try:
-        with _graceful_sigterm() as received:
-            out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts, config_path=config_path,
-                      overrides=overrides)
+        if signals.installed():
+            clear_stop()
+            with signals.graceful(message, request_stop):
+                out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts, config_path=config_path,
+                          overrides=overrides)
+        else:
+            with _graceful_sigterm() as received:
+                out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts, config_path=config_path,
+                          overrides=overrides)
+        stopped = signals.installed() and sweep_stop_requested()
     except (KeyboardInterrupt, _Terminated):
-        print(
-            f"{_PROG}: interrupted; finished chunks are kept in {run_dir}. "
-            "Run the same command again to resume (add --fresh to start over).",
-            file=sys.stderr,
-        )
-        return 143 if received else 130
+        print(message, file=sys.stderr)
+        return 143 if (received or signals.installed()) else 130
+    finally:
+        clear_stop()
+    if stopped:  # SIGTERM during the last chunk: every chunk is saved, but the user asked to stop
+        print(message, file=sys.stderr)
+        return 143
     if out is None:  # not process 0 of a jax.distributed run
         return 0
     _, summary = out
     if exp.report is not None:
         print(exp.report(summary))
+    signals.phase("figures")
     figures = _draw(exp, run_dir)
     print(f"results: {run_dir} ({time.perf_counter() - t0:.1f} s)")
     for f in figures:
@@ -238,6 +254,9 @@ def _plot(args: argparse.Namespace) -> int:
     exp = registry.get(name)
     if exp.plot is None:
         raise _UsageError(f"experiment {name!r} draws no figures")
+    from selfid_jax.runner import signals
+
+    signals.phase("plot")
     for f in _draw(exp, run_dir):
         print(f"figure: {f}")
     return 0
@@ -317,12 +336,21 @@ def _os_error(err: OSError, command: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None,
-         catalogues: Mapping[str, Callable[[], Mapping[str, str]]] | None = None) -> int:
+         catalogues: Mapping[str, Callable[[], Mapping[str, str]]] | None = None,
+         *, handle_signals: bool | None = None) -> int:
     """The ``selfid-jax`` command line; returns the exit code.
 
     ``catalogues``: extra sections of ``selfid-jax list``, title -> a function
     returning ``{name: one-line description}`` (the package adds its built-in systems).
+    ``handle_signals``: take over SIGINT and SIGTERM (:func:`selfid_jax.runner.signals.install`:
+    exit 130 / 143 with one line at any phase); default: when ``argv`` is None, i.e. as the
+    console script, never when called from Python with arguments (a test, a notebook).
     """
+    from selfid_jax.runner import signals
+
+    if handle_signals if handle_signals is not None else argv is None:
+        signals.install(_PROG)
+    signals.phase("start")
     from selfid_jax.runner.errors import ConfigError
 
     args = _parser().parse_args(argv)

@@ -133,6 +133,10 @@ class BaseConfig(BaseModel):
     chunk_size: int = Field(256, gt=0, le=10**7, description="rollouts per compiled chunk")
     name: str | None = None
 
+    def input_files(self) -> dict[str, str]:
+        """Files the run reads, path -> SHA-256, for its fingerprint; none here (experiment configs add theirs)."""
+        return {}
+
 
 def stop_after_start(stop: float, info: ValidationInfo) -> float:
     """Field validator of a grid's ``stop``: ``ValueError`` unless it is greater than the ``start`` field."""

@@ -16,7 +16,9 @@ from pathlib import Path
 import pandas as pd
 
 from selfid_jax.runner import lock
+from selfid_jax.runner.config import dump_config
 from selfid_jax.runner.contract import Experiment, Part
+from selfid_jax.runner.fingerprint import fingerprint
 from selfid_jax.runner.layout import PARTS_DIR
 from selfid_jax.runner.rundir import create_run_dir, record_refused, write_results, write_summary
 from selfid_jax.runner.errors import SweepResumeError
@@ -76,6 +78,8 @@ def run(
 def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress: bool, parts):
     import jax
 
+    inputs = cfg.input_files() if hasattr(cfg, "input_files") else {}
+    fp = fingerprint(dump_config(cfg), inputs)
     tables = []
     for part in experiment.parts(cfg) if parts is None else parts:
         with precision(part.x64):
@@ -88,6 +92,7 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
                 fresh=fresh,
                 progress=progress,
                 desc=part.name,
+                fingerprint=fp,
             )
         if wide is None:  # another process of a jax.distributed run writes the files
             return None

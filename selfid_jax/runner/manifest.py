@@ -31,13 +31,14 @@ import pyarrow.parquet as pq
 
 from selfid_jax.runner.errors import RunDirError, SweepResumeError
 from selfid_jax.runner.files import atomic_write_bytes, write_json
+from selfid_jax.runner.fingerprint import changes as fingerprint_changes
 from selfid_jax.runner.layout import CHUNKS_DIR, MANIFEST_FILE, RESULTS_FILE
 
 __all__ = ["MANIFEST_FORMAT", "SweepResumeError", "assemble", "check_manifest", "chunk_path", "chunk_rows",
            "chunk_table", "finished_tables", "new_manifest", "params_hash", "prepare_dir", "record_chunk",
            "table_bytes", "verify"]
 
-MANIFEST_FORMAT = 3  # 2: params and outputs are named pytree leaves; 3: per-chunk row range and sha256, x64
+MANIFEST_FORMAT = 4  # 2: named pytree leaves; 3: per-chunk row range and sha256, x64; 4: fingerprint of the inputs
 
 
 def chunk_path(out_dir: Path, i: int, n_chunks: int) -> Path:
@@ -89,8 +90,13 @@ def params_hash(params: Mapping[str, np.ndarray], meta: pd.DataFrame | None = No
     return h.hexdigest()
 
 
-def new_manifest(params: Mapping[str, np.ndarray], meta: pd.DataFrame | None, chunk_size: int, *, x64: bool) -> dict:
-    """The manifest of a sweep over ``params`` (N-row arrays) in chunks of ``chunk_size`` rows, no chunk recorded."""
+def new_manifest(params: Mapping[str, np.ndarray], meta: pd.DataFrame | None, chunk_size: int, *, x64: bool,
+                 fingerprint: Mapping | None = None) -> dict:
+    """The manifest of a sweep over ``params`` (N-row arrays) in chunks of ``chunk_size`` rows, no chunk recorded.
+
+    ``fingerprint``: what the chunks depend on beyond the params (:func:`selfid_jax.runner.fingerprint.fingerprint`:
+    config, files read, package source); a resume with another one is refused.
+    """
     n_rows = len(next(iter(params.values())))
     return {
         "format": MANIFEST_FORMAT,
@@ -102,6 +108,7 @@ def new_manifest(params: Mapping[str, np.ndarray], meta: pd.DataFrame | None, ch
         "meta_hash": params_hash({}, meta) if meta is not None else None,
         "params": {k: {"dtype": v.dtype.str, "row_shape": list(v.shape[1:])} for k, v in params.items()},
         "meta_columns": list(meta.columns) if meta is not None else [],
+        "fingerprint": dict(fingerprint or {}),
         "chunks": {},
     }
 
@@ -145,6 +152,13 @@ def check_manifest(out_dir: Path, manifest: dict) -> dict:
             f"{path}: the chunks in {out_dir} belong to a different sweep; differing: "
             + "; ".join(diff)
             + ". Use --fresh (fresh=True) to discard them, or choose another output directory."
+        )
+    changed = fingerprint_changes(old.get("fingerprint", {}), manifest.get("fingerprint", {}))
+    if changed:
+        raise SweepResumeError(
+            f"{path}: the chunks in {out_dir} were computed from other inputs; changed since: " + "; ".join(changed)
+            + ". Nothing old and new is assembled together: use --fresh (fresh=True) to recompute them, or choose "
+            "another output directory."
         )
     return old
 

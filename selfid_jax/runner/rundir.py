@@ -30,6 +30,7 @@ import yaml
 
 from selfid_jax.runner.config import dump_config, flatten_dict, yaml_load
 from selfid_jax.runner.errors import RunDirError
+from selfid_jax.runner.fingerprint import PACKAGE_ROOT, package_source
 from selfid_jax.runner.files import atomic_write_bytes, atomic_write_text, jsonable, write_json
 from selfid_jax.runner.layout import (
     CHUNKS_DIR,
@@ -82,14 +83,25 @@ def _git(*args: str, cwd: str | Path | None = None) -> str | None:
 
 
 def collect_versions(cwd: str | Path | None = None) -> dict[str, Any]:
-    """Package versions, git revision of ``cwd`` (None outside a repo or before a commit) and devices."""
+    """Package versions, the package's own revision and source hash, and devices.
+
+    ``git_revision`` is the commit of the repository that holds the imported
+    ``selfid_jax`` source (None for an installed wheel, outside a repository or
+    before a commit), ``git_dirty`` whether the package's files differ from it,
+    ``source_sha256`` the hash of the source actually imported
+    (:func:`selfid_jax.runner.fingerprint.package_source`). ``cwd`` is unused (kept for callers).
+    """
     import jax  # local: keep `selfid_jax.runner.rundir` cheap to import for plotting
 
-    rev = _git("rev-parse", "HEAD", cwd=cwd)
+    del cwd
+    root = PACKAGE_ROOT
+    tracked = _git("ls-files", "--error-unmatch", "__init__.py", cwd=root)  # the package is in this repository
+    rev = _git("rev-parse", "HEAD", cwd=root) if tracked else None
     dirty = None
     if rev is not None:
-        status = _git("status", "--porcelain", "--untracked-files=no", cwd=cwd)
+        status = _git("status", "--porcelain", "--untracked-files=no", "--", ".", cwd=root)
         dirty = bool(status) if status is not None else None
+    source = package_source()
     return {
         "selfid_jax": _pkg_version("selfid_jax"),
         "jax": jax.__version__,
@@ -100,6 +112,8 @@ def collect_versions(cwd: str | Path | None = None) -> dict[str, Any]:
         "python": platform.python_version(),
         "git_revision": rev,
         "git_dirty": dirty,
+        "source_sha256": source["source_sha256"],
+        "package_root": str(root),
         "jax_backend": jax.default_backend(),
         "devices": [str(d) for d in jax.devices()],
         "process_count": jax.process_count(),

@@ -77,6 +77,7 @@ from selfid_jax.runner.files import atomic_write_bytes
 from selfid_jax.runner.layout import CHUNKS_DIR, PARTS_DIR, RESULTS_FILE
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.runner.manifest import params_hash
+from selfid_jax.runner.signals import phase
 
 __all__ = [
     "SweepInterrupted",
@@ -88,6 +89,7 @@ __all__ = [
     "named_leaves",
     "params_hash",
     "request_stop",
+    "stop_requested",
     "row_keys",
     "run_chunked",
 ]
@@ -110,6 +112,11 @@ def request_stop() -> None:
     Ignored when several processes run one sweep (they must stay in lockstep).
     """
     _STOP.set()
+
+
+def stop_requested() -> bool:
+    """Whether :func:`request_stop` was called since the last :func:`clear_stop`."""
+    return _STOP.is_set()
 
 
 def clear_stop() -> None:
@@ -184,6 +191,7 @@ def run_chunked(
     static_shapes: bool = True,
     devices: Sequence[jax.Device] | None = None,
     desc: str = "sweep",
+    fingerprint: Mapping[str, Any] | None = None,
 ) -> pd.DataFrame:
     """Run ``compute_fn`` over ``N`` parameter rows in resumable, sharded chunks.
 
@@ -212,6 +220,9 @@ def run_chunked(
         ``False`` runs it at its own size (a second compilation, less padding).
       devices: devices to shard over (default ``jax.devices()``, all hosts).
       desc: progress-bar label.
+      fingerprint: what the rows depend on beyond ``params`` and ``meta`` (config,
+        files read, package source: :func:`selfid_jax.runner.fingerprint.fingerprint`),
+        stored in the manifest; resuming chunks made with another one is refused.
 
     Returns:
       The results table, ``N`` rows sorted by ``row`` (int64, 0..N-1), with the
@@ -248,7 +259,8 @@ def run_chunked(
     rows_per_chunk = min(int(chunk_size), n_rows)
     batch = compiled_batch(n_rows, chunk_size, n_dev)
     n_chunks = math.ceil(n_rows / rows_per_chunk)  # = manifest["n_chunks"]
-    manifest = chunks.new_manifest(params, meta, rows_per_chunk, x64=bool(jax.config.jax_enable_x64))  # type: ignore[attr-defined]
+    x64 = bool(jax.config.jax_enable_x64)  # type: ignore[attr-defined]
+    manifest = chunks.new_manifest(params, meta, rows_per_chunk, x64=x64, fingerprint=fingerprint)
 
     writer = jax.process_index() == 0
     with contextlib.ExitStack() as held:
@@ -307,12 +319,14 @@ def _executables(rows_fn, params: Mapping[str, np.ndarray], devices):
 
     def executable(size: int):
         if size not in local:
+            phase("trace")
             lowered = jitted.lower({k: jax.ShapeDtypeStruct((size, *v.shape[1:]), v.dtype, sharding=in_sharding)
                                     for k, v in params.items()})
             cbs = getattr(getattr(lowered, "_lowering", None), "compile_args", {}).get("host_callbacks") or ()
             key = (hashlib.sha256(lowered.as_text().encode()).hexdigest(), tuple(d.id for d in devices),
                    tuple(map(id, cbs)))  # host callbacks (native MuJoCo) are not in the text: never shared
             if key not in _EXECUTABLES:
+                phase("compile")
                 _EXECUTABLES[key] = lowered.compile()
                 _check_outputs(named_leaves(_EXECUTABLES[key].out_info)[0], size)
                 while len(_EXECUTABLES) > _MAX_EXECUTABLES:
@@ -390,6 +404,7 @@ def _compute_chunks(
                     data = chunks.table_bytes(chunks.chunk_table(rows, meta, host))
                     chunks.record_chunk(out_dir, manifest, j, data)  # before the file: a chunk file always has a record
                     _write_chunk(chunks.chunk_path(out_dir, j, n_chunks), data)
+                    phase("chunk")
                 rows_done += len(rows)
                 bar.set_postfix(rows_per_s=f"{rows_done / max(time.perf_counter() - t0, 1e-9):.3g}", refresh=False)
                 bar.update(1)
