@@ -60,7 +60,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from selfid_jax import control, design
 
 from selfid_jax.control import paths
-from selfid_jax.experiments.common.schema import ControllerConfig, PathConfig, StudyConfig, check_noise_pairs
+from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
+                                                  check_noise_pairs, resolve_m_a)
 from selfid_jax.runner.config import stop_after_start
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
@@ -104,10 +105,11 @@ class RefineConfig(BaseModel):
                               "rollouts: not followed")
 
 
-class SystemRun(BaseModel):
-    """A system with its own protocol (a hand needs mm paths, finer tracker noise and magnitudes): overrides the top level."""
+class SystemRun(SelfIdConfig):
+    """A system with its own protocol (a hand needs mm paths, finer tracker noise and magnitudes): overrides the top level.
 
-    model_config = _STRICT
+    ``m_a``: the reference ("default") design compared on held-out trials; the system's own unless given.
+    """
 
     system: SystemSpec
     path: PathConfig | None = None
@@ -129,6 +131,7 @@ class Protocol(NamedTuple):
     m_a_grid: MagnitudeGrid
     pose_noise: list[float]
     rot_noise: list[float]
+    m_a: Any = None  # the reference design's m_a key (None: the system's own; common.schema.resolve_m_a)
 
 
 class DesignConfig(StudyConfig):
@@ -174,7 +177,7 @@ def protocol(cfg: DesignConfig, entry) -> Protocol:
     else:
         rot = [0.0] * len(pose)
     return Protocol(run.system, run.path or cfg.path, run.controller or cfg.controller, run.m_a_grid or cfg.m_a_grid,
-                    list(pose), list(rot))
+                    list(pose), list(rot), run.m_a)
 
 
 class Static(NamedTuple):
@@ -197,7 +200,7 @@ class Params(NamedTuple):
     pose_noise: jax.Array  # () tracker position noise sd [m]
     rot_noise: jax.Array  # () tracker rotation noise sd [rad]
     m_a_grid: jax.Array  # (G,) magnitudes [rad or m]
-    default_m_a: jax.Array  # (n,) the system's safe magnitude (reference design)
+    default_m_a: jax.Array  # (n,) the reference design: the system's safe magnitude, or the entry's m_a
     key: jax.Array  # (2,) uint32 key data of the training trials
     eval_key: jax.Array  # (2,) uint32 key data of the held-out trials
     q0s: jax.Array  # (S, n) start configurations
@@ -297,7 +300,7 @@ def _system_part(cfg: DesignConfig, proto: Protocol, index: int) -> Part:
         pose_noise=meta["pose_noise"].to_numpy(float),
         rot_noise=meta["rot_noise"].to_numpy(float),
         m_a_grid=rows(grid),
-        default_m_a=rows(np.asarray(system.m_a, float)),
+        default_m_a=rows(resolve_m_a(proto.m_a, system, f"systems[{name}].m_a").value),
         key=row_keys(cfg.seed, np.full(N, 2 * index)),  # the same trials at every noise level (common random numbers)
         eval_key=row_keys(cfg.seed, np.full(N, 2 * index + 1)),
         q0s=rows(q0s),
@@ -467,7 +470,8 @@ def summarize(table: pd.DataFrame, cfg: DesignConfig) -> dict[str, Any]:
         systems[name] = {
             "n_act": int(len(t[t["stage"] == "eval"]["m_a_vec"].iloc[0])),
             "protocol": {"path": proto.path.model_dump(), "controller": proto.controller.model_dump(),
-                         "m_a_grid": proto.m_a_grid.model_dump()},
+                         "m_a_grid": proto.m_a_grid.model_dump(),
+                         "m_a_source": "system" if proto.m_a is None else "config"},
             "noise_levels": levels,
         }
     return {
