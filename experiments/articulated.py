@@ -21,23 +21,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.articulated import scenes, sim, tactile
 from selfid_jax.experiments.common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_summary
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 METRICS = ("time_s", "efficiency", "jerk", "dev_mean_mm", "dev_max_mm")
 
 
 class Objects(BaseModel):
     """How many objects of each kind (paper: 50 prismatic, 50 revolute, 100 Bezier)."""
 
-    model_config = _STRICT
+    model_config = STRICT
     prismatic: int = Field(0, ge=0, le=10**4)
     revolute: int = Field(0, ge=0, le=10**4)
     helical: int = Field(0, ge=0, le=10**4)
@@ -47,7 +47,7 @@ class Objects(BaseModel):
 class Population(BaseModel):
     """Ranges of the object generator (:func:`selfid_jax.articulated.scenes.population`)."""
 
-    model_config = _STRICT
+    model_config = STRICT
     misalign_deg: float = Field(15.0, ge=0, le=60, description="max angle between u0 and the true initial direction")
     damping: tuple[float, float] = (2.0, 20.0)  # N s/m at the handle
     frictionloss: tuple[float, float] = (0.5, 3.0)  # N at the handle
@@ -59,7 +59,7 @@ class Population(BaseModel):
 
 
 class Pads(BaseModel):
-    model_config = _STRICT
+    model_config = STRICT
     rows: int = Field(8, ge=1, le=32)
     cols: int = Field(8, ge=1, le=32)
     pitch: float = Field(0.0025, gt=0, le=0.01, description="marker pitch [m]")
@@ -68,7 +68,7 @@ class Pads(BaseModel):
 
 
 class TacManCfg(BaseModel):
-    model_config = _STRICT
+    model_config = STRICT
     dev_high: float = Field(1e-3, gt=0, le=0.01, description="deviation ending an exploration stage [m]")
     dev_low: float = Field(2e-4, gt=0, le=0.01, description="deviation ending a recovery stage [m]")
     gain: float = Field(0.5, gt=0, le=1, description="recovery gain per step")
@@ -90,7 +90,7 @@ class TurboLeadCfg(BaseModel):
     (squeeze 1 mm, ``contact_eps`` 0.3 mm). ``tau`` 0.06 s: 3 control steps.
     """
 
-    model_config = _STRICT
+    model_config = STRICT
     lead_max: float = Field(1e-3, ge=0, le=0.01, description="cap of the integral lead along the screw [m]")
     tau: float = Field(0.06, ge=0, le=10, description="handle-twist smoothing time constant [s] (0: none)")
 
@@ -242,7 +242,8 @@ def summarize(table: pd.DataFrame, cfg: ArticulatedConfig) -> dict[str, Any]:
         overall.setdefault(str(arm), {})[str(ctrl)] = _stats(g)
     return {"backend": cfg.backend, "speed": cfg.speed, "control_dt": cfg.control_dt, "max_time": cfg.max_time,
             "objects": cfg.objects.model_dump(),
-            "self_id": {"iterations": cfg.selfid_iters, **m_a_summary(table), "eps": cfg.eps}, "kinds": kinds, "overall": overall,
+            "self_id": {"iterations": cfg.selfid_iters, **m_a_summary(table), "eps": cfg.eps},
+            "kinds": kinds, "overall": overall,
             "paper": {"turbo": {"time_s": "7.6 +- 2.3", "efficiency": "0.239 +- 0.063", "jerk": "109.82 +- 147.71"},
                       "tacman": {"time_s": "250.7 +- 194.4", "efficiency": "0.012 +- 0.011",
                                  "jerk": "4921.44 +- 3722.49"}, "success": "100% both"}}

@@ -55,14 +55,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax import control, design
 
 from selfid_jax.control import paths
 from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
                                                   check_noise_pairs, resolve_m_a)
-from selfid_jax.runner.config import stop_after_start
+from selfid_jax.runner.config import STRICT, stop_after_start
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.figures import save_figure
@@ -70,7 +70,6 @@ from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, spec_or_run, system_name, unique_system_names
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 EVAL_DESIGNS = ("default", "grid", "scalar", "per_actuator")
 """The designs compared on held-out trials: the system's safe ``m_a``, the grid's best, the refined scalar, per actuator."""
@@ -81,7 +80,7 @@ Noise = Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=
 class MagnitudeGrid(BaseModel):
     """A log-spaced grid of self-ID magnitudes ``m_a`` [rad or m]."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     start: float = Field(gt=0, le=10, description="smallest magnitude [rad or m]")
     stop: float = Field(gt=0, le=10, description="largest magnitude, above start")
@@ -97,7 +96,7 @@ class MagnitudeGrid(BaseModel):
 class RefineConfig(BaseModel):
     """The gradient refinement (Adam on ``log m_a``, cosine-decayed step; :func:`selfid_jax.design.refine`)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     steps: int = Field(40, ge=1, le=10**4, description="Adam steps per refinement (scalar, then per actuator)")
     learning_rate: float = Field(0.1, gt=0, le=10, description="initial step in log m_a (0.1: 10% of m_a)")

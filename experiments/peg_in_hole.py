@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax import control
 
@@ -48,6 +48,7 @@ from selfid_jax.identify import estimator, algorithm as selfid
 from selfid_jax.math import geometry
 from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
                                                   check_noise_pairs, format_m_a, m_a_summary)
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.figures import save_figure
@@ -57,14 +58,13 @@ from selfid_jax.systems.ur5e import ur5e
 
 INVERSES = ("estimated", "analytical")
 HAND_AXES = ("z", "rx", "ry")
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 Vec3 = Annotated[list[Annotated[float, Field(ge=-1.0, le=1.0)]], Field(min_length=3, max_length=3)]
 
 
 class Layout(BaseModel):
     """One start / grasp / hole arrangement (world frame, metres and radians)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     yaw: float = Field(0.0, ge=-1.0, le=1.0, description="added to the arm's base joint at the start [rad]")
     grasp: Vec3 = Field(description="grasp waypoint, offset from the POM's start position [m]")
@@ -87,7 +87,7 @@ class PartSettings(SelfIdConfig):
 
 
 class Rotation(BaseModel):
-    model_config = _STRICT
+    model_config = STRICT
 
     angle: float = Field(0.15, gt=-0.26, lt=0.26, description="hand tilt of the peg [rad] (the model's safe range "
                          "is 15 deg)")

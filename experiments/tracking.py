@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax import control
 
@@ -35,6 +35,7 @@ from selfid_jax.math import geometry
 from selfid_jax.control import metrics, paths
 from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
                                                   check_noise_pairs, format_m_a, m_a_summary)
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.figures import save_figure
@@ -49,7 +50,7 @@ INVERSES = ("estimated", "analytical")
 class TrackingPath(BaseModel):
     """The commanded path, as offsets from where self-ID ended (:mod:`selfid_jax.control.paths`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+    model_config = STRICT
 
     kind: Literal["text", "letters", "cube", "star", "rotation"]
     text: str = Field("E", min_length=1, description="letters for kinds 'text' (one path) and 'letters' "
