@@ -221,7 +221,7 @@ def _build(cfg: AblationConfig) -> Part:
     # the m_a column labels a level by one number: its value, or the geometric mean of a per-actuator level
     label = [lv.value[0] if np.all(lv.value == lv.value[0]) else float(np.exp(np.log(lv.value).mean())) for lv in levels]
     meta.insert(4, "m_a", np.asarray(label, float)[level])
-    meta["m_a_vec"] = [levels[i].value.tolist() for i in level]
+    meta["m_a_vec"] = [tuple(levels[i].value.tolist()) for i in level]  # tuples: the run manifest hashes meta
     meta["m_a_source"] = levels[0].source
     path = paths.star(size=cfg.path.size, dim=system.task_dim)
     configs = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,

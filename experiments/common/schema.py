@@ -51,12 +51,12 @@ def resolve_m_a(m_a, system, where: str = "m_a") -> SelfIdMagnitude:
 
 
 def add_m_a_columns(meta, choice: SelfIdMagnitude, prefix: str = "") -> None:
-    """Record ``choice`` in every row of ``meta`` (in place): ``{prefix}m_a`` (the ``(n_act,)`` list) and its source.
+    """Record ``choice`` in every row of ``meta`` (in place): ``{prefix}m_a`` (the ``(n_act,)`` values) and its source.
 
     The columns reach ``results.parquet``, so ``summarize`` (which reads the
     table only) can say which magnitude each system used (:func:`m_a_summary`).
     """
-    meta[f"{prefix}m_a"] = [choice.value.tolist()] * len(meta)
+    meta[f"{prefix}m_a"] = [tuple(choice.value.tolist())] * len(meta)  # tuples: the run manifest hashes meta
     meta[f"{prefix}m_a_source"] = choice.source
 
 
