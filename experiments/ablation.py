@@ -37,7 +37,8 @@ from selfid_jax.identify import estimator, algorithm as selfid
 from selfid_jax.control import paths
 
 from selfid_jax.experiments.common import figures as plots
-from selfid_jax.experiments.common.schema import ControllerConfig, PathConfig, StudyConfig, check_noise_pairs
+from selfid_jax.experiments.common.schema import (ControllerConfig, Magnitude, PathConfig, StudyConfig,
+                                                  check_noise_pairs, m_a_summary, resolve_m_a)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
@@ -75,7 +76,9 @@ class AblationConfig(StudyConfig):
     n_trials: int = Field(ge=1, le=10**5)
     pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)]  # m
     rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)]  # rad
-    m_a: Annotated[list[Annotated[float, Field(gt=0, le=0.1)]], Field(min_length=1)]
+    m_a: Annotated[list[Magnitude], Field(min_length=1)] | None = Field(
+        None, description="self-ID magnitude levels, each one number or one per actuator [rad or m] (default: one "
+        "level, the system's own m_a; the rule of common.schema.resolve_m_a)")
     eps: float = Field(gt=0, le=1e6, description="Sec. IV-D convergence threshold on ||J_t - J_{t-1}||_F [rad/m]")
     eps_rel: float = Field(0.0, ge=0, le=10, description="relative threshold: converged at eps + eps_rel ||J_t||_F")
     controller: ControllerConfig = ControllerConfig()
@@ -123,7 +126,7 @@ class Params(NamedTuple):
     q0: jax.Array  # (n,) start configuration [rad]
     pose_noise: jax.Array  # () tracker position noise sd [m]
     rot_noise: jax.Array  # () tracker rotation noise sd [rad]
-    m_a: jax.Array  # () self-ID magnitude [rad]
+    m_a: jax.Array  # (n,) self-ID magnitude per actuator [rad or m]
     eps: jax.Array  # () Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]
     eps_rel: jax.Array  # () relative Sec. IV-D threshold (times ||J_t||_F)
     controller: control.ControllerParams  # () each
@@ -203,16 +206,25 @@ def build(cfg):
 def _build(cfg: AblationConfig) -> Part:
     """Configs x trials x noise levels x m_a streams on the configured system (UR5e position task by default)."""
     system = build_system(cfg.system)
+    levels = ([resolve_m_a(None, system)] if cfg.m_a is None else
+              [resolve_m_a(v, system, f"m_a[{i}]") for i, v in enumerate(cfg.m_a)])
     meta = grid_table(
         {
             "noise_level": range(len(cfg.pose_noise)),
-            "m_a": cfg.m_a,
+            "m_a_level": range(len(levels)),
             "config_id": range(cfg.n_configs),
             "trial": range(cfg.n_trials),
         }
     )
     meta.insert(1, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
     meta.insert(2, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
+    level = meta["m_a_level"].to_numpy()
+    # the m_a column labels a level by one number: its value, or the geometric mean of a per-actuator level
+    label = [lv.value[0] if np.all(lv.value == lv.value[0]) else float(np.exp(np.log(lv.value).mean()))
+             for lv in levels]
+    meta.insert(4, "m_a", np.asarray(label, float)[level])
+    meta["m_a_vec"] = [tuple(levels[i].value.tolist()) for i in level]  # tuples: the run manifest hashes meta
+    meta["m_a_source"] = levels[0].source
     path = paths.star(size=cfg.path.size, dim=system.task_dim)
     configs = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
                                                  control.ControllerParams(**cfg.controller.traced()),
@@ -223,7 +235,7 @@ def _build(cfg: AblationConfig) -> Part:
         q0=configs[meta["config_id"].to_numpy()],
         pose_noise=meta["pose_noise"].to_numpy(float),
         rot_noise=meta["rot_noise"].to_numpy(float),
-        m_a=meta["m_a"].to_numpy(float),
+        m_a=np.stack([lv.value for lv in levels])[level],
         eps=np.full((n,), cfg.eps),
         eps_rel=np.full((n,), cfg.eps_rel),
         controller=controller_rows(cfg.controller, n),
@@ -243,7 +255,8 @@ def _build(cfg: AblationConfig) -> Part:
 
 def tabulate(wide: pd.DataFrame, part: Part, cfg: AblationConfig) -> pd.DataFrame:
     """Stream table (list columns of M x C values) -> one row per (stream, method, iteration count)."""
-    base_cols = ["noise_level", "pose_noise", "rot_noise", "m_a", "config_id", "trial"]
+    base_cols = ["noise_level", "pose_noise", "rot_noise", "m_a_level", "m_a", "config_id", "trial", "m_a_vec",
+                 "m_a_source"]
     its = np.asarray(cfg.iterations)
     M, C, rows = len(cfg.methods), len(its), len(wide)
 
@@ -267,7 +280,7 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: AblationConfig) -> pd.DataFram
 
 def summarize(df: pd.DataFrame, cfg: AblationConfig) -> dict[str, Any]:
     """Per method (noise-free, first m_a): iterations to reach the completion threshold, convergence stats."""
-    clean = df[(df.noise_level == 0) & (df.m_a == cfg.m_a[0])]
+    clean = df[(df.noise_level == 0) & (df.m_a_level == 0)]
     methods = {}
     for name, g in clean.groupby("method", sort=False):
         curve = g.groupby("iterations")["completion"].mean()
@@ -287,6 +300,9 @@ def summarize(df: pd.DataFrame, cfg: AblationConfig) -> dict[str, Any]:
     return {
         "completion_threshold": cfg.completion_threshold,
         "eps": cfg.eps,
+        "self_id": {"m_a_levels": [m_a_summary(g, vector="m_a_vec")["m_a"]
+                                   for _, g in df.groupby("m_a_level", sort=True)],
+                    "m_a_source": str(df["m_a_source"].iloc[0])},
         "controller": cfg.controller.model_dump(),
         "path": cfg.path.model_dump(),
         "methods": methods,

@@ -21,23 +21,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.articulated import scenes, sim, tactile
-from selfid_jax.experiments.common.schema import StudyConfig
+from selfid_jax.experiments.common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_summary
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 METRICS = ("time_s", "efficiency", "jerk", "dev_mean_mm", "dev_max_mm")
 
 
 class Objects(BaseModel):
     """How many objects of each kind (paper: 50 prismatic, 50 revolute, 100 Bezier)."""
 
-    model_config = _STRICT
+    model_config = STRICT
     prismatic: int = Field(0, ge=0, le=10**4)
     revolute: int = Field(0, ge=0, le=10**4)
     helical: int = Field(0, ge=0, le=10**4)
@@ -47,7 +47,7 @@ class Objects(BaseModel):
 class Population(BaseModel):
     """Ranges of the object generator (:func:`selfid_jax.articulated.scenes.population`)."""
 
-    model_config = _STRICT
+    model_config = STRICT
     misalign_deg: float = Field(15.0, ge=0, le=60, description="max angle between u0 and the true initial direction")
     damping: tuple[float, float] = (2.0, 20.0)  # N s/m at the handle
     frictionloss: tuple[float, float] = (0.5, 3.0)  # N at the handle
@@ -59,7 +59,7 @@ class Population(BaseModel):
 
 
 class Pads(BaseModel):
-    model_config = _STRICT
+    model_config = STRICT
     rows: int = Field(8, ge=1, le=32)
     cols: int = Field(8, ge=1, le=32)
     pitch: float = Field(0.0025, gt=0, le=0.01, description="marker pitch [m]")
@@ -68,7 +68,7 @@ class Pads(BaseModel):
 
 
 class TacManCfg(BaseModel):
-    model_config = _STRICT
+    model_config = STRICT
     dev_high: float = Field(1e-3, gt=0, le=0.01, description="deviation ending an exploration stage [m]")
     dev_low: float = Field(2e-4, gt=0, le=0.01, description="deviation ending a recovery stage [m]")
     gain: float = Field(0.5, gt=0, le=1, description="recovery gain per step")
@@ -90,12 +90,12 @@ class TurboLeadCfg(BaseModel):
     (squeeze 1 mm, ``contact_eps`` 0.3 mm). ``tau`` 0.06 s: 3 control steps.
     """
 
-    model_config = _STRICT
+    model_config = STRICT
     lead_max: float = Field(1e-3, ge=0, le=0.01, description="cap of the integral lead along the screw [m]")
     tau: float = Field(0.06, ge=0, le=10, description="handle-twist smoothing time constant [s] (0: none)")
 
 
-class ArticulatedConfig(StudyConfig):
+class ArticulatedConfig(StudyConfig, SelfIdConfig):
     """Tac-Man vs TacMan-Turbo over a seeded population of articulated objects, true vs self-ID arm."""
 
     experiment: Literal["articulated"] = "articulated"
@@ -120,7 +120,6 @@ class ArticulatedConfig(StudyConfig):
     gel_k: float = Field(20000.0, gt=0, le=1e7, description="gel shear/normal stiffness [N/m]")
     gel_kr: float = Field(5.0, gt=0, le=1e4, description="gel torsional stiffness [N m/rad]")
     selfid_iters: int = Field(30, ge=2, le=10**4)
-    m_a: float = Field(0.03, gt=0, le=0.1, description="self-ID magnitude [rad]")
     eps: float = Field(0.5, ge=0, le=1e6, description="self-ID Sec. IV-D threshold")
 
     @model_validator(mode="after")
@@ -141,7 +140,7 @@ class Static(NamedTuple):
 class Params(NamedTuple):
     rollout: sim.RolloutParams
     sid_key: jax.Array  # (2,) uint32
-    m_a: jax.Array  # ()
+    m_a: jax.Array  # (6,) self-ID magnitude per joint [rad]
     eps: jax.Array  # ()
 
 
@@ -170,6 +169,7 @@ def build(cfg: ArticulatedConfig) -> list[Part]:
 
 def _build(cfg: ArticulatedConfig) -> list[Part]:
     arm, q0, p1, R1 = _arm()
+    m_a = cfg.magnitude(arm)
     settings = scenes.SceneSettings(timestep=cfg.control_dt / cfg.substeps, gel_k=cfg.gel_k, gel_kr=cfg.gel_kr)
     pads = tactile.pads(rows=cfg.pads.rows, cols=cfg.pads.cols, pitch=cfg.pads.pitch)
     if int(np.sum(pads.delta0 >= cfg.pads.contact_eps)) < 3:
@@ -192,6 +192,7 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
         o = meta["object"].to_numpy()
         meta["order"] = pop.order[o]
         meta["fit_error_mm"] = 1e3 * pop.fit_error[o]
+        add_m_a_columns(meta, m_a)
         n = len(meta)
         full = lambda v, n=n: np.full((n,), float(v))  # noqa: E731
         rollout = sim.RolloutParams(
@@ -205,7 +206,7 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
             slip=full(cfg.slip), slip_rot=full(cfg.slip_rot), lead_max=full(cfg.turbo_lead.lead_max),
             lead_tau=full(cfg.turbo_lead.tau))
         # one self-ID per object (the same estimate for every controller on it)
-        params = Params(rollout, row_keys(cfg.seed + 7, o), full(cfg.m_a), full(cfg.eps))
+        params = Params(rollout, row_keys(cfg.seed + 7, o), np.repeat(m_a.value[None], n, axis=0), full(cfg.eps))
         parts.append(Part(kind, static, params, meta))
     return parts
 
@@ -240,7 +241,9 @@ def summarize(table: pd.DataFrame, cfg: ArticulatedConfig) -> dict[str, Any]:
     for (arm, ctrl), g in table.groupby(["arm", "controller"], sort=False):
         overall.setdefault(str(arm), {})[str(ctrl)] = _stats(g)
     return {"backend": cfg.backend, "speed": cfg.speed, "control_dt": cfg.control_dt, "max_time": cfg.max_time,
-            "objects": cfg.objects.model_dump(), "kinds": kinds, "overall": overall,
+            "objects": cfg.objects.model_dump(),
+            "self_id": {"iterations": cfg.selfid_iters, **m_a_summary(table), "eps": cfg.eps},
+            "kinds": kinds, "overall": overall,
             "paper": {"turbo": {"time_s": "7.6 +- 2.3", "efficiency": "0.239 +- 0.063", "jerk": "109.82 +- 147.71"},
                       "tacman": {"time_s": "250.7 +- 194.4", "efficiency": "0.012 +- 0.011",
                                  "jerk": "4921.44 +- 3722.49"}, "success": "100% both"}}

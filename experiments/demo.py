@@ -18,14 +18,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from selfid_jax import control
 
 from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.control import paths
-from selfid_jax.experiments.common.schema import ControllerConfig, PathConfig, StudyConfig
+from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
+                                                  add_m_a_columns, m_a_summary)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
@@ -34,17 +35,17 @@ from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 
-class DemoRun(BaseModel):
-    """One robot of the demo: self-ID from ``n_configs`` start configurations, then a star with each estimate."""
+class DemoRun(SelfIdConfig):
+    """One robot of the demo: self-ID from ``n_configs`` start configurations, then a star with each estimate.
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+    ``m_a``: the system's own unless given (:class:`~selfid_jax.experiments.common.schema.SelfIdConfig`).
+    """
 
     system: SystemSpec = Field("ur5e", description="a built-in name or {mjcf: ...} / {pose_fn: ...}")
     n_configs: int = Field(4, ge=1, le=10**4, description="start configurations")
     iters: int = Field(30, ge=2, le=10**4, description="self-ID iterations (Algorithm 1)")
     eps: float = Field(0.5, ge=0, le=1e6, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]")
     eps_rel: float = Field(0.0, ge=0, le=10, description="relative Sec. IV-D threshold (times ||J_t||_F)")
-    m_a: float = Field(0.03, gt=0, le=0.1, description="self-ID magnitude [rad or m]")
     path: PathConfig = PathConfig(size=0.05)
     controller: ControllerConfig = ControllerConfig(steps=400)
 
@@ -64,9 +65,9 @@ class DemoConfig(StudyConfig):
 
     experiment: Literal["demo"] = "demo"
     runs: Annotated[list[DemoRun], Field(min_length=1)] = [
-        DemoRun(),  # the UR5e: m_a 0.03 rad, eps 0.5 rad/m, a 5 cm star in 2.5 mm steps
-        DemoRun(  # the Model O (float64): tendon steps of 0.3 mm, 5% relative eps, a 1.5 mm star in 0.2 mm steps
-            system="model_o", iters=20, m_a=0.0003, eps=0.0, eps_rel=0.05, path=PathConfig(size=0.0015),
+        DemoRun(),  # the UR5e: its m_a 0.03 rad, eps 0.5 rad/m, a 5 cm star in 2.5 mm steps
+        DemoRun(  # the Model O (float64): its tendon steps of 0.3 mm, 5% relative eps, a 1.5 mm star in 0.2 mm steps
+            system="model_o", iters=20, eps=0.0, eps_rel=0.05, path=PathConfig(size=0.0015),
             controller=ControllerConfig(max_step=0.0002, tol=0.00005, steps=165),
         ),
     ]
@@ -88,7 +89,7 @@ class Static(NamedTuple):
 class Params(NamedTuple):
     key: jax.Array  # (2,) uint32 PRNG key data of the self-ID stream
     q0: jax.Array  # (n,) start configuration [rad]
-    m_a: jax.Array  # () self-ID magnitude [rad]
+    m_a: jax.Array  # (n_act,) self-ID magnitude per actuator [rad or m]
     eps: jax.Array  # () Sec. IV-D threshold [rad/m]
     eps_rel: jax.Array  # () relative Sec. IV-D threshold
     controller: control.ControllerParams
@@ -160,9 +161,11 @@ def _run_part(run: DemoRun, seed: int, x64: bool) -> Part:
                                             steps=run.controller.steps))
     n = run.n_configs
     keys = np.asarray(jax.random.key_data(jax.random.split(jax.random.key(seed + 1), n)))
-    params = Params(key=keys, q0=q0, m_a=np.full((n,), run.m_a), eps=np.full((n,), run.eps),
+    m_a = run.magnitude(system, f"runs[{system_name(run.system)}].m_a")
+    params = Params(key=keys, q0=q0, m_a=np.repeat(m_a.value[None], n, axis=0), eps=np.full((n,), run.eps),
                     eps_rel=np.full((n,), run.eps_rel), controller=controller_rows(run.controller, n))
     meta = pd.DataFrame({"system": system_name(run.system), "config_id": np.arange(n)})
+    add_m_a_columns(meta, m_a)
     return Part(system_name(run.system), Static(system, path, run.iters, run.controller.steps), params, meta, x64)
 
 
@@ -180,7 +183,7 @@ def summarize(table: pd.DataFrame, cfg: DemoConfig) -> dict:
         runs[name] = {
             "n_act": n_act,
             "task_dim": int(len(g["estimate"].iloc[0]) // n_act),
-            "self_id": {"iterations": run.iters, "m_a": run.m_a, "eps": run.eps, "eps_rel": run.eps_rel},
+            "self_id": {"iterations": run.iters, **m_a_summary(g), "eps": run.eps, "eps_rel": run.eps_rel},
             "controller": run.controller.model_dump(),
             "path": run.path.model_dump(),
             "start_configs": [np.asarray(q).tolist() for q in g["q0"]],

@@ -55,13 +55,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax import control, design
 
 from selfid_jax.control import paths
-from selfid_jax.experiments.common.schema import ControllerConfig, PathConfig, StudyConfig, check_noise_pairs
-from selfid_jax.runner.config import stop_after_start
+from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
+                                                  check_noise_pairs, resolve_m_a)
+from selfid_jax.runner.config import STRICT, stop_after_start
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.figures import save_figure
@@ -70,7 +71,6 @@ from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
                                                  unique_system_names)
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 EVAL_DESIGNS = ("default", "grid", "scalar", "per_actuator")
 """The designs compared on held-out trials: the system's safe ``m_a``, the grid's best, the refined scalar, per
@@ -82,7 +82,7 @@ Noise = Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=
 class MagnitudeGrid(BaseModel):
     """A log-spaced grid of self-ID magnitudes ``m_a`` [rad or m]."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     start: float = Field(gt=0, le=10, description="smallest magnitude [rad or m]")
     stop: float = Field(gt=0, le=10, description="largest magnitude, above start")
@@ -98,7 +98,7 @@ class MagnitudeGrid(BaseModel):
 class RefineConfig(BaseModel):
     """The gradient refinement (Adam on ``log m_a``, cosine-decayed step; :func:`selfid_jax.design.refine`)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     steps: int = Field(40, ge=1, le=10**4, description="Adam steps per refinement (scalar, then per actuator)")
     learning_rate: float = Field(0.1, gt=0, le=10, description="initial step in log m_a (0.1: 10% of m_a)")
@@ -106,11 +106,12 @@ class RefineConfig(BaseModel):
                               "rollouts: not followed")
 
 
-class SystemRun(BaseModel):
-    """A system with its own protocol (a hand needs mm paths, finer tracker noise and magnitudes): overrides the top
-    level."""
+class SystemRun(SelfIdConfig):
+    """A system with its own protocol (a hand needs mm paths, finer tracker noise and magnitudes): overrides the
+    top level.
 
-    model_config = _STRICT
+    ``m_a``: the reference ("default") design compared on held-out trials; the system's own unless given.
+    """
 
     system: SystemSpec
     path: PathConfig | None = None
@@ -132,6 +133,7 @@ class Protocol(NamedTuple):
     m_a_grid: MagnitudeGrid
     pose_noise: list[float]
     rot_noise: list[float]
+    m_a: Any = None  # the reference design's m_a key (None: the system's own; common.schema.resolve_m_a)
 
 
 class DesignConfig(StudyConfig):
@@ -177,7 +179,7 @@ def protocol(cfg: DesignConfig, entry) -> Protocol:
     else:
         rot = [0.0] * len(pose)
     return Protocol(run.system, run.path or cfg.path, run.controller or cfg.controller, run.m_a_grid or cfg.m_a_grid,
-                    list(pose), list(rot))
+                    list(pose), list(rot), run.m_a)
 
 
 class Static(NamedTuple):
@@ -200,7 +202,7 @@ class Params(NamedTuple):
     pose_noise: jax.Array  # () tracker position noise sd [m]
     rot_noise: jax.Array  # () tracker rotation noise sd [rad]
     m_a_grid: jax.Array  # (G,) magnitudes [rad or m]
-    default_m_a: jax.Array  # (n,) the system's safe magnitude (reference design)
+    default_m_a: jax.Array  # (n,) the reference design: the system's safe magnitude, or the entry's m_a
     key: jax.Array  # (2,) uint32 key data of the training trials
     eval_key: jax.Array  # (2,) uint32 key data of the held-out trials
     q0s: jax.Array  # (S, n) start configurations
@@ -300,7 +302,7 @@ def _system_part(cfg: DesignConfig, proto: Protocol, index: int) -> Part:
         pose_noise=meta["pose_noise"].to_numpy(float),
         rot_noise=meta["rot_noise"].to_numpy(float),
         m_a_grid=rows(grid),
-        default_m_a=rows(np.asarray(system.m_a, float)),
+        default_m_a=rows(resolve_m_a(proto.m_a, system, f"systems[{name}].m_a").value),
         key=row_keys(cfg.seed, np.full(N, 2 * index)),  # the same trials at every noise level (common random numbers)
         eval_key=row_keys(cfg.seed, np.full(N, 2 * index + 1)),
         q0s=rows(q0s),
@@ -470,7 +472,8 @@ def summarize(table: pd.DataFrame, cfg: DesignConfig) -> dict[str, Any]:
         systems[name] = {
             "n_act": int(len(t[t["stage"] == "eval"]["m_a_vec"].iloc[0])),
             "protocol": {"path": proto.path.model_dump(), "controller": proto.controller.model_dump(),
-                         "m_a_grid": proto.m_a_grid.model_dump()},
+                         "m_a_grid": proto.m_a_grid.model_dump(),
+                         "m_a_source": "system" if proto.m_a is None else "config"},
             "noise_levels": levels,
         }
     return {

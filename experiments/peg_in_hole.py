@@ -39,14 +39,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax import control
 
 from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.math import geometry
-from selfid_jax.experiments.common.schema import ControllerConfig, StudyConfig, check_noise_pairs
+from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
+                                                  check_noise_pairs, format_m_a, m_a_summary)
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.figures import save_figure
@@ -56,14 +58,13 @@ from selfid_jax.systems.ur5e import ur5e
 
 INVERSES = ("estimated", "analytical")
 HAND_AXES = ("z", "rx", "ry")
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 Vec3 = Annotated[list[Annotated[float, Field(ge=-1.0, le=1.0)]], Field(min_length=3, max_length=3)]
 
 
 class Layout(BaseModel):
     """One start / grasp / hole arrangement (world frame, metres and radians)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     yaw: float = Field(0.0, ge=-1.0, le=1.0, description="added to the arm's base joint at the start [rad]")
     grasp: Vec3 = Field(description="grasp waypoint, offset from the POM's start position [m]")
@@ -71,13 +72,10 @@ class Layout(BaseModel):
         description="hole (x, y), offset from the grasp waypoint, at the grasp height [m]")
 
 
-class PartSettings(BaseModel):
-    """Self-ID and control settings of one part (arm or hand)."""
-
-    model_config = _STRICT
+class PartSettings(SelfIdConfig):
+    """Self-ID and control settings of one part (arm or hand); ``m_a`` defaults to the part's own (UR5e, Model O)."""
 
     iters: int = Field(ge=2, le=10**4, description="self-ID iterations")
-    m_a: float = Field(gt=0, le=0.1, description="self-ID magnitude [rad or m]")
     eps: float = Field(0.0, ge=0, le=1e6)
     eps_rel: float = Field(0.0, ge=0, le=10)
     controller: ControllerConfig
@@ -89,7 +87,7 @@ class PartSettings(BaseModel):
 
 
 class Rotation(BaseModel):
-    model_config = _STRICT
+    model_config = STRICT
 
     angle: float = Field(0.15, gt=-0.26, lt=0.26, description="hand tilt of the peg [rad] (the model's safe range "
                          "is 15 deg)")
@@ -144,10 +142,10 @@ class Params(NamedTuple):
     lift: jax.Array  # () [m]
     pose_noise: jax.Array  # () [m]
     rot_noise: jax.Array  # () [rad]
-    arm_m_a: jax.Array
+    arm_m_a: jax.Array  # (6,) arm self-ID magnitude per joint [rad]
     arm_eps: jax.Array
     arm_eps_rel: jax.Array
-    hand_m_a: jax.Array
+    hand_m_a: jax.Array  # (3,) hand self-ID magnitude per tendon [m]
     hand_eps: jax.Array
     hand_eps_rel: jax.Array
     arm_ctrl: control.ControllerParams
@@ -241,12 +239,16 @@ def _build(cfg: PegConfig) -> Part:
         if np.any(q < np.asarray(arm.q_low)) or np.any(q > np.asarray(arm.q_high)):
             raise ValueError(f"layouts[{i}]: start configuration {q} is outside the UR5e's joint limits")
     full = lambda v: np.full((n,), v)  # noqa: E731
+    arm_m_a, hand_m_a = cfg.arm.magnitude(arm, "arm.m_a"), cfg.hand.magnitude(hand, "hand.m_a")
+    add_m_a_columns(meta, arm_m_a, "arm_")
+    add_m_a_columns(meta, hand_m_a, "hand_")
     params = Params(
         key=row_keys(cfg.seed, n), q_arm=q_arm, q_hand=np.repeat(q_hand[None], n, axis=0),
         grasp=np.asarray([lo.grasp for lo in lay]), hole=np.asarray([lo.hole for lo in lay]), lift=full(cfg.lift),
         pose_noise=meta["pose_noise"].to_numpy(float), rot_noise=meta["rot_noise"].to_numpy(float),
-        arm_m_a=full(cfg.arm.m_a), arm_eps=full(cfg.arm.eps), arm_eps_rel=full(cfg.arm.eps_rel),
-        hand_m_a=full(cfg.hand.m_a), hand_eps=full(cfg.hand.eps), hand_eps_rel=full(cfg.hand.eps_rel),
+        arm_m_a=np.repeat(arm_m_a.value[None], n, axis=0), arm_eps=full(cfg.arm.eps), arm_eps_rel=full(cfg.arm.eps_rel),
+        hand_m_a=np.repeat(hand_m_a.value[None], n, axis=0), hand_eps=full(cfg.hand.eps),
+        hand_eps_rel=full(cfg.hand.eps_rel),
         arm_ctrl=controller_rows(cfg.arm.controller, n), hand_ctrl=controller_rows(cfg.hand.controller, n),
     )
     static = Static(system, jnp.asarray(rotation), cfg.arm.iters, cfg.hand.iters, cfg.arm.controller.steps,
@@ -257,7 +259,8 @@ def _build(cfg: PegConfig) -> Part:
 
 def tabulate(wide: pd.DataFrame, part: Part, cfg: PegConfig) -> pd.DataFrame:
     """One row per (layout, trial, noise level, inverse Jacobian)."""
-    base = ["system", "layout", "noise_level", "pose_noise", "rot_noise", "trial", "arm_converged_at"]
+    base = ["system", "layout", "noise_level", "pose_noise", "rot_noise", "trial", "arm_converged_at", "arm_m_a",
+            "arm_m_a_source", "hand_m_a", "hand_m_a_source"]
     frames = []
     for i, inverse in enumerate(INVERSES):
         df = wide[base].copy()
@@ -296,7 +299,8 @@ def summarize(table: pd.DataFrame, cfg: PegConfig) -> dict[str, Any]:
             "arm_converged_at": _ms(conv_a[conv_a > 0]), "hand_converged_at": _ms(conv_h[conv_h > 0])}
     return {
         "layouts": [lo.model_dump() for lo in cfg.layouts],
-        "protocol": {"arm": cfg.arm.model_dump(), "hand": cfg.hand.model_dump(), "rotation": cfg.rotation.model_dump(),
+        "protocol": {"arm": cfg.arm.model_dump() | m_a_summary(table, "arm_"),
+                     "hand": cfg.hand.model_dump() | m_a_summary(table, "hand_"), "rotation": cfg.rotation.model_dump(),
                      "lift": cfg.lift, "insert_tol": cfg.insert_tol, "insert_rot_tol_deg": cfg.insert_rot_tol_deg,
                      "mount_offset": cfg.mount_offset},
         "pose_noise_mm": out,
@@ -340,9 +344,9 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
         ax.set_ylabel(labels[col])
         ax.legend(fontsize=7)
     pr = summary["protocol"]
-    fig.suptitle(f"peg-in-hole, UR5e + Model O; arm m_a {pr['arm']['m_a']:g} rad, eps {pr['arm']['eps']:g}, "
+    fig.suptitle(f"peg-in-hole, UR5e + Model O; arm m_a {format_m_a(pr['arm']['m_a'])} rad, eps {pr['arm']['eps']:g}, "
                  f"step {1e3 * pr['arm']['controller']['max_step']:g} mm, tol {1e3 * pr['arm']['controller']['tol']:g}"
-                 f" mm; hand m_a {pr['hand']['m_a']:g} m, eps_rel {pr['hand']['eps_rel']:g}, tilt "
+                 f" mm; hand m_a {format_m_a(pr['hand']['m_a'])} m, eps_rel {pr['hand']['eps_rel']:g}, tilt "
                  f"{pr['rotation']['angle']:g} rad about {pr['rotation']['about']}; noise-free rows", fontsize=8)
     return save_figure(fig, out_dir, "peg_in_hole")
 

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax import control
 
@@ -33,7 +33,9 @@ from selfid_jax.identify import estimator, algorithm as selfid
 from selfid_jax.math import geometry
 
 from selfid_jax.control import metrics, paths
-from selfid_jax.experiments.common.schema import ControllerConfig, StudyConfig, check_noise_pairs
+from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
+                                                  check_noise_pairs, format_m_a, m_a_summary)
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.figures import save_figure
@@ -48,7 +50,7 @@ INVERSES = ("estimated", "analytical")
 class TrackingPath(BaseModel):
     """The commanded path, as offsets from where self-ID ended (:mod:`selfid_jax.control.paths`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+    model_config = STRICT
 
     kind: Literal["text", "letters", "cube", "star", "rotation"]
     text: str = Field("E", min_length=1, description="letters for kinds 'text' (one path) and 'letters' "
@@ -104,7 +106,7 @@ class TrackingPath(BaseModel):
                 "rotation": float("inf")}[self.kind]
 
 
-class TrackingConfig(StudyConfig):
+class TrackingConfig(StudyConfig, SelfIdConfig):
     """Self-ID then path tracking with the estimate and the truth, over configs x trials x tracker noise."""
 
     experiment: Literal["tracking"] = "tracking"
@@ -117,7 +119,6 @@ class TrackingConfig(StudyConfig):
     n_configs: int = Field(ge=1, le=10**5)
     n_trials: int = Field(1, ge=1, le=10**5)
     iters: int = Field(30, ge=2, le=10**4, description="self-ID iterations (Algorithm 1)")
-    m_a: float = Field(gt=0, le=0.1, description="self-ID magnitude [rad or m]")
     eps: float = Field(0.5, ge=0, le=1e6, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F")
     eps_rel: float = Field(0.0, ge=0, le=10, description="relative Sec. IV-D threshold (times ||J_t||_F)")
     pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)] = [0.0]  # m
@@ -150,7 +151,7 @@ class Params(NamedTuple):
     q0: jax.Array  # (n,) start configuration
     pose_noise: jax.Array  # () tracker position noise sd [m]
     rot_noise: jax.Array  # () tracker rotation noise sd [rad]
-    m_a: jax.Array  # () self-ID magnitude
+    m_a: jax.Array  # (n,) self-ID magnitude per actuator [rad or m]
     eps: jax.Array  # () Sec. IV-D threshold
     eps_rel: jax.Array  # () relative Sec. IV-D threshold
     controller: control.ControllerParams
@@ -232,6 +233,8 @@ def _build(cfg: TrackingConfig) -> Part:
     meta.insert(3, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
     meta.insert(4, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
     meta.insert(0, "system", system_name(cfg.system))
+    m_a = cfg.magnitude(system)
+    add_m_a_columns(meta, m_a)
     longest = int(np.argmax([paths.path_length(w) for w in np.asarray(path)]))
     q0 = np.asarray(control.feasible_starts(system, path[longest], jax.random.key(cfg.seed), cfg.n_configs,
                                             control.ControllerParams(**cfg.controller.traced()),
@@ -240,7 +243,7 @@ def _build(cfg: TrackingConfig) -> Part:
     params = Params(
         letter=meta["letter_id"].to_numpy(np.int32), key=row_keys(cfg.seed, n), q0=q0[meta["config_id"].to_numpy()],
         pose_noise=meta["pose_noise"].to_numpy(float), rot_noise=meta["rot_noise"].to_numpy(float),
-        m_a=np.full((n,), cfg.m_a), eps=np.full((n,), cfg.eps), eps_rel=np.full((n,), cfg.eps_rel),
+        m_a=np.repeat(m_a.value[None], n, axis=0), eps=np.full((n,), cfg.eps), eps_rel=np.full((n,), cfg.eps_rel),
         controller=controller_rows(cfg.controller, n),
     )
     return Part(system_name(cfg.system), Static(system, path, cfg.iters, cfg.controller.steps), params, meta)
@@ -249,7 +252,7 @@ def _build(cfg: TrackingConfig) -> Part:
 def tabulate(wide: pd.DataFrame, part: Part, cfg: TrackingConfig) -> pd.DataFrame:
     """One row per (rollout, inverse Jacobian) with scalar metric columns; trajectories stay as list columns."""
     base = ["system", "letter_id", "path", "noise_level", "pose_noise", "rot_noise", "config_id", "trial",
-            "converged_at"]
+            "converged_at", "m_a", "m_a_source"]
     frames = []
     for i, inverse in enumerate(INVERSES):
         df = wide[base].copy()
@@ -292,7 +295,7 @@ def summarize(table: pd.DataFrame, cfg: TrackingConfig) -> dict[str, Any]:
     """Mean +- sd per system, tracker-noise level and inverse Jacobian (and per letter / rotation axis)."""
     systems: dict[str, Any] = {}
     for (system, noise), g in table.groupby(["system", "pose_noise"], sort=False):
-        entry = systems.setdefault(str(system), {"pose_noise_mm": {}})
+        entry = systems.setdefault(str(system), {"self_id": m_a_summary(g), "pose_noise_mm": {}})
         entry["pose_noise_mm"][f"{1e3 * noise:g}"] = _stats(g)
         if cfg.path.kind in ("letters", "rotation"):  # per letter / per rotation axis, each from its own self-ID
             per = entry.setdefault("letters" if cfg.path.kind == "letters" else "rotations", {})
@@ -302,7 +305,7 @@ def summarize(table: pd.DataFrame, cfg: TrackingConfig) -> dict[str, Any]:
         "path": cfg.path.model_dump(),
         "task_axes": cfg.task_axes,
         "controller": cfg.controller.model_dump(),
-        "self_id": {"iterations": cfg.iters, "m_a": cfg.m_a, "eps": cfg.eps, "eps_rel": cfg.eps_rel},
+        "self_id": {"iterations": cfg.iters, **m_a_summary(table), "eps": cfg.eps, "eps_rel": cfg.eps_rel},
         "systems": systems,
     }
 
@@ -394,7 +397,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
         axes = summary.get("task_axes")
         fig.suptitle(f"path {kind}{'' if axes is None else f', task {axes}'}; step {1e3 * c['max_step']:g} mm "
                      f"({c['max_rot_step']:g} rad), tol {1e3 * c['tol']:g} mm ({c['rot_tol']:g} rad), "
-                     f"{c['steps']} steps, gain {c['gain']:g}; self-ID m_a {s['m_a']:g}, eps {s['eps']:g}, "
+                     f"{c['steps']} steps, gain {c['gain']:g}; self-ID m_a {format_m_a(s['m_a'])}, eps {s['eps']:g}, "
                      f"eps_rel {s['eps_rel']:g}; noise-free rows, first configuration", fontsize=8)
         written += save_figure(fig, out_dir, f"tracking_{system}")
     return written

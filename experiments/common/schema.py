@@ -1,4 +1,4 @@
-"""The domain config blocks the experiments share: error-scaling grids, the controller protocol, the path.
+"""The domain config blocks the experiments share: the self-ID magnitude, error-scaling grids, the controller, the path.
 
 Each is a strict, frozen pydantic model (:data:`selfid_jax.runner.config.STRICT`);
 :class:`StudyConfig` is the base of every experiment config here, adding the
@@ -7,14 +7,90 @@ check that the controller's tolerance fits the path.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Any, Literal, NamedTuple
 
 import numpy as np
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
-__all__ = ["ControllerConfig", "EpsLimits", "PathConfig", "StudyConfig", "check_noise_pairs", "controller_rows"]
+__all__ = ["ControllerConfig", "EpsLimits", "Magnitude", "PathConfig", "SelfIdConfig", "SelfIdMagnitude", "StudyConfig",
+           "add_m_a_columns", "check_noise_pairs", "controller_rows", "format_m_a", "m_a_summary", "resolve_m_a"]
+
+
+Magnitude = Annotated[float, Field(gt=0)] | Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=1)]
+"""A self-ID magnitude ``m_a`` in a config: one number, or one per actuator [rad or m], > 0."""
+
+
+class SelfIdMagnitude(NamedTuple):
+    """The self-ID magnitude an experiment uses for one system, and where it came from."""
+
+    value: np.ndarray  # (n_act,) float64 [rad or m]
+    source: Literal["system", "config"]  # the system's own m_a, or the experiment's m_a key
+
+    def summary(self) -> dict[str, Any]:
+        """``{"m_a": number (all actuators equal) or list, "m_a_source": "system" | "config"}`` for summary.json."""
+        v = [float(x) for x in self.value]
+        return {"m_a": v[0] if len(set(v)) == 1 else v, "m_a_source": self.source}
+
+
+def resolve_m_a(m_a, system, where: str = "m_a") -> SelfIdMagnitude:
+    """THE m_a rule: the experiment's ``m_a`` (scalar or per actuator) if given, else the system's own ``m_a``.
+
+    ``system`` is a :class:`selfid_jax.systems.System` (its ``m_a`` is ``(n_act,)``);
+    ``ValueError`` naming ``where`` if a per-actuator list has the wrong length.
+    """
+    n = int(system.n_act)
+    if m_a is None:
+        return SelfIdMagnitude(np.asarray(system.m_a, float).reshape(n), "system")
+    value = np.asarray(m_a, float)
+    if value.ndim == 1 and value.shape != (n,):
+        raise ValueError(f"{where}: {len(value)} values for the {n} actuators of {system.name!r} "
+                         "(give one number or one per actuator)")
+    return SelfIdMagnitude(np.broadcast_to(value, (n,)).copy(), "config")
+
+
+def add_m_a_columns(meta, choice: SelfIdMagnitude, prefix: str = "") -> None:
+    """Record ``choice`` in every row of ``meta`` (in place): ``{prefix}m_a`` (the ``(n_act,)`` values) and its source.
+
+    The columns reach ``results.parquet``, so ``summarize`` (which reads the
+    table only) can say which magnitude each system used (:func:`m_a_summary`).
+    """
+    meta[f"{prefix}m_a"] = [tuple(choice.value.tolist())] * len(meta)  # tuples: the run manifest hashes meta
+    meta[f"{prefix}m_a_source"] = choice.source
+
+
+def m_a_summary(rows, prefix: str = "", vector: str | None = None) -> dict[str, Any]:
+    """``{"m_a": ..., "m_a_source": ...}`` of the rows of one system (columns of :func:`add_m_a_columns`).
+
+    ``vector``: the column holding the per-actuator list, if not ``{prefix}m_a``.
+    """
+    first = rows.iloc[0]
+    return SelfIdMagnitude(np.asarray(first[vector or f"{prefix}m_a"], float),
+                           str(first[f"{prefix}m_a_source"])).summary()
+
+
+def format_m_a(value) -> str:
+    """``m_a`` of a summary for a figure title: ``0.03`` or ``[0.02, 0.05]``."""
+    return f"{value:g}" if np.ndim(value) == 0 else "[" + ", ".join(f"{v:g}" for v in value) + "]"
+
+
+class SelfIdConfig(BaseModel):
+    """The self-ID magnitude every experiment reads the same way (:func:`resolve_m_a`).
+
+    ``m_a`` left out: the system's own ``m_a`` (its spec's ``m_a``, or the
+    built-in robot's safe magnitude); given: it overrides the system's, one
+    number or one per actuator. ``summary.json`` states which was used.
+    """
+
+    model_config = STRICT
+
+    m_a: Magnitude | None = Field(None, description="self-ID magnitude [rad or m], one number or one per actuator "
+                                  "(default: the system's own m_a)")
+
+    def magnitude(self, system, where: str = "m_a") -> SelfIdMagnitude:
+        """The ``(n_act,)`` magnitude this config gives ``system`` and its source (:func:`resolve_m_a`)."""
+        return resolve_m_a(self.m_a, system, where)
 
 
 class EpsLimits(BaseModel):

@@ -32,9 +32,9 @@ import importlib.util
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, Discriminator, Field, Tag, ValidationInfo, field_validator, model_validator
 
-from selfid_jax.runner.config import unique
+from selfid_jax.runner.config import STRICT, unique
 from selfid_jax.runner.layout import SAFE_NAME
 from selfid_jax.systems.system import System
 
@@ -42,7 +42,6 @@ __all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "Syst
            "needs_x64", "spec_or_run", "unique_system_names",
            "system_name"]
 
-_STRICT = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 Numbers = float | list[float]
 
@@ -70,7 +69,7 @@ BUILTIN_FACTORIES = ("two_link", "ur5e", "ur5e_6d", "stewart_hand", "model_o", "
 class SampleBox(BaseModel):
     """A box of start configurations, actuator units (rad or m)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     low: list[float] = Field(min_length=1)
     high: list[float] = Field(min_length=1)
@@ -85,7 +84,7 @@ class SampleBox(BaseModel):
 class MjcfSystem(BaseModel):
     """A MuJoCo model: the actuation space is its actuators (or the named subset)."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     mjcf: str = Field(description="MJCF file, relative to the config file")
     site: str = Field(min_length=1, description="name of the POM site")
@@ -132,7 +131,7 @@ class MjcfSystem(BaseModel):
 class PoseFnSystem(BaseModel):
     """A pure JAX pose function ``fn(params, q) -> (p (3,), R (3, 3))`` or ``-> p``, importable by name."""
 
-    model_config = _STRICT
+    model_config = STRICT
 
     pose_fn: str = Field(pattern=r"^[\w.]+:\w+$", description="'package.module:function'")
     n_act: int = Field(ge=1, le=1000)

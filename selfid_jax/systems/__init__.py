@@ -7,9 +7,10 @@ from selfid_jax.systems.system import System, from_pose_fn
 from selfid_jax.systems.two_link import two_link
 from selfid_jax.systems import manipulability  # noqa: E402,F401
 from selfid_jax.systems.ur5e import ur5e
+from selfid_jax.systems.validation import Limits
 
-__all__ = ["BUILTIN", "System", "arm5", "from_ets", "from_pose_fn", "from_mjcf", "model_o", "stewart_hand", "two_link",
-           "ur5e"]
+__all__ = ["BUILTIN", "Limits", "System", "arm5", "from_ets", "from_pose_fn", "from_mjcf", "model_o", "stewart_hand",
+           "two_link", "ur5e"]
 
 BUILTIN = {
     "two_link": "two_link(): planar 2-link arm, unit links, task = xy position (Fig. 2)",

@@ -28,6 +28,7 @@ import numpy as np
 
 from selfid_jax.math import geometry
 from selfid_jax.systems.system import System, make_system
+from selfid_jax.systems.validation import Limits
 
 __all__ = ["MountedPose", "ToolPose", "BasePose", "mount", "arm_part", "hand_part"]
 
@@ -107,9 +108,8 @@ def mount(arm: System, hand: System, *, offset=(0.0, 0.0, 0.0), rotation_vector=
     return make_system(
         name=name or f"{arm.name}+{hand.name}", params=(arm.params, hand.params, mount_tf),
         pose_fn=MountedPose(arm.pose_fn, hand.pose_fn, arm.n_act), has_rotation=True,
-        n_act=arm.n_act + hand.n_act, task_dim=6, q_low=cat("q_low"), q_high=cat("q_high"), dq_max=cat("dq_max"),
-        m_a=cat("m_a"), sample_low=cat("sample_low"), sample_high=cat("sample_high"),
-        min_sigma=min(arm.min_sigma, hand.min_sigma),
+        limits=Limits(arm.n_act + hand.n_act, 6, cat("q_low"), cat("q_high"), cat("dq_max"), cat("m_a"),
+                      cat("sample_low"), cat("sample_high"), min(arm.min_sigma, hand.min_sigma)),
     )
 
 

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from selfid_jax.systems.system import System, make_system
+from selfid_jax.systems.validation import Limits
 
 __all__ = ["ARM5_ETS", "ARM5_HOME", "ARM5_Q_HIGH", "ARM5_Q_LOW", "EtsModel", "EtsPose", "arm5", "from_ets", "parse_ets"]
 
@@ -350,9 +351,8 @@ def from_ets(
         q_high = hi if q_high is None else q_high
     fl = jnp.result_type(float)
     model = EtsModel(rot=jnp.asarray(rot, fl), pos=jnp.asarray(pos, fl))
-    return make_system(name=name, params=model, pose_fn=pose, has_rotation=True, n_act=n, task_dim=task_dim,
-                       q_low=q_low, q_high=q_high, dq_max=dq_max, m_a=m_a, sample_low=sample_low,
-                       sample_high=sample_high, min_sigma=min_sigma)
+    return make_system(name=name, params=model, pose_fn=pose, has_rotation=True,
+                       limits=Limits(n, task_dim, q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma))
 
 
 # ------------------------------------------------------------------ the seed's 5-DOF arm

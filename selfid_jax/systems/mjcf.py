@@ -22,7 +22,7 @@ from selfid_jax.systems.kinematics import (
     kinematic_mjx_model,
 )
 from selfid_jax.systems.system import System, make_system
-from selfid_jax.systems.validation import check_task_dim, vector
+from selfid_jax.systems.validation import Limits, check_task_dim, vector
 
 __all__ = ["from_mjcf", "MjxSitePose", "ChainSitePose", "ChainModel", "HINGE_HALF_WIDTH", "RANGE_FRACTION"]
 
@@ -186,15 +186,7 @@ def from_mjcf(
             params=params,
             pose_fn=pose_fn,
             has_rotation=True,
-            n_act=n,
-            task_dim=task_dim,
-            q_low=q_low,
-            q_high=q_high,
-            dq_max=dq_max,
-            m_a=m_a,
-            sample_low=sample_low,
-            sample_high=sample_high,
-            min_sigma=min_sigma,
+            limits=Limits(n, task_dim, q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma),
         )
     except ValueError as e:
         raise ValueError(f"{e} [MJCF {label}: {n} actuators {list(act.qmap.names)}]") from e

@@ -41,7 +41,7 @@ import numpy as np
 
 from selfid_jax.math import geometry
 from selfid_jax.math.linalg import pseudo_inverse
-from selfid_jax.systems.validation import check_task_axes, check_task_dim, default_axes, validate
+from selfid_jax.systems.validation import Limits, check_task_axes, check_task_dim, default_axes, validate
 
 __all__ = ["System", "from_pose_fn", "PositionOnlyPose"]
 
@@ -322,26 +322,14 @@ class PositionOnlyPose:
         return p, jnp.eye(3, dtype=p.dtype)
 
 
-def make_system(*, name, params, pose_fn, has_rotation, **kw) -> System:
-    """A :class:`System` from :func:`validate`-checked limits (``**kw``), arrays in the default float dtype."""
-    v = validate(has_rotation=has_rotation, **kw)
-    f = jnp.asarray  # default float dtype (float64 only under jax_enable_x64)
-    fl = jnp.result_type(float)
-    return System(
-        params=params,
-        q_low=f(v["q_low"], fl),
-        q_high=f(v["q_high"], fl),
-        dq_max=f(v["dq_max"], fl),
-        m_a=f(v["m_a"], fl),
-        sample_low=f(v["sample_low"], fl),
-        sample_high=f(v["sample_high"], fl),
-        name=str(name),
-        n_act=v["n_act"],
-        task_dim=v["task_dim"],
-        pose_fn=pose_fn,
-        min_sigma=v["min_sigma"],
-        has_rotation=has_rotation,
-    )
+def make_system(*, name, params, pose_fn, has_rotation, limits: Limits) -> System:
+    """A :class:`System` from :func:`validate`-checked ``limits``, arrays in the default float dtype."""
+    v = validate(limits, has_rotation=has_rotation)
+    fl = jnp.result_type(float)  # the default float dtype (float64 only under jax_enable_x64)
+    arrays = {k: jnp.asarray(getattr(v, k), fl) for k in ("q_low", "q_high", "dq_max", "m_a", "sample_low",
+                                                          "sample_high")}
+    return System(params=params, **arrays, name=str(name), n_act=v.n_act, task_dim=v.task_dim, pose_fn=pose_fn,
+                  min_sigma=v.min_sigma, has_rotation=has_rotation)
 
 
 # ---------------------------------------------------------------- builders
@@ -388,18 +376,8 @@ def from_pose_fn(
         raise ValueError(f"fn must be callable fn(params, q), got {fn!r}")
     if isinstance(n_act, bool) or not isinstance(n_act, (int, np.integer)) or n_act < 1:
         raise ValueError(f"n_act must be a positive integer, got {n_act!r}")
-    limits = dict(
-        n_act=n_act,
-        task_dim=task_dim,
-        q_low=q_low,
-        q_high=q_high,
-        dq_max=dq_max,
-        m_a=m_a,
-        sample_low=sample_low,
-        sample_high=sample_high,
-        min_sigma=min_sigma,
-    )
-    validate(has_rotation=True, **limits)  # report bad numbers before tracing fn
+    limits = Limits(n_act, task_dim, q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma)
+    validate(limits, has_rotation=True)  # report bad numbers before tracing fn
     q0 = jax.ShapeDtypeStruct((int(n_act),), jnp.result_type(float))
     try:
         out = jax.eval_shape(fn, params, q0)
@@ -425,5 +403,5 @@ def from_pose_fn(
         params=params,
         pose_fn=pose_fn,
         has_rotation=has_rotation,
-        **limits,
+        limits=limits,
     )

@@ -8,11 +8,31 @@ inside ``jit``. Units as in ``System``: rad or m per actuator.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["TASK_DIMS", "AXIS_NAMES", "check_task_dim", "check_task_axes", "default_axes", "vector", "validate"]
+__all__ = ["TASK_DIMS", "AXIS_NAMES", "Limits", "check_task_dim", "check_task_axes", "default_axes", "vector",
+           "validate"]
+
+
+class Limits(NamedTuple):
+    """The sizes and actuator limits a :class:`~selfid_jax.systems.System` is built from (rad or m per actuator).
+
+    What the builders (``from_pose_fn``, ``from_mjcf``, ``stewart_hand`` ...) pass to
+    ``make_system``; :func:`validate` returns it normalised (``(n_act,)`` float64
+    arrays, the sampling box defaulting to the joint limits).
+    """
+
+    n_act: int  # number of actuators
+    task_dim: int  # 2 (planar xy), 3 (position) or 6 (position + rotation vector)
+    q_low: Any  # scalar or (n_act,) joint limits (may be -inf)
+    q_high: Any  # scalar or (n_act,) (may be +inf)
+    dq_max: Any  # scalar or (n_act,) largest actuator step per control step, > 0
+    m_a: Any  # scalar or (n_act,) safe self-ID magnitude, > 0
+    sample_low: Any = None  # scalar or (n_act,) box sample_configs draws from (default: q_low)
+    sample_high: Any = None  # (default: q_high)
+    min_sigma: float = 1e-3  # sample_configs keeps configurations with sigma_min(J) above this
 
 #: Supported task dimensions: planar xy, position, position + rotation vector.
 TASK_DIMS = (2, 3, 6)
@@ -76,16 +96,15 @@ def vector(name: str, value, n: int) -> np.ndarray:
     return arr
 
 
-def validate(
-    *, n_act, task_dim, has_rotation, q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma
-) -> dict[str, Any]:
+def validate(limits: Limits, *, has_rotation: bool) -> Limits:
     """Eager check of a system's sizes and limits; returns them normalised.
 
     Scalars are broadcast to ``(n_act,)`` float64 numpy arrays, the sampling
     box defaults to the joint limits (``m_a`` too: ``(n_act,)``), and
     ``n_act``, ``task_dim`` and ``min_sigma`` come back as plain numbers. Raises a
-    ``ValueError`` naming the first bad argument.
+    ``ValueError`` naming the first bad field.
     """
+    n_act, task_dim, q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma = limits
     if isinstance(n_act, bool) or not isinstance(n_act, (int, np.integer)) or n_act < 1:
         raise ValueError(f"n_act must be a positive integer, got {n_act!r}")
     n_act = int(n_act)
@@ -122,14 +141,4 @@ def validate(
     min_sigma = float(min_sigma)
     if not (math.isfinite(min_sigma) and min_sigma >= 0):
         raise ValueError(f"min_sigma must be finite and >= 0, got {min_sigma}")
-    return dict(
-        n_act=n_act,
-        task_dim=int(task_dim),
-        q_low=q_low,
-        q_high=q_high,
-        dq_max=dq_max,
-        m_a=m_a,
-        sample_low=sample_low,
-        sample_high=sample_high,
-        min_sigma=min_sigma,
-    )
+    return Limits(n_act, int(task_dim), q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma)

@@ -49,6 +49,7 @@ import numpy as np
 from selfid_jax.math import geometry
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
+from selfid_jax.systems.validation import Limits
 
 __all__ = [
     "MODEL_O_MAX_TILT", "MODEL_O_SAFE_RANGE", "MODEL_O_SETTLE_STEPS", "MODEL_O_SETTLE_TOL", "MODEL_O_SITE",
@@ -428,8 +429,8 @@ def model_o(*, backend: str = "kinematic", task_dim: int = 3, m_a=0.0003, dq_max
         params, pose_fn = (inner_params, jnp.asarray(max_tilt, f)), TiltGuardedPose(inner)
     return make_system(
         name="model_o" if backend == "kinematic" else f"model_o_{backend}", params=params, pose_fn=pose_fn,
-        has_rotation=True, n_act=3, task_dim=task_dim, q_low=q_low, q_high=q_high, dq_max=dq_max, m_a=m_a,
-        sample_low=np.maximum(q_low, home - half_width) if sample_low is None else sample_low,
-        sample_high=np.minimum(q_high, home + half_width) if sample_high is None else sample_high,
-        min_sigma=min_sigma,
+        has_rotation=True,
+        limits=Limits(3, task_dim, q_low, q_high, dq_max, m_a,
+                      np.maximum(q_low, home - half_width) if sample_low is None else sample_low,
+                      np.minimum(q_high, home + half_width) if sample_high is None else sample_high, min_sigma),
     )

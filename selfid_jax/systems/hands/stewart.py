@@ -36,6 +36,7 @@ import numpy as np
 from selfid_jax.math import geometry
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
+from selfid_jax.systems.validation import Limits
 
 __all__ = [
     "STEWART_HALF_WIDTH",
@@ -276,15 +277,7 @@ def stewart_hand(
         params=params,
         pose_fn=pose_fn,
         has_rotation=True,
-        n_act=6,
-        task_dim=task_dim,
-        q_low=q_low,
-        q_high=q_high,
-        dq_max=dq_max,
-        m_a=m_a,
-        sample_low=sample_low,
-        sample_high=sample_high,
-        min_sigma=min_sigma,
+        limits=Limits(6, task_dim, q_low, q_high, dq_max, m_a, sample_low, sample_high, min_sigma),
     )
 
 
