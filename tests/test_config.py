@@ -193,3 +193,69 @@ def test_systems_entries_may_carry_their_own_protocol(cfg_file):
     assert protocol(cfg, cfg.systems[0])[1].size == 0.5  # the top level fills in
     msg = _error(cfg_file, ["systems=[{system: ur5e, path: {size: 0.001}}]"])  # tol 1e-3 does not fit 1 mm
     assert "controller.tol" in msg and "path.size" in msg
+
+
+def test_strict_yaml_refuses_duplicates_bad_encodings_and_bombs(tmp_path):
+    """Duplicate keys at any depth (with both lines), non-UTF-8 files and alias bombs: one bounded ConfigError."""
+    cases = {
+        "dup_nested.yaml": ("experiment: valid_region\ncontroller: {tol: 0.002, tol: 0.09}\n",
+                            r"duplicate key 'tol' \(line 2 and line 2\)"),
+        "dup_top.yaml": ("experiment: valid_region\nseed: 1\nseed: 2\n", r"duplicate key 'seed' \(line 2 and line 3\)"),
+        "latin1.yaml": ("experiment: valid_region\nname: caf\xe9\n".encode("latin-1"),
+                        r"not UTF-8 text \(byte 0xe9 at offset 34\)"),
+        "utf16.yaml": ("experiment: valid_region\n".encode("utf-16"), r"not UTF-8 text \(byte 0xff at offset 0\)"),
+        "bomb.yaml": ("experiment: valid_region\na: &a [1,1,1,1,1,1,1,1,1,1]\n"
+                      + "".join(f"{c}: &{c} [{', '.join([f'*{p}'] * 10)}]\n" for p, c in zip("abcdef", "bcdefg"))
+                      + "seed: *g\n", r"more than 1,000,000 values"),
+    }
+    for name, (content, match) in cases.items():
+        path = tmp_path / name
+        (path.write_bytes if isinstance(content, bytes) else path.write_text)(content)
+        with pytest.raises(ConfigError, match=match) as err:
+            load_config(path)
+        assert len(str(err.value)) < 2000, name
+    merged = tmp_path / "merge.yaml"  # a merge key may be overridden: not a duplicate
+    merged.write_text("experiment: valid_region\nbase: &b {tol: 0.002}\ncontroller: {<<: *b, tol: 0.003}\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(merged)
+    assert "duplicate" not in str(err.value)
+
+
+def test_error_values_are_summarised(tmp_path):
+    """A huge value in a typed key is summarised in the message, never dumped."""
+    path = tmp_path / "big.yaml"
+    path.write_text("experiment: valid_region\na: &a [1,1,1,1,1,1,1,1,1,1]\nb: &b [*a,*a,*a,*a,*a,*a,*a,*a,*a,*a]\n"
+                    "c: &c [*b,*b,*b,*b,*b,*b,*b,*b,*b,*b]\nseed: *c\n")
+    with pytest.raises(ConfigError, match=r"key 'seed'.*\.\.\.") as err:
+        load_config(path)
+    assert len(str(err.value)) < 20 * 700
+
+
+def test_system_names_stay_inside_the_run_directory(tmp_path):
+    """A system name with a separator, '..', a leading dot or an absolute path is refused at validation."""
+    for bad in ["../other", "/abs/path", "a/b", "..", ".hidden", "x" * 101, "tab\there"]:
+        path = tmp_path / "names.yaml"
+        spec = f"systems: [{{pose_fn: 'm:f', n_act: 2, name: {bad!r}}}]"
+        path.write_text(VALID.replace("systems: [two_link, ur5e]", spec))
+        with pytest.raises(ConfigError, match="name"):
+            load_config(path)
+
+
+def test_sweep_too_large_is_refused_before_allocating(tmp_path, monkeypatch):
+    """A grid within every per-key bound but 10^11 rows in all: a SizeError naming the axes, in well under a second."""
+    import time
+
+    from selfid_jax.runner.grids import grid_table
+    from selfid_jax.runner.limits import SizeError, check_memory
+
+    t0 = time.perf_counter()
+    with pytest.raises(SizeError, match=r"100,000,000,000 rows \(eps_limit 100,000 x config_id 1,000 x trial 1,000"):
+        grid_table({"eps_limit": range(100_000), "config_id": range(1000), "trial": range(1000)})
+    assert time.perf_counter() - t0 < 1.0
+    monkeypatch.setenv("SELFID_JAX_MAX_ROWS", "10")
+    with pytest.raises(SizeError, match="above the limit of 10"):
+        grid_table({"a": range(4), "b": range(3)})
+    assert len(grid_table({"a": range(2), "b": range(5)})) == 10
+    monkeypatch.setenv("SELFID_JAX_MAX_MEMORY_GB", "1")
+    with pytest.raises(SizeError, match=r"about 3\.0 GiB.*limit of 1\.0 GiB"):
+        check_memory(2**20, 2**10)

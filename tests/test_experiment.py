@@ -214,3 +214,13 @@ def test_a_float64_system_beside_a_float32_one_in_one_sweep(tmp_path):
     pd.testing.assert_frame_equal(mixed[mixed.system == "two_link"].reset_index(drop=True), runs["alone"],
                                   check_dtype=False)
     assert np.all(mixed[mixed.system == "two_link_f64"].completion.notna())
+
+
+def test_part_names_cannot_leave_the_run_directory():
+    """The runner refuses part names that are not one safe path component, whatever the experiment builds."""
+    for bad in ["../escape", "/tmp/abs", "a/b", "..", ".x", ""]:
+        exp = experiment.Experiment(name="bad_names", config=BaseConfig,
+                                    build=lambda cfg, n=bad: experiment.Part(n, None, {}, pd.DataFrame()),
+                                    compute=lambda s, p: p, summarize=lambda df, cfg: {})
+        with pytest.raises(ValueError, match="one path component"):
+            exp.parts(BaseConfig(experiment="bad_names"))

@@ -70,6 +70,10 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=None, help="run directory (default: runs/<config stem>)")
     s.add_argument("--fresh", action="store_true", help="discard earlier results in the run directory")
     s.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    s.add_argument("--max-rows", type=int, metavar="N", default=None,
+                   help="refuse sweeps of more rows (default $SELFID_JAX_MAX_ROWS or 20,000,000)")
+    s.add_argument("--max-memory-gb", type=float, metavar="G", default=None,
+                   help="refuse sweeps whose results need more memory (default $SELFID_JAX_MAX_MEMORY_GB or 12)")
     g = s.add_argument_group(
         "several hosts (jax.distributed)",
         "run the same command on every host; only process 0 writes the run directory",
@@ -231,7 +235,15 @@ def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progre
 
 
 def _sweep(args: argparse.Namespace) -> int:
+    import os
+
     from selfid_jax.runner import registry
+
+    for flag, env in ((args.max_rows, "SELFID_JAX_MAX_ROWS"), (args.max_memory_gb, "SELFID_JAX_MAX_MEMORY_GB")):
+        if flag is not None:
+            if not flag > 0:
+                raise _UsageError(f"--{env[11:].lower().replace('_', '-')} must be positive, got {flag}")
+            os.environ[env] = str(flag)
 
     cfg = registry.load(args.config, args.overrides)
     exp = registry.get(cfg.experiment)

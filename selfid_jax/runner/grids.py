@@ -9,6 +9,8 @@ import jax
 import numpy as np
 import pandas as pd
 
+from selfid_jax.runner.limits import check_rows
+
 __all__ = ["grid_table", "row_keys"]
 
 
@@ -17,10 +19,13 @@ def grid_table(axes: Mapping[str, Sequence[Any]]) -> pd.DataFrame:
 
     ``grid_table({"system": ["a", "b"], "trial": range(3)})`` has 6 rows with
     columns ``system, trial``. Use it as the ``meta`` table of :func:`run_chunked`
-    and derive the parameter arrays from its columns.
+    and derive the parameter arrays from its columns. A product above the row
+    limit raises :class:`~selfid_jax.runner.limits.SizeError` naming the axes.
     """
     if not axes:
         raise ValueError("grid_table needs at least one axis")
+    axes = {k: list(v) for k, v in axes.items()}
+    check_rows({k: len(v) for k, v in axes.items()})  # before the product is allocated
     index = pd.MultiIndex.from_product([list(v) for v in axes.values()], names=list(axes))
     return index.to_frame(index=False)
 

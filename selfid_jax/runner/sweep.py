@@ -76,6 +76,7 @@ from selfid_jax.runner.errors import SweepResumeError
 from selfid_jax.runner.files import atomic_write_bytes
 from selfid_jax.runner.layout import CHUNKS_DIR, PARTS_DIR, RESULTS_FILE
 from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.runner.limits import check_memory, check_rows
 from selfid_jax.runner.manifest import params_hash
 from selfid_jax.runner.signals import phase
 
@@ -247,6 +248,7 @@ def run_chunked(
     params = {k: _canonical(k, v, n_rows) for k, v in params.items()}
     if n_rows == 0:
         raise ValueError("params have 0 rows")
+    check_rows({"rows": n_rows})
     if meta is not None:
         if len(meta) != n_rows:
             raise ValueError(f"meta has {len(meta)} rows, params have {n_rows}")
@@ -329,6 +331,11 @@ def _executables(rows_fn, params: Mapping[str, np.ndarray], devices):
                 phase("compile")
                 _EXECUTABLES[key] = lowered.compile()
                 _check_outputs(named_leaves(_EXECUTABLES[key].out_info)[0], size)
+                out_bytes = sum(int(np.prod(i.shape[1:])) * np.dtype(i.dtype).itemsize
+                                for i in named_leaves(_EXECUTABLES[key].out_info)[0].values())
+                in_bytes = sum(v[:1].nbytes for v in params.values())
+                n_total = len(next(iter(params.values())))  # before any chunk runs: the table it would build
+                check_memory(n_total, in_bytes + out_bytes + 8, "the sweep's results table")
                 while len(_EXECUTABLES) > _MAX_EXECUTABLES:
                     _EXECUTABLES.popitem(last=False)
             _EXECUTABLES.move_to_end(key)
