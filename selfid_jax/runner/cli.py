@@ -83,6 +83,8 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 (implies --distributed)")
     g.add_argument("--num-processes", type=int, metavar="P", help="number of processes (implies --distributed)")
     g.add_argument("--process-id", type=int, metavar="I", help="this process, 0..P-1 (implies --distributed)")
+    g.add_argument("--heartbeat-timeout", type=int, metavar="S", default=100,
+                   help="seconds after which the processes give up on one that stopped answering (default 100)")
 
     pl = sub.add_parser(
         "plot", help="redraw every figure of a run from its saved results",
@@ -173,8 +175,11 @@ def _init_distributed(args: argparse.Namespace) -> None:
 
     # CPU hosts need a cross-process collectives backend; GPU/TPU ignore this flag
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    if not args.heartbeat_timeout > 0:
+        raise _UsageError(f"--heartbeat-timeout must be positive, got {args.heartbeat_timeout}")
     jax.distributed.initialize(
-        coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id
+        coordinator_address=args.coordinator, num_processes=args.num_processes, process_id=args.process_id,
+        heartbeat_timeout_seconds=args.heartbeat_timeout,
     )
 
 
