@@ -49,7 +49,8 @@ import optax
 
 from selfid_jax.math.checks import check_array, check_scalar, is_traced
 from selfid_jax.identify.estimator import EstimatorState, samples, signed_inverse_jacobian, sizes
-from selfid_jax.math.linalg import _ldl_null_space, _small_matmul, _spd_right_solve, default_rcond, psd_pinv  # noqa: F401
+from selfid_jax.math.kernels import small_matmul
+from selfid_jax.math.linalg import _ldl_null_space, _spd_right_solve, default_rcond, psd_pinv  # noqa: F401
 
 METHODS = ("closed_form", "optax", "slsqp")
 LOSSES = ("l2", "huber")
@@ -116,7 +117,7 @@ def statistics_closed_form(S_vv, S_tv, J0, *, ridge=0.0, rcond=None):
     tr = sum((S_vv[k, k] for k in range(1, m)), S_vv[0, 0])
     inv_c = 1.0 / jnp.where(tr > 0, tr / m, 1.0)
     T = S_tv * inv_c
-    J = _spd_right_solve(T + _small_matmul(J0 - T, N), S_vv * inv_c + N)
+    J = _spd_right_solve(T + small_matmul(J0 - T, N), S_vv * inv_c + N)
     if isinstance(ridge, (int, float)) and ridge == 0:
         return J
     ridge = jnp.asarray(ridge, S_vv.dtype)

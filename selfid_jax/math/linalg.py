@@ -14,6 +14,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from selfid_jax.math.kernels import ldl, small_matmul
+
+
 __all__ = ["default_rcond", "pseudo_inverse", "psd_pinv", "small_inverse"]
 
 
@@ -54,14 +57,6 @@ def default_rcond(m: int, dtype) -> float:
     """Default relative eigenvalue cutoff of :func:`psd_pinv`: ``10 m eps`` of ``dtype`` (6.7e-15 in float64, 3.6e-6 in
     float32 for m = 3)."""
     return 10.0 * m * float(jnp.finfo(dtype).eps)
-
-
-def _small_matmul(A, B):
-    """``A (p, k) @ B (k, q)`` as unrolled multiply-adds over the small static ``k`` (see ``estimator.small_sum``)."""
-    out = A[:, 0:1] * B[0:1, :]
-    for k in range(1, A.shape[1]):
-        out = out + A[:, k : k + 1] * B[k : k + 1, :]
-    return out
 
 
 def psd_pinv(S, *, rcond=None):
@@ -106,39 +101,7 @@ def psd_pinv(S, *, rcond=None):
             W[i][j] = W[j][i] = w
     W = jnp.stack([jnp.stack(row) for row in W])
     R = jnp.eye(m, dtype=S.dtype) - N
-    return _small_matmul(_small_matmul(R, W), R), N
-
-
-def _ldl(S, scale):
-    """Unrolled ``L D L^T`` of a symmetric ``S (m, m)`` without pivoting: ``(L, Li, dinv, keep)``, nested lists of
-    scalars.
-
-    ``L`` unit lower triangular (``L[i][k]``, ``i > k``), ``Li = L^-1`` (row
-    ``k`` is ``z_k^T``), ``dinv`` the inverse pivots, 0 for a dropped one, and
-    ``keep[k]``: pivot ``k`` is above ``scale ||z_k||^2`` (``scale = 0``: above
-    0). A dropped pivot's ``D`` entry is 0 and its column of ``L`` is 0.
-    """
-    m = S.shape[-1]
-    zero, one = jnp.zeros((), S.dtype), jnp.ones((), S.dtype)
-    L = [[zero] * m for _ in range(m)]
-    Li = [[one if i == c else zero for c in range(m)] for i in range(m)]
-    d, dinv, keep = [zero] * m, [zero] * m, [None] * m
-    for k in range(m):
-        for c in range(k):  # row k of L^-1 from row k of L (columns < k, final) and earlier rows
-            Li[k][c] = -sum((L[k][j] * Li[j][c] for j in range(c + 1, k)), L[k][c])
-        piv = S[k, k]
-        for j in range(k):
-            piv = piv - L[k][j] * L[k][j] * d[j]
-        norm2 = sum((Li[k][c] * Li[k][c] for c in range(k)), one)  # ||z_k||^2 >= 1
-        keep[k] = piv > scale * norm2
-        d[k] = jnp.where(keep[k], piv, 0.0)
-        dinv[k] = jnp.where(keep[k], 1.0 / jnp.where(keep[k], piv, 1.0), 0.0)
-        for i in range(k + 1, m):
-            a = S[i, k]
-            for j in range(k):
-                a = a - L[i][j] * L[k][j] * d[j]
-            L[i][k] = a * dinv[k]
-    return L, Li, dinv, keep
+    return small_matmul(small_matmul(R, W), R), N
 
 
 def _ldl_null_space(S, rcond):
@@ -150,7 +113,7 @@ def _ldl_null_space(S, rcond):
     """
     m = S.shape[-1]
     rcond = default_rcond(m, S.dtype) if rcond is None else rcond
-    _, Li, dinv, keep = _ldl(S, rcond * sum((S[k, k] for k in range(1, m)), S[0, 0]))  # rcond * tr(S)
+    _, Li, dinv, keep = ldl(S, rcond * sum((S[k, k] for k in range(1, m)), S[0, 0]))  # rcond * tr(S)
     # null space: z_k (row k of Li) for dropped k, orthonormalised
     qs = []
     for k in range(m):
@@ -170,7 +133,7 @@ def _ldl_null_space(S, rcond):
 def _spd_right_solve(B, A):
     """``B (p, m) A^-1`` for a symmetric positive definite ``A (m, m)``: unrolled ``L D L^T`` and two substitutions."""
     m = A.shape[-1]
-    L, _, dinv, _ = _ldl(A, 0.0)
+    L, _, dinv, _ = ldl(A, 0.0)
     y = [B[:, j] for j in range(m)]  # Y L^T = B, forward
     for j in range(m):
         for k in range(j):
