@@ -272,9 +272,12 @@ def _plot(args: argparse.Namespace) -> int:
     if exp.plot is None:
         raise _UsageError(f"experiment {name!r} draws no figures")
     from selfid_jax.runner import signals
+    from selfid_jax.runner.lock import hold
 
     signals.phase("plot")
-    for f in _draw(exp, run_dir):
+    with hold(run_dir):  # not while a sweep writes (or --fresh empties) the directory: RunDirBusy names it
+        figures = _draw(exp, run_dir)
+    for f in figures:
         print(f"figure: {f}")
     return 0
 
