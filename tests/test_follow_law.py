@@ -186,7 +186,8 @@ def test_a_stateful_law_updates_its_state_only_on_steps_that_move():
     q0 = jnp.array([0.3, 1.4])
     res, count = jax.jit(lambda q: control.follow_law(ARM, counting(1.0), PATH, q, CTRL, steps=300))(q0)
     assert float(res.completion) == 1.0 and int(count) == int(res.steps_used)
-    res, count = jax.jit(lambda q: control.follow_law(ARM, counting(-1.0), PATH, q, CTRL, steps=300))(q0)
+    near = CTRL._replace(diverge_dist=0.05)  # moving away from the path: fails once 5 cm off it
+    res, count = jax.jit(lambda q: control.follow_law(ARM, counting(-1.0), PATH, q, near, steps=300))(q0)
     assert bool(res.failed) and int(count) == int(res.steps_used) - 1  # the failing step does not move
 
 
