@@ -153,8 +153,9 @@ def feasible_configs(static: Static, key, k: int, controller: ControllerConfig, 
     """``k`` start configurations ``(k, n)`` from which the true inverse Jacobian completes the path.
 
     The test of :func:`selfid_jax.control.feasible_starts` with its sampling
-    (``k * oversample`` draws of ``system.sample_configs(key, ...)``, the first
-    ``k`` that complete the path without failing are kept), but each rollout
+    (``k * oversample`` draws of ``system.sample_configs(key, ...)``) and its
+    selection and message (:func:`selfid_jax.control.feasible_indices`: the
+    first ``k`` that complete the path without failing), but each rollout
     is a row of the study (``eps_limit = 1``: ``m_eps = 1`` exactly, the true
     inverse Jacobian) run by :func:`selfid_jax.runner.sweep.compute_rows` at the
     study's compiled ``batch``, so the sweep reuses this compilation instead of
@@ -174,14 +175,7 @@ def feasible_configs(static: Static, key, k: int, controller: ControllerConfig, 
         controller=controller_rows(controller, total),
     )
     out = compute_rows(EXPERIMENT.batched(static), rows, batch=batch)
-    ok = np.asarray(valid) & (out["completion"] >= 1.0) & ~out["failed"].astype(bool)
-    idx = np.flatnonzero(ok)
-    if idx.shape[0] < k:
-        raise ValueError(
-            f"only {int(idx.shape[0])} of {total} sampled configurations of {system.name!r} complete "
-            f"the path with the true inverse Jacobian; need {k} (raise oversample, shrink the path or the box)"
-        )
-    return np.asarray(cand)[idx[:k]]
+    return np.asarray(cand)[control.feasible_indices(system, valid, out["completion"], out["failed"], k)]
 
 
 def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller: ControllerConfig, x64: bool) -> Part:

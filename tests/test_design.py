@@ -209,8 +209,9 @@ def test_no_nan_gradient_when_rollouts_fail():
 
     def ungated(log_m_a):
         pp = p._replace(log_m_a=log_m_a)
-        losses, _ = jax.vmap(lambda k, q: design._rollout(pp, (system, k, q, jnp.asarray(LINEAR_PATH), fe), iters=8,
-                                                          steps=220, follow_from="selfid_end", safe=False))(
+        losses, _ = jax.vmap(lambda k, q: design.search._rollout(pp, (system, k, q, jnp.asarray(LINEAR_PATH), fe),
+                                                                 iters=8, steps=220, follow_from="selfid_end",
+                                                                 safe=False))(
             keys, jnp.asarray(q0s))
         return jnp.mean(losses)
 

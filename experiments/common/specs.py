@@ -98,7 +98,7 @@ class MjcfSystem(BaseModel):
     sample_box: SampleBox | None = Field(None, description="explicit start box (instead of home +- half-width)")
     min_sigma: float = Field(1e-3, ge=0, description="start configurations need sigma_min(J) above this")
     name: str | None = Field(None, pattern=SAFE_NAME,
-                             description="label (default: the file's stem); letters, digits, '.', '_', '-'")
+                             description="label (default: the file's stem); letters, digits, '.', '_', '+', '-'")
     x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
     def input_files(self) -> dict[str, str]:
@@ -143,7 +143,7 @@ class PoseFnSystem(BaseModel):
     m_a: Numbers = 0.03
     sample_box: SampleBox | None = None
     min_sigma: float = Field(1e-3, ge=0)
-    name: str | None = Field(None, pattern=SAFE_NAME, description="label; letters, digits, '.', '_', '-'")
+    name: str | None = Field(None, pattern=SAFE_NAME, description="label; letters, digits, '.', '_', '+', '-'")
     x64: bool = Field(False, description="build and run this system in float64 (the others stay as set)")
 
     def input_files(self) -> dict[str, str]:

@@ -2,7 +2,9 @@
 
 ``selfid_jax.control`` re-exports the follow loop (:mod:`~selfid_jax.control.loop`):
 ``follow``, ``ControllerParams``, ``FollowResult``, the inverse-Jacobian sources
-(``fixed``, ``true_inverse``, ``scaled_true_inverse``) and ``feasible_starts``.
+(``fixed``, ``true_inverse``, ``scaled_true_inverse``), ``feasible_starts``, and
+the one loop under them with a pluggable step law (``follow_law``, ``StepLaw``,
+``inverse_jacobian_law``; the QP law is :func:`selfid_jax.control.qp.constrained_law`).
 """
 
 from selfid_jax.control.loop import (
@@ -12,9 +14,16 @@ from selfid_jax.control.loop import (
     FollowResult,
     FromFunction,
     JacobianInverse,
+    StepLaw,
+    clip_norm,
+    completed,
+    feasible_indices,
     feasible_starts,
     fixed,
     follow,
+    follow_law,
+    inverse_jacobian_law,
+    safe_norm,
     scaled_true_inverse,
     true_inverse,
     waypoint_poses,
@@ -27,9 +36,16 @@ __all__ = [
     "FollowResult",
     "FromFunction",
     "JacobianInverse",
+    "StepLaw",
+    "clip_norm",
+    "completed",
+    "feasible_indices",
     "feasible_starts",
     "fixed",
     "follow",
+    "follow_law",
+    "inverse_jacobian_law",
+    "safe_norm",
     "scaled_true_inverse",
     "true_inverse",
     "waypoint_poses",

@@ -1,20 +1,23 @@
-"""Inverse-Jacobian path following: ``dtheta = Jinv(q) @ V`` towards each waypoint, under ``lax.scan``.
+"""Path following under ``lax.scan``: one loop (:func:`follow_law`) whose per-step actuator law is pluggable.
 
 Each step the desired twist ``V`` points from the current pose to the current
 waypoint (scaled by ``gain``, clipped to ``max_step`` metres and
-``max_rot_step`` radians), the actuators move by ``Jinv(q) @ V`` (clipped to the
+``max_rot_step`` radians), a :class:`StepLaw` turns it into an actuator step
+(``Jinv(q) @ V`` for :func:`follow`, the E-KM's constrained QP for
+:func:`selfid_jax.control.qp.follow`), the actuators move by it (clipped to the
 system's actuator limits), and the waypoint advances once it is within ``tol``
 (and ``rot_tol`` for 6-D tasks). Metrics per rollout are returned in
 :class:`FollowResult`; a rollout whose state turns non-finite or which strays
 farther than ``diverge_dist`` from the path is frozen and flagged ``failed``,
-so every metric stays finite.
+so every metric stays finite. Completion and failure have one definition here
+for every law (:func:`completed`, :func:`feasible_indices`).
 """
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -123,13 +126,32 @@ def scaled_true_inverse(system: System, m_eps) -> JacobianInverse:
 
 # ------------------------------------------------------------------ task space
 
-def _norm(v):
-    return jnp.sqrt(jnp.sum(v * v))
+def safe_norm(v):
+    """Euclidean norm of ``v (d,)``, ``()``, whose reverse-mode derivative is 0 (not NaN) at ``v = 0``.
+
+    The square root's derivative is infinite at 0; the double ``where`` keeps
+    it off the traced path there (``0 * inf`` would be NaN). Forward value:
+    ``sqrt(sum(v * v))`` exactly, NaN included.
+    """
+    sq = jnp.sum(v * v)
+    pos = sq > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), sq)  # sq: 0 at 0, and NaN stays NaN
 
 
-def _clip_norm(v, limit):
-    norm = _norm(v)
-    return v * jnp.minimum(1.0, limit / jnp.where(norm > 0, norm, 1.0))
+def clip_norm(v, limit):
+    """``v (d,)`` scaled down to norm ``limit ()`` if longer, NaN-safe: finite reverse derivative at ``v = 0``.
+
+    Forward value: ``v * min(1, limit / |v|)`` (``v`` itself at 0), the same
+    number as the single-``where`` form; its derivative at ``v = 0`` is
+    ``min(1, limit)`` times the identity instead of NaN.
+    """
+    sq = jnp.sum(v * v)
+    pos = sq > 0
+    # the outer where also keeps XLA from rewriting limit / sqrt as limit * rsqrt (not correctly rounded: the
+    # rollouts would move in the last bit)
+    norm = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 1.0)
+    return v * jnp.minimum(1.0, limit / norm)
+
 
 
 def _segment_distance(p, a, b):
@@ -184,12 +206,12 @@ class _Task(NamedTuple):
         return p[..., list(self.pos_axes)]
 
     def reached(self, e_p, e_r, ctrl: ControllerParams):
-        return (_norm(e_p) <= ctrl.tol) & (_norm(e_r) <= ctrl.rot_tol)
+        return (safe_norm(e_p) <= ctrl.tol) & (safe_norm(e_r) <= ctrl.rot_tol)
 
     def twist(self, e_p, e_r, ctrl: ControllerParams):
         """Commanded pose change ``V (m,)``: the gained error, position and rotation parts clipped separately."""
-        return jnp.concatenate([_clip_norm(ctrl.gain * e_p, ctrl.max_step),
-                                _clip_norm(ctrl.gain * e_r, ctrl.max_rot_step)])
+        return jnp.concatenate([clip_norm(ctrl.gain * e_p, ctrl.max_step),
+                                clip_norm(ctrl.gain * e_r, ctrl.max_rot_step)])
 
     def path_distance(self, p):
         """Distance of position ``p`` to the path polyline along the task's position axes [m] (0 without any)."""
@@ -198,8 +220,57 @@ class _Task(NamedTuple):
         return jnp.min(_segment_distance(self.positions(p), self.vertices[:-1], self.vertices[1:]))
 
 
+# ------------------------------------------------------------------ step laws
+
+class StepLaw(NamedTuple):
+    """A per-step actuator law of :func:`follow_law`: three pure functions over the law's own state (optax-style).
+
+    ``init(q0 (n,)) -> state``: the law's state at the start (a pytree of
+    fixed-shape arrays; ``()`` for a memoryless law).
+
+    ``sense(state, q (n,)) -> (pose, aux)``: the POM pose ``(p (3,), R (3, 3))``
+    at ``q`` and whatever the law computed with it (e.g. the Jacobian from the
+    same kinematics pass), handed back to ``step``.
+
+    ``step(state, q, pose, aux, V (m,)) -> (dq (n,), state, ok ())``: the
+    actuator step for the commanded twist ``V`` (before ``system.apply``
+    clips it), the state after a move, and a bool that is False where the
+    law's own quantities are unusable (a non-finite Jacobian), which fails
+    the rollout. The loop keeps the new state only on steps that move.
+    """
+
+    init: Callable[[jax.Array], Any]
+    sense: Callable[[Any, jax.Array], tuple[tuple[jax.Array, jax.Array], Any]]
+    step: Callable[[Any, jax.Array, tuple[jax.Array, jax.Array], Any, jax.Array], tuple[jax.Array, Any, jax.Array]]
+
+
+def inverse_jacobian_law(system: System, jinv) -> StepLaw:
+    """``dq = Jinv(q) @ V``, ``Jinv (n, m)`` from :func:`fixed`, :func:`true_inverse`, :func:`scaled_true_inverse`,
+    any object with ``pose_and_jinv(system, q)`` or a plain ``jinv_fn(q) -> (n, m)``; stateless.
+
+    A non-finite ``Jinv`` fails the rollout; one of the wrong shape raises
+    ``ValueError`` while tracing.
+    """
+    source = jinv if hasattr(jinv, "pose_and_jinv") else FromFunction(jinv)
+    n, m = system.n_act, system.task_dim
+
+    def sense(state, q):
+        pose, J = source.pose_and_jinv(system, q)
+        if J.shape != (n, m):  # static: raised while tracing, before any compute
+            raise ValueError(f"jinv: the inverse Jacobian has shape {J.shape}, expected ({n}, {m}) = (n_act, task_dim)")
+        return pose, J
+
+    def step(state, q, pose, J, V):
+        return J @ V, state, jnp.all(jnp.isfinite(J))
+
+    return StepLaw(init=lambda q0: (), sense=sense, step=step)
+
+
+# ------------------------------------------------------------------ the loop
+
 class _Carry(NamedTuple):
     q: jax.Array  # (n,) actuator positions
+    law: Any  # the step law's state (pytree; () for a stateless law)
     waypoint: jax.Array  # () int32 index of the current waypoint (W when done)
     failed: jax.Array  # () bool
     err_sum: jax.Array  # () sum of path distances over active steps [m]
@@ -209,17 +280,130 @@ class _Carry(NamedTuple):
 
 
 def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams):
-    """Mark the current waypoint reached if ``pose`` is within tolerance; returns ``(carry, active, e_p, e_r)``."""
+    """Mark the current waypoint reached if ``pose`` is within tolerance; returns ``(carry, active)``."""
     W = task.targets.shape[0]
     active = (carry.waypoint < W) & ~carry.failed
     e_p, e_r = task.error(pose, carry.waypoint)
     reached = active & task.reached(e_p, e_r, ctrl)
     wc = jnp.minimum(carry.waypoint, W - 1)
     carry = carry._replace(
-        wp_err=jnp.where(reached, carry.wp_err.at[wc].set(_norm(e_p)), carry.wp_err),
+        wp_err=jnp.where(reached, carry.wp_err.at[wc].set(safe_norm(e_p)), carry.wp_err),
         waypoint=carry.waypoint + reached.astype(carry.waypoint.dtype),
     )
     return carry, active & (carry.waypoint < W)
+
+
+def _check_inputs(system: System, path, q0, controller, steps):
+    """Eager checks of the followers: shapes, concrete non-finite inputs, positive controller settings."""
+    steps = check_positive_int("steps", steps)
+    check_array("q0", q0, (system.n_act,))
+    check_array("path", path, (None, system.task_dim))
+    if not isinstance(controller, ControllerParams):
+        raise TypeError(f"controller must be a ControllerParams, got {type(controller).__name__}")
+    for name, value in (("q0", q0), ("path", path)):
+        if not is_traced(value) and not np.all(np.isfinite(np.asarray(value, np.float64))):
+            raise ValueError(f"{name} holds non-finite values: {np.asarray(value)}")
+    for name in ("max_step", "tol", "max_rot_step", "rot_tol", "gain"):
+        check_scalar(f"controller.{name}", getattr(controller, name), gt=0.0)
+    return steps
+
+
+def completed(completion, failed):
+    """Whether rollouts reached every waypoint without failing: ``completion >= 1`` and not ``failed`` (any shape;
+    jax or numpy arrays). The one definition of a completed rollout."""
+    return (completion >= 1.0) & ~failed.astype(bool)
+
+
+def follow_law(
+    system: System,
+    law: StepLaw,
+    path,
+    q0,
+    controller: ControllerParams = ControllerParams(),
+    *,
+    steps: int = DEFAULT_STEPS,
+    return_trajectory: bool = False,
+) -> tuple[FollowResult, Any]:
+    """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)``, each actuator step from ``law``.
+
+    The one follow loop behind :func:`follow` (``law =
+    inverse_jacobian_law(system, jinv)``) and
+    :func:`selfid_jax.control.qp.follow` (``qp.constrained_law``). Each step:
+    ``pose, aux = law.sense(state, q)``; the waypoint advances within ``tol``
+    (and ``rot_tol``); the twist ``V`` towards it is the gained error, position
+    part clipped to ``max_step`` [m], rotation part to ``max_rot_step`` [rad];
+    ``dq, state', ok = law.step(state, q, pose, aux, V)``; ``q' =
+    system.apply(q, dq)``. A rollout whose ``q'``, pose or law (``ok``) turns
+    non-finite or whose distance to the path exceeds ``diverge_dist``
+    (default ``2 max|path| + 10 tol``) is frozen and flagged ``failed``;
+    ``q`` and the law's state change only on steps that move.
+
+    Arguments, checks and metrics as :func:`follow`. Returns
+    ``(FollowResult, final law state)``.
+    """
+    steps = _check_inputs(system, path, q0, controller, steps)
+    dtype = jnp.result_type(float)
+    q0 = jnp.asarray(q0, dtype)
+    path = jnp.asarray(path, dtype)
+    W = path.shape[0]
+    pose0 = system.pose(q0)
+    task = _Task.make(path, pose0, system)
+    ctrl = controller
+    if ctrl.diverge_dist is None:
+        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(task.pos_axes)] ** 2, axis=-1)))
+        ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
+
+    def step(carry: _Carry, _):
+        pose, aux = law.sense(carry.law, carry.q)
+        dist = task.path_distance(pose[0])
+        carry, active = _advance(task, carry, pose, ctrl)
+        V = task.twist(*task.error(pose, carry.waypoint), ctrl)
+        dq, learned, ok = law.step(carry.law, carry.q, pose, aux, V)
+        q_new = system.apply(carry.q, dq)
+        # a pose map returns NaN where its solve failed (closed-chain hands): that fails the rollout too
+        finite = jnp.all(jnp.isfinite(q_new)) & ok & jnp.all(jnp.isfinite(pose[0]))
+        failed = carry.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
+        move = active & ~failed
+        counted = jnp.where(active & jnp.isfinite(dist), dist, 0.0)
+        carry = carry._replace(
+            q=jnp.where(move, q_new, carry.q),
+            law=jax.tree.map(lambda a, b: jnp.where(move, a, b), learned, carry.law),
+            failed=failed,
+            err_sum=carry.err_sum + counted,
+            err_max=jnp.maximum(carry.err_max, counted),
+            used=carry.used + active.astype(carry.used.dtype),
+        )
+        return carry, ((pose, carry.waypoint) if return_trajectory else None)
+
+    init = _Carry(
+        q=q0,
+        law=law.init(q0),
+        waypoint=jnp.zeros((), jnp.int32),
+        # traced NaN input or an unsolvable start pose: failed from the start, finite metrics
+        failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path)) & jnp.all(jnp.isfinite(pose0[0]))),
+        err_sum=jnp.zeros((), dtype),
+        err_max=jnp.zeros((), dtype),
+        used=jnp.zeros((), jnp.int32),
+        wp_err=jnp.full((W,), -1.0, dtype),
+    )
+    carry, traj = jax.lax.scan(step, init, None, length=steps)
+    pose_end = system.pose(carry.q)
+    carry, _ = _advance(task, carry, pose_end, ctrl)  # the last move may have reached a waypoint
+    end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(pose_end[0])[None]) ** 2, axis=-1))
+    wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
+    result = FollowResult(
+        completion=carry.waypoint.astype(dtype) / W,
+        mean_error=carry.err_sum / jnp.maximum(carry.used, 1).astype(dtype),
+        max_error=carry.err_max,
+        waypoint_error=jnp.mean(wp_err),
+        steps_used=carry.used,
+        failed=carry.failed,
+        final_q=carry.q,
+        positions=jnp.concatenate([traj[0][0], pose_end[0][None, :]], axis=0) if return_trajectory else None,
+        orientations=jnp.concatenate([traj[0][1], pose_end[1][None]], axis=0) if return_trajectory else None,
+        targets=jnp.concatenate([traj[1], carry.waypoint[None]]) if return_trajectory else None,
+    )
+    return result, carry.law
 
 
 def follow(
@@ -243,6 +427,7 @@ def follow(
     ``max_step`` [m], rotation part to ``max_rot_step`` [rad]; the actuators
     move by ``Jinv @ V`` (clipped by ``system.apply``), and the waypoint
     advances within ``tol`` (and ``rot_tol`` for tasks with rotation).
+    :func:`follow_law` with :func:`inverse_jacobian_law`.
 
     Args:
       system: the :class:`~selfid_jax.systems.System`.
@@ -268,77 +453,26 @@ def follow(
     False). Concrete non-finite ``q0``/``path``, non-positive controller
     settings and an inverse Jacobian of the wrong shape raise ``ValueError``.
     """
-    steps = check_positive_int("steps", steps)
-    n, m = system.n_act, system.task_dim
-    check_array("q0", q0, (n,))
-    check_array("path", path, (None, m))
-    if not isinstance(controller, ControllerParams):
-        raise TypeError(f"controller must be a ControllerParams, got {type(controller).__name__}")
-    for name, value in (("q0", q0), ("path", path)):
-        if not is_traced(value) and not np.all(np.isfinite(np.asarray(value, np.float64))):
-            raise ValueError(f"{name} holds non-finite values: {np.asarray(value)}")
-    for name in ("max_step", "tol", "max_rot_step", "rot_tol"):
-        check_scalar(f"controller.{name}", getattr(controller, name), gt=0.0)
-    check_scalar("controller.gain", controller.gain, gt=0.0)
-    source = jinv if hasattr(jinv, "pose_and_jinv") else FromFunction(jinv)
-    dtype = jnp.result_type(float)
-    q0 = jnp.asarray(q0, dtype)
-    path = jnp.asarray(path, dtype)
-    W = path.shape[0]
-    pose0 = system.pose(q0)
-    task = _Task.make(path, pose0, system)
-    ctrl = controller
-    if ctrl.diverge_dist is None:
-        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(task.pos_axes)] ** 2, axis=-1)))
-        ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
+    return follow_law(system, inverse_jacobian_law(system, jinv), path, q0, controller, steps=steps,
+                      return_trajectory=return_trajectory)[0]
 
-    def step(carry: _Carry, _):
-        pose, J = source.pose_and_jinv(system, carry.q)
-        if J.shape != (n, m):  # static: raised while tracing, before any compute
-            raise ValueError(f"jinv: the inverse Jacobian has shape {J.shape}, expected ({n}, {m}) = (n_act, task_dim)")
-        dist = task.path_distance(pose[0])
-        carry, active = _advance(task, carry, pose, ctrl)
-        q_new = system.apply(carry.q, J @ task.twist(*task.error(pose, carry.waypoint), ctrl))
-        # a pose map returns NaN where its solve failed (closed-chain hands): that fails the rollout too
-        finite = jnp.all(jnp.isfinite(q_new)) & jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(pose[0]))
-        failed = carry.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
-        counted = jnp.where(active & jnp.isfinite(dist), dist, 0.0)
-        carry = carry._replace(
-            q=jnp.where(active & ~failed, q_new, carry.q),
-            failed=failed,
-            err_sum=carry.err_sum + counted,
-            err_max=jnp.maximum(carry.err_max, counted),
-            used=carry.used + active.astype(carry.used.dtype),
+
+def feasible_indices(system: System, valid, completion, failed, k: int) -> np.ndarray:
+    """Indices ``(k,)`` of the first ``k`` candidate starts that are ``valid`` and :func:`completed` the path.
+
+    ``valid``, ``completion``, ``failed``: ``(total,)`` per candidate (jax or
+    numpy). Eager; raises ``ValueError`` if fewer than ``k`` qualify. The
+    selection and message of :func:`feasible_starts` and of the valid-region
+    study's start configurations.
+    """
+    ok = np.asarray(valid) & completed(np.asarray(completion), np.asarray(failed))
+    idx = np.flatnonzero(ok)
+    if idx.shape[0] < k:
+        raise ValueError(
+            f"only {int(idx.shape[0])} of {ok.shape[0]} sampled configurations of {system.name!r} complete "
+            f"the path with the true inverse Jacobian; need {k} (raise oversample, shrink the path or the box)"
         )
-        return carry, ((pose, carry.waypoint) if return_trajectory else None)
-
-    init = _Carry(
-        q=q0,
-        waypoint=jnp.zeros((), jnp.int32),
-        # traced NaN input or an unsolvable start pose: failed from the start, finite metrics
-        failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path)) & jnp.all(jnp.isfinite(pose0[0]))),
-        err_sum=jnp.zeros((), dtype),
-        err_max=jnp.zeros((), dtype),
-        used=jnp.zeros((), jnp.int32),
-        wp_err=jnp.full((W,), -1.0, dtype),
-    )
-    carry, traj = jax.lax.scan(step, init, None, length=steps)
-    pose_end = system.pose(carry.q)
-    carry, _ = _advance(task, carry, pose_end, ctrl)  # the last move may have reached a waypoint
-    end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(pose_end[0])[None]) ** 2, axis=-1))
-    wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
-    return FollowResult(
-        completion=carry.waypoint.astype(dtype) / W,
-        mean_error=carry.err_sum / jnp.maximum(carry.used, 1).astype(dtype),
-        max_error=carry.err_max,
-        waypoint_error=jnp.mean(wp_err),
-        steps_used=carry.used,
-        failed=carry.failed,
-        final_q=carry.q,
-        positions=jnp.concatenate([traj[0][0], pose_end[0][None, :]], axis=0) if return_trajectory else None,
-        orientations=jnp.concatenate([traj[0][1], pose_end[1][None]], axis=0) if return_trajectory else None,
-        targets=jnp.concatenate([traj[1], carry.waypoint[None]]) if return_trajectory else None,
-    )
+    return idx[:k]
 
 
 def feasible_starts(system: System, path, key, k: int, controller: ControllerParams = ControllerParams(), *,
@@ -348,26 +482,20 @@ def feasible_starts(system: System, path, key, k: int, controller: ControllerPar
     Draws ``k * oversample`` configurations with ``system.sample_configs``
     (away from singularities), follows ``path`` from each with the true inverse
     Jacobian (``controller`` and ``steps`` as for :func:`follow`) and keeps the
-    first ``k`` that complete it without failing, so a study measures
-    robustness to inverse-Jacobian error rather than paths that leave the
-    workspace or hit a joint limit. Sampling and rollouts are one compiled
-    call. Eager; raises ``ValueError`` if fewer than ``k`` qualify.
+    first ``k`` that complete it without failing (:func:`feasible_indices`), so a
+    study measures robustness to inverse-Jacobian error rather than paths that
+    leave the workspace or hit a joint limit. Sampling and rollouts are one
+    compiled call. Eager; raises ``ValueError`` if fewer than ``k`` qualify.
     """
     k = check_positive_int("k", k)
     total = k * check_positive_int("oversample", oversample)
-    cand, ok = _feasible_candidates(system, jnp.asarray(path), key, total, check_positive_int("steps", steps),
-                                    controller)
-    idx = jnp.flatnonzero(ok)
-    if idx.shape[0] < k:
-        raise ValueError(
-            f"only {int(idx.shape[0])} of {total} sampled configurations of {system.name!r} complete "
-            f"the path with the true inverse Jacobian; need {k} (raise oversample, shrink the path or the box)"
-        )
-    return cand[idx[:k]]
+    cand, valid, completion, failed = _feasible_candidates(system, jnp.asarray(path), key, total,
+                                                           check_positive_int("steps", steps), controller)
+    return cand[feasible_indices(system, valid, completion, failed, k)]
 
 
 @functools.partial(jax.jit, static_argnames=("total", "steps"))
 def _feasible_candidates(system, path, key, total, steps, controller):
     cand, valid = system.sample_configs(key, total, return_valid=True)
     res = jax.vmap(lambda q: follow(system, true_inverse(system), path, q, controller, steps=steps))(cand)
-    return cand, valid & (res.completion >= 1.0) & ~res.failed
+    return cand, valid, res.completion, res.failed

@@ -30,8 +30,10 @@ interior point) would be a new run-time dependency for a 2-6 variable
 problem, needs its iteration tolerance, and returns nothing usable on an
 infeasible step; this solve has no dependency and degrades gracefully.
 
-:func:`follow` runs the controller along a path on a position task (task
-dimension 2 or 3) with a model given as two functions: ``linearise(mstate,
+:func:`constrained_law` is this controller as a step law of the one follow
+loop (:func:`selfid_jax.control.loop.follow_law`), and :func:`follow` runs it
+along a path on a position task (task dimension 2 or 3) with a model given as
+two functions: ``linearise(mstate,
 q) -> (J (m, n), offset (m,))`` (the predicted task step is ``offset + J
 da``: a model nonlinear in ``da``, as the E-KM's incremental GP, is
 linearised at ``da = 0`` every step) and, for online learning,
@@ -47,11 +49,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, is_traced
-from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
+from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult, StepLaw, follow_law
 from selfid_jax.systems.system import System
 
-__all__ = ["QPResult", "solve", "step_box", "follow"]
+__all__ = ["QPResult", "solve", "step_box", "constrained_law", "follow"]
 
 
 class QPResult(NamedTuple):
@@ -145,22 +147,34 @@ Linearise = Callable[[Any, jax.Array], tuple[jax.Array, jax.Array]]
 Observe = Callable[[Any, jax.Array, jax.Array, jax.Array], Any]
 
 
-class _Carry(NamedTuple):
-    q: jax.Array  # (n,) actuator positions
-    model: Any  # the model's state (changes only with observe, online)
-    waypoint: jax.Array  # () int32 current waypoint (W when done)
-    failed: jax.Array  # () bool
-    err_sum: jax.Array  # () sum of distances to the path over active steps [m]
-    err_max: jax.Array  # () largest such distance [m]
-    used: jax.Array  # () int32 active steps
-    wp_err: jax.Array  # (W,) position error when each waypoint was reached [m]; -1 before
+def constrained_law(system: System, linearise: Linearise, model_state, *, observe: Observe | None = None,
+                    weights=1.0, iters: int = 20) -> StepLaw:
+    """The Eq. 10-11 controller as a :class:`~selfid_jax.control.loop.StepLaw` of the one follow loop; position tasks.
 
+    Law state: the model's state, starting at ``model_state``. Each step:
+    ``J, offset = linearise(model, q)``; ``da = solve(J, V - offset,
+    *step_box(system, q), weights, iters=iters).da``. With ``observe``
+    (online mode) the model then learns from the executed step: ``model =
+    observe(model, q, q_new - q, dp)``, ``q_new = system.apply(q, da)``, ``dp``
+    the measured change of the task's position components (kept only on
+    steps that move). ``solve`` turns a non-finite ``J`` into ``da = 0``, so
+    the law itself never fails a rollout (``ok`` is True).
+    """
+    pos = list(system.position_axes)
 
-def _segment_distance(p, a, b):
-    ab = b - a
-    den = jnp.sum(ab * ab, axis=-1)
-    t = jnp.clip(jnp.sum((p[None, :] - a) * ab, axis=-1) / jnp.where(den > 0, den, 1.0), 0.0, 1.0)
-    return jnp.sqrt(jnp.sum((p[None, :] - (a + t[:, None] * ab)) ** 2, axis=-1))
+    def sense(model, q):
+        return system.pose(q), None
+
+    def step(model, q, pose, _, v):
+        J, offset = linearise(model, q)
+        lo, hi = step_box(system, q)
+        da = solve(J, v - offset, lo, hi, weights, iters=iters).da
+        if observe is not None:
+            q_new = system.apply(q, da)
+            model = observe(model, q, q_new - q, system.pose(q_new)[0][..., pos] - pose[0][..., pos])
+        return da, model, jnp.ones((), bool)
+
+    return StepLaw(init=lambda q0: model_state, sense=sense, step=step)
 
 
 def follow(
@@ -188,73 +202,11 @@ def follow(
     change. Metrics as :func:`selfid_jax.control.follow` (``positions`` is
     None); a non-finite state or a distance to the path above
     ``diverge_dist`` (default ``2 max|path| + 10 tol``) fails the rollout.
+    :func:`~selfid_jax.control.loop.follow_law` with :func:`constrained_law`.
     Returns ``(FollowResult, final model state)``.
     """
-    steps = check_positive_int("steps", steps)
-    n, m = system.n_act, system.task_dim
-    if m not in (2, 3):
-        raise ValueError(f"qp_control.follow: position tasks only (task_dim 2 or 3), got task_dim={m}")
-    check_array("q0", q0, (n,))
-    check_array("path", path, (None, m))
-    for name, value in (("q0", q0), ("path", path)):
-        if not is_traced(value) and not np.all(np.isfinite(np.asarray(value, np.float64))):
-            raise ValueError(f"{name} holds non-finite values")
-    for name in ("max_step", "tol", "gain"):
-        check_scalar(f"controller.{name}", getattr(controller, name), gt=0.0)
-    dtype = jnp.result_type(float)
-    q0 = jnp.asarray(q0, dtype)
-    path = jnp.asarray(path, dtype)
-    W = path.shape[0]
-    p0 = system.pose(q0)[0][:m]
-    targets = p0[None, :] + path
-    verts = jnp.concatenate([p0[None, :], targets], axis=0)
-    ctrl = controller
-    if ctrl.diverge_dist is None:
-        ctrl = ctrl._replace(diverge_dist=2.0 * jnp.max(jnp.linalg.norm(path, axis=-1)) + 10.0 * ctrl.tol)
-
-    def advance(c: _Carry, p):
-        active = (c.waypoint < W) & ~c.failed
-        wc = jnp.minimum(c.waypoint, W - 1)
-        err = jnp.linalg.norm(targets[wc] - p)
-        hit = active & (err <= ctrl.tol)
-        c = c._replace(wp_err=jnp.where(hit, c.wp_err.at[wc].set(err), c.wp_err),
-                       waypoint=c.waypoint + hit.astype(jnp.int32))
-        return c, active & (c.waypoint < W)
-
-    def step(c: _Carry, _):
-        p = system.pose(c.q)[0][:m]
-        dist = jnp.min(_segment_distance(p, verts[:-1], verts[1:]))
-        c, active = advance(c, p)
-        e = targets[jnp.minimum(c.waypoint, W - 1)] - p
-        en = jnp.linalg.norm(ctrl.gain * e)
-        v = ctrl.gain * e * jnp.minimum(1.0, ctrl.max_step / jnp.where(en > 0, en, 1.0))
-        J, offset = linearise(c.model, c.q)
-        lo, hi = step_box(system, c.q)
-        da = solve(J, v - offset, lo, hi, weights, iters=qp_iters).da
-        q_new = system.apply(c.q, da)
-        finite = jnp.all(jnp.isfinite(q_new)) & jnp.all(jnp.isfinite(p))
-        failed = c.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
-        move = active & ~failed
-        model = c.model
-        if observe is not None:
-            V = system.pose(q_new)[0][:m] - p
-            learned = observe(model, c.q, q_new - c.q, V)
-            model = jax.tree.map(lambda a, b: jnp.where(move, a, b), learned, model)
-        counted = jnp.where(active & jnp.isfinite(dist), dist, 0.0)
-        return c._replace(q=jnp.where(move, q_new, c.q), model=model, failed=failed, err_sum=c.err_sum + counted,
-                          err_max=jnp.maximum(c.err_max, counted), used=c.used + active.astype(jnp.int32)), None
-
-    init = _Carry(q=q0, model=model_state, waypoint=jnp.zeros((), jnp.int32),
-                  failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path))),
-                  err_sum=jnp.zeros((), dtype), err_max=jnp.zeros((), dtype), used=jnp.zeros((), jnp.int32),
-                  wp_err=jnp.full((W,), -1.0, dtype))
-    c, _ = jax.lax.scan(step, init, None, length=steps)
-    p_end = system.pose(c.q)[0][:m]
-    c, _ = advance(c, p_end)
-    end = jnp.linalg.norm(targets - p_end[None, :], axis=-1)
-    wp_err = jnp.where(c.wp_err >= 0, c.wp_err, jnp.where(jnp.isfinite(end), end, 0.0))
-    result = FollowResult(
-        completion=c.waypoint.astype(dtype) / W, mean_error=c.err_sum / jnp.maximum(c.used, 1).astype(dtype),
-        max_error=c.err_max, waypoint_error=jnp.mean(wp_err), steps_used=c.used, failed=c.failed,
-        final_q=c.q, positions=None)
-    return result, c.model
+    if system.task_dim not in (2, 3) or system.rotation_axes:
+        raise ValueError(f"qp_control.follow: position tasks only (task_dim 2 or 3), got task_dim={system.task_dim}"
+                         + (f", axes {system.axes}" if system.rotation_axes else ""))
+    law = constrained_law(system, linearise, model_state, observe=observe, weights=weights, iters=qp_iters)
+    return follow_law(system, law, path, q0, controller, steps=steps)

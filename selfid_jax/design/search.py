@@ -14,7 +14,8 @@ divergence distance, which no surviving rollout exceeds) and its gradient gated 
 many fail (large ``m_a``; small ``m_a`` at high noise) the loss jumps and the survivors' gradient can point the
 wrong way: the failed fraction is the detector (:func:`gradient_reliable`) and :func:`refine` does not follow such
 a gradient. Workarounds, each documented: ``stop_at_convergence=False`` (an early stop makes the loss jump with
-``m_a``), squared distances without a square root, rotation waypoints nudged (:func:`_nudge`), implicit pose maps
+``m_a``), squared distances without a square root, rotation waypoints nudged (:func:`_nudge`, kept so the numbers
+do not move; ``follow``'s norms are NaN-safe now), implicit pose maps
 wrapped (:class:`SafeTangentPose`). :func:`grid_search`, :func:`refine` and :func:`optimize` (grid, scalar, then
 per-actuator refinement in one scan) serve the experiment ``design``.
 """
@@ -207,10 +208,12 @@ def _fail_error(path, system: System, controller: ControllerParams, fail_error):
 def _nudge(path, system: System):
     """``path (W, m)`` with ``100 eps`` rad added to its rotation components (none for position tasks).
 
-    ``follow`` clips the rotation error by a norm with an infinite derivative at 0, and on the first step the
-    error to a star's constant orientation is exactly 0: reverse mode makes the inactive clip's ``0 * inf`` a NaN
-    (the Stewart Hand's implicit adjoint raises). 2e-14 rad (float64), 1.2e-5 rad (float32) keep the gradient
-    exact; drop this once ``follow``'s norm is NaN-safe.
+    Introduced because ``follow`` clipped the rotation error by a norm with an infinite derivative at 0, and on
+    the first step the error to a star's constant orientation is exactly 0: reverse mode made the inactive clip's
+    ``0 * inf`` a NaN (the Stewart Hand's implicit adjoint raised). ``follow``'s norms are NaN-safe now
+    (:func:`selfid_jax.control.clip_norm`), so the gradient is finite without it; it stays because dropping it
+    moves the design numbers of rotation tasks (the path itself changes: 2e-14 rad in float64, 1.2e-5 rad in
+    float32, against ``rot_tol`` 0.01 rad). Removing it is a results change of its own, to make with a note.
     """
     cols = [i for i, a in enumerate(system.axes) if a >= 3]
     if not cols:

@@ -84,7 +84,7 @@ class Experiment:
         unsafe = [n for n in names if not (isinstance(n, str) and re.fullmatch(SAFE_NAME, n))]
         if unsafe:
             raise ValueError(f"experiment {self.name!r}: part names must be one path component (letters, digits, "
-                             f"'.', '_', '-'; not starting with '.'), got {unsafe}")
+                             f"'.', '_', '+', '-'; not starting with '.'), got {unsafe}")
         return parts
 
     def batched(self, static) -> Callable[[Any], Any]:

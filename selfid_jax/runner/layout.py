@@ -25,7 +25,7 @@ SUMMARY_FILE = "summary.json"
 FIGURES_DIR = "figures"
 LOCK_FILE = ".lock"
 
-SAFE_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,99}$"
+SAFE_NAME = r"^[A-Za-z0-9][A-Za-z0-9._+-]{0,99}$"
 """What a part's (and so a system's) name may be: one path component inside the run directory, no separator,
 no leading dot (so never ``..``), no character a filesystem refuses, at most 100 characters."""
 
