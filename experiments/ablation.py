@@ -47,7 +47,7 @@ from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 from selfid_jax.experiments.common import ekm as ablation_ekm
-from selfid_jax.experiments.common.ekm import METHOD_CHOICES, NominalSpec, is_model_based
+from selfid_jax.experiments.common.ekm import METHOD_CHOICES, MethodName, NominalSpec, is_model_based
 
 
 class MethodSpec(BaseModel):
@@ -56,7 +56,7 @@ class MethodSpec(BaseModel):
     model_config = dict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field(min_length=1, description="label of the curve")
-    method: Literal[METHOD_CHOICES] = Field(description="one of " + ", ".join(METHOD_CHOICES))
+    method: MethodName = Field(description="one of " + ", ".join(METHOD_CHOICES))
     options: dict[str, float | int | str | bool] = Field(
         default_factory=dict, description="keyword options of the method's factory in selfid_jax.baselines"
     )
