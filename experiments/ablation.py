@@ -41,13 +41,13 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, Magnitude, P
                                                   check_noise_pairs, m_a_summary, resolve_m_a)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 from selfid_jax.experiments.common import ekm as ablation_ekm
-from selfid_jax.experiments.common.ekm import METHOD_CHOICES, NominalSpec, is_model_based
+from selfid_jax.experiments.common.ekm import METHOD_CHOICES, MethodName, NominalSpec, is_model_based
 
 
 class MethodSpec(BaseModel):
@@ -56,7 +56,7 @@ class MethodSpec(BaseModel):
     model_config = dict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field(min_length=1, description="label of the curve")
-    method: Literal[METHOD_CHOICES] = Field(description="one of " + ", ".join(METHOD_CHOICES))
+    method: MethodName = Field(description="one of " + ", ".join(METHOD_CHOICES))
     options: dict[str, float | int | str | bool] = Field(
         default_factory=dict, description="keyword options of the method's factory in selfid_jax.baselines"
     )
@@ -122,13 +122,13 @@ class Static(NamedTuple):
 class Params(NamedTuple):
     """One self-ID stream's traced inputs (batch axis first when batched)."""
 
-    key: jax.Array  # (2,) uint32 PRNG key data
-    q0: jax.Array  # (n,) start configuration [rad]
-    pose_noise: jax.Array  # () tracker position noise sd [m]
-    rot_noise: jax.Array  # () tracker rotation noise sd [rad]
-    m_a: jax.Array  # (n,) self-ID magnitude per actuator [rad or m]
-    eps: jax.Array  # () Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]
-    eps_rel: jax.Array  # () relative Sec. IV-D threshold (times ||J_t||_F)
+    key: HostOrDevice  # (2,) uint32 PRNG key data
+    q0: HostOrDevice  # (n,) start configuration [rad]
+    pose_noise: HostOrDevice  # () tracker position noise sd [m]
+    rot_noise: HostOrDevice  # () tracker rotation noise sd [rad]
+    m_a: HostOrDevice  # (n,) self-ID magnitude per actuator [rad or m]
+    eps: HostOrDevice  # () Sec. IV-D threshold on ||J_t - J_{t-1}||_F [rad/m]
+    eps_rel: HostOrDevice  # () relative Sec. IV-D threshold (times ||J_t||_F)
     controller: control.ControllerParams  # () each
 
 
@@ -153,7 +153,7 @@ def compute(static: Static, p: Params) -> Outputs:
     system = static.system
     checkpoints = jnp.asarray(static.checkpoints)
     n_ckpt = len(static.checkpoints)
-    k_sid, k_est = jax.random.split(jax.random.wrap_key_data(p.key))
+    k_sid, k_est = jax.random.split(jax.random.wrap_key_data(jnp.asarray(p.key)))
     sid = selfid.run(system, k_sid, p.q0, iters=static.iters, eps=p.eps, m_a=p.m_a, pose_noise=p.pose_noise,
                      rot_noise=p.rot_noise, stop_at_convergence=False)
     truth = system.true_inverse_jacobian(p.q0)

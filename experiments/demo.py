@@ -29,7 +29,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, 
                                                   add_m_a_columns, m_a_summary)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
@@ -87,11 +87,11 @@ class Static(NamedTuple):
 
 
 class Params(NamedTuple):
-    key: jax.Array  # (2,) uint32 PRNG key data of the self-ID stream
-    q0: jax.Array  # (n,) start configuration [rad]
-    m_a: jax.Array  # (n_act,) self-ID magnitude per actuator [rad or m]
-    eps: jax.Array  # () Sec. IV-D threshold [rad/m]
-    eps_rel: jax.Array  # () relative Sec. IV-D threshold
+    key: HostOrDevice  # (2,) uint32 PRNG key data of the self-ID stream
+    q0: HostOrDevice  # (n,) start configuration [rad]
+    m_a: HostOrDevice  # (n_act,) self-ID magnitude per actuator [rad or m]
+    eps: HostOrDevice  # () Sec. IV-D threshold [rad/m]
+    eps_rel: HostOrDevice  # () relative Sec. IV-D threshold
     controller: control.ControllerParams
 
 
@@ -114,8 +114,8 @@ class Outputs(NamedTuple):
 def compute(static: Static, p: Params) -> Outputs:
     """Self-ID from ``p.q0``, then the star from where self-ID ended, with the estimate and with the truth."""
     system = static.system
-    sid = selfid.run(system, jax.random.wrap_key_data(p.key), p.q0, iters=static.iters, eps=p.eps, eps_rel=p.eps_rel,
-                     m_a=p.m_a)
+    sid = selfid.run(system, jax.random.wrap_key_data(jnp.asarray(p.key)), p.q0, iters=static.iters, eps=p.eps,
+                     eps_rel=p.eps_rel, m_a=p.m_a)
     q_start = sid.env  # follow from where self-ID left the arm
 
     def follow(jinv):
@@ -126,7 +126,7 @@ def compute(static: Static, p: Params) -> Outputs:
     truth = system.true_inverse_jacobian(q_start)
     J = system.jacobian(q_start)
     return Outputs(
-        q0=p.q0,
+        q0=jnp.asarray(p.q0),
         converged_at=sid.converged_at,
         relative_error=jnp.linalg.norm(sid.estimate - truth) / jnp.linalg.norm(truth),
         task_error=jnp.linalg.norm(J @ sid.estimate - jnp.eye(system.task_dim, dtype=J.dtype)),

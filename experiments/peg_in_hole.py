@@ -50,7 +50,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig
                                                   check_noise_pairs, format_m_a, m_a_summary)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System, compose, hands
@@ -134,20 +134,20 @@ class Static(NamedTuple):
 
 
 class Params(NamedTuple):
-    key: jax.Array  # (2,) uint32
-    q_arm: jax.Array  # (6,) start configuration [rad]
-    q_hand: jax.Array  # (3,) grasp command [m]
-    grasp: jax.Array  # (3,) grasp waypoint offset [m]
-    hole: jax.Array  # (2,) hole offset from the grasp waypoint [m]
-    lift: jax.Array  # () [m]
-    pose_noise: jax.Array  # () [m]
-    rot_noise: jax.Array  # () [rad]
-    arm_m_a: jax.Array  # (6,) arm self-ID magnitude per joint [rad]
-    arm_eps: jax.Array
-    arm_eps_rel: jax.Array
-    hand_m_a: jax.Array  # (3,) hand self-ID magnitude per tendon [m]
-    hand_eps: jax.Array
-    hand_eps_rel: jax.Array
+    key: HostOrDevice  # (2,) uint32
+    q_arm: HostOrDevice  # (6,) start configuration [rad]
+    q_hand: HostOrDevice  # (3,) grasp command [m]
+    grasp: HostOrDevice  # (3,) grasp waypoint offset [m]
+    hole: HostOrDevice  # (2,) hole offset from the grasp waypoint [m]
+    lift: HostOrDevice  # () [m]
+    pose_noise: HostOrDevice  # () [m]
+    rot_noise: HostOrDevice  # () [rad]
+    arm_m_a: HostOrDevice  # (6,) arm self-ID magnitude per joint [rad]
+    arm_eps: HostOrDevice
+    arm_eps_rel: HostOrDevice
+    hand_m_a: HostOrDevice  # (3,) hand self-ID magnitude per tendon [m]
+    hand_eps: HostOrDevice
+    hand_eps_rel: HostOrDevice
     arm_ctrl: control.ControllerParams
     hand_ctrl: control.ControllerParams
 
@@ -171,7 +171,7 @@ class Outputs(NamedTuple):
 def compute(static: Static, p: Params) -> Outputs:
     """The five phases from ``p.q_arm``, with the self-ID estimates and with the true inverse Jacobians."""
     system = static.system
-    k_arm, k_est, k_true = jax.random.split(jax.random.wrap_key_data(p.key), 3)
+    k_arm, k_est, k_true = jax.random.split(jax.random.wrap_key_data(jnp.asarray(p.key)), 3)
     arm0 = compose.arm_part(system, p.q_hand)
     sid_arm = selfid.run(arm0, k_arm, p.q_arm, iters=static.arm_iters, eps=p.arm_eps, eps_rel=p.arm_eps_rel,
                          m_a=p.arm_m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)

@@ -18,7 +18,7 @@ task's rotation components. All of it is one compiled function per system.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -37,7 +37,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig
                                                   check_noise_pairs, format_m_a, m_a_summary)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
@@ -146,14 +146,14 @@ class Static(NamedTuple):
 
 
 class Params(NamedTuple):
-    letter: jax.Array  # () int32 index into Static.path
-    key: jax.Array  # (2,) uint32 PRNG key data
-    q0: jax.Array  # (n,) start configuration
-    pose_noise: jax.Array  # () tracker position noise sd [m]
-    rot_noise: jax.Array  # () tracker rotation noise sd [rad]
-    m_a: jax.Array  # (n,) self-ID magnitude per actuator [rad or m]
-    eps: jax.Array  # () Sec. IV-D threshold
-    eps_rel: jax.Array  # () relative Sec. IV-D threshold
+    letter: HostOrDevice  # () int32 index into Static.path
+    key: HostOrDevice  # (2,) uint32 PRNG key data
+    q0: HostOrDevice  # (n,) start configuration
+    pose_noise: HostOrDevice  # () tracker position noise sd [m]
+    rot_noise: HostOrDevice  # () tracker rotation noise sd [rad]
+    m_a: HostOrDevice  # (n,) self-ID magnitude per actuator [rad or m]
+    eps: HostOrDevice  # () Sec. IV-D threshold
+    eps_rel: HostOrDevice  # () relative Sec. IV-D threshold
     controller: control.ControllerParams
 
 
@@ -176,7 +176,7 @@ class Outputs(NamedTuple):
 def compute(static: Static, p: Params) -> Outputs:
     """Self-ID from ``p.q0`` with tracker noise, then the path with the estimate and with the truth."""
     system = static.system
-    sid = selfid.run(system, jax.random.wrap_key_data(p.key), p.q0, iters=static.iters, eps=p.eps,
+    sid = selfid.run(system, jax.random.wrap_key_data(jnp.asarray(p.key)), p.q0, iters=static.iters, eps=p.eps,
                      eps_rel=p.eps_rel, m_a=p.m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
     q_start = sid.env
     path = static.path[p.letter]
@@ -361,7 +361,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
                 pts = pts - pts[0]
                 if three_d:
                     ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], lw=1, color=color)
-                    ax.set_zlabel("z [mm]")
+                    cast(Any, ax).set_zlabel("z [mm]")  # a 3-D Axes; mpl_toolkits.mplot3d ships no types
                 else:
                     ax.plot(pts[:, 0], pts[:, 1], lw=1, color=color)
                     ax.set_aspect("equal")

@@ -44,7 +44,7 @@ from selfid_jax.control import paths
 from selfid_jax.experiments.common import figures as plots
 from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig, StudyConfig
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
@@ -77,9 +77,9 @@ class Static(NamedTuple):
 
 
 class Params(NamedTuple):
-    eps_limit: jax.Array  # ()
-    key: jax.Array  # (2,) uint32 key data of the row
-    q0: jax.Array  # (n,) start configuration
+    eps_limit: HostOrDevice  # ()
+    key: HostOrDevice  # (2,) uint32 key data of the row
+    q0: HostOrDevice  # (n,) start configuration
     controller: control.ControllerParams  # () each
 
 
@@ -126,7 +126,7 @@ def compute(static: Static, p: Params) -> Outputs:
     """One rollout with ``m_eps * Jinv_true`` and the one-step error map's spectral radius at ``q0``."""
     system = static.system
     n, m = system.n_act, system.task_dim
-    k_roll, k_pred = jax.random.split(jax.random.wrap_key_data(p.key))
+    k_roll, k_pred = jax.random.split(jax.random.wrap_key_data(jnp.asarray(p.key)))
     m_eps = scaling_matrix(k_roll, p.eps_limit, (n, m))
     res = control.follow(system, control.scaled_true_inverse(system, m_eps), static.path, p.q0, p.controller,
                          steps=static.steps)
@@ -177,8 +177,8 @@ def build(cfg: ValidRegionWorkspaceConfig) -> Part:
         name, system = system_name(cfg.system), build_system(cfg.system)
         configs, dexterity = stratified_starts(system, jax.random.key(cfg.seed), cfg)
         path = paths.star(size=cfg.path.size, dim=system.task_dim)
-        meta = grid_table({"system": [name], "config_id": range(cfg.n_configs), "eps_limit": cfg.eps_limits.values(),
-                           "trial": range(cfg.n_trials)})
+        meta = grid_table({"system": [name], "config_id": range(cfg.n_configs),
+                           "eps_limit": list(cfg.eps_limits.values()), "trial": range(cfg.n_trials)})
         meta = meta.merge(dexterity, on="config_id", how="left")
         ids = meta["config_id"].to_numpy()
         params = Params(eps_limit=meta["eps_limit"].to_numpy(float), key=row_keys(cfg.seed + 1, len(meta)),

@@ -32,7 +32,7 @@ import pandas as pd
 from pydantic import Field
 
 from selfid_jax.systems import manipulability
-from selfid_jax.experiments.common.schema import StudyConfig
+from selfid_jax.experiments.common.schema import HostOrDevice, StudyConfig
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import row_keys
@@ -65,8 +65,8 @@ class Static(NamedTuple):
 
 
 class Params(NamedTuple):
-    key: jax.Array  # (2,) uint32 PRNG key data of the configuration
-    length: jax.Array  # () characteristic length [m]
+    key: HostOrDevice  # (2,) uint32 PRNG key data of the configuration
+    length: HostOrDevice  # () characteristic length [m]
 
 
 class Outputs(NamedTuple):
@@ -85,7 +85,7 @@ class Outputs(NamedTuple):
 def compute(static: Static, p: Params) -> Outputs:
     """One configuration: draw ``q``, one kinematics pass for pose and Jacobian, three SVDs."""
     system = static.system
-    q = jax.random.uniform(jax.random.wrap_key_data(p.key), (system.n_act,), dtype=static.low.dtype,
+    q = jax.random.uniform(jax.random.wrap_key_data(jnp.asarray(p.key)), (system.n_act,), dtype=static.low.dtype,
                            minval=static.low, maxval=static.high)
     (pos, _), J = system.pose_and_jacobian(q)
     m = manipulability.metrics(J, p.length)
@@ -119,7 +119,7 @@ class CellMap(NamedTuple):
     """Per-cell statistics on a regular grid (NaN where no configuration fell)."""
 
     extent: tuple[float, float, float, float]  # (h_min, h_max, z_min, z_max) [m], for imshow
-    count: np.ndarray  # (nz, nh) configurations per cell
+    count: np.ndarray  # type: ignore[assignment]  # (nz, nh) configurations per cell; shadows tuple.count
     max_manipulability: np.ndarray  # (nz, nh)
     mean_manipulability: np.ndarray  # (nz, nh)
     min_condition: np.ndarray  # (nz, nh)
@@ -154,7 +154,7 @@ def cell_maps(table: pd.DataFrame, cell: float, plane: str, *, manipulability_co
     return CellMap((h0, h0 + nh * cell, z0, z0 + nz * cell), count, out["max"], out["mean"], out["min"])
 
 
-def _finite_stats(s: pd.Series) -> dict[str, float]:
+def _finite_stats(s: pd.Series) -> dict[str, float | None]:
     v = s.to_numpy(np.float64)
     v = v[np.isfinite(v)]
     if not v.size:

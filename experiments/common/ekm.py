@@ -23,7 +23,7 @@ control Jacobian linearised at the start configuration after each sample.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple, get_args
 
 import jax
 import jax.numpy as jnp
@@ -33,6 +33,7 @@ from selfid_jax import baselines
 
 from selfid_jax.identify import estimator
 from selfid_jax.baselines import ekm
+from selfid_jax.baselines.base import check_choice
 from selfid_jax.baselines.registry import MODEL_BASED
 from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems import System
@@ -56,7 +57,7 @@ class EKMGroup(NamedTuple):
 
     rows: tuple[int, ...]  # method indices (config order) of the rows in this group
     models: Any  # ekm.EKMModel with leading axis len(rows)
-    mode: str  # "fixed" or "online"
+    mode: Literal["fixed", "online"]
     capacity: int  # GP basis size
 
 
@@ -100,11 +101,13 @@ def groups(system: System, methods, iters: int) -> tuple[EKMGroup, ...]:
         if spec.method not in MODEL_BASED:
             continue
         opts = dict(spec.options)
-        mode = opts.pop("mode", "fixed")
+        mode = check_choice("ekm", "mode", opts.pop("mode", "fixed"), ekm.MODES)
         nominal = ekm.nominal_system(system, **spec.nominal.model_dump())
         mdl = ekm.model(nominal, **opts)
-        gp = ("length_q", "length_da", "signal", "noise", "novelty_tol")  # python floats -> stackable arrays
-        mdl = dataclasses.replace(mdl, **{k: jnp.asarray(getattr(mdl, k), jnp.result_type(float)) for k in gp})
+        fl = jnp.result_type(float)  # the GP settings: python floats -> stackable arrays
+        mdl = dataclasses.replace(mdl, length_q=jnp.asarray(mdl.length_q, fl), length_da=jnp.asarray(mdl.length_da, fl),
+                                  signal=jnp.asarray(mdl.signal, fl), noise=jnp.asarray(mdl.noise, fl),
+                                  novelty_tol=jnp.asarray(mdl.novelty_tol, fl))
         by_key.setdefault((mdl.formulation, mdl.symmetric, mode), []).append((i, mdl))
     out = []
     for (_, _, mode), members in by_key.items():
@@ -146,3 +149,7 @@ def is_model_based(method: str) -> bool:
 
 
 METHOD_CHOICES = baselines.METHOD_NAMES + tuple(MODEL_BASED)
+MethodName = Literal["ours", "direct", "sign_true_mag", "true", "broyden", "rls", "kalman", "particle", "ekm"]
+"""A ``method`` of the ablation config: :data:`METHOD_CHOICES` written out (a type checker needs the names)."""
+if get_args(MethodName) != METHOD_CHOICES:
+    raise RuntimeError(f"MethodName {get_args(MethodName)} is out of date: the methods are {METHOD_CHOICES}")

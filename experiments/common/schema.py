@@ -7,16 +7,25 @@ check that the controller's tolerance fits the path.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple, TypeAlias, cast
 
+import jax
 import numpy as np
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
-__all__ = ["ControllerConfig", "EpsLimits", "Magnitude", "PathConfig", "SelfIdConfig", "SelfIdMagnitude", "StudyConfig",
-           "add_m_a_columns", "check_noise_pairs", "controller_rows", "format_m_a", "m_a_summary", "resolve_m_a"]
+__all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig",
+           "SelfIdConfig", "SelfIdMagnitude", "StudyConfig", "add_m_a_columns", "check_noise_pairs", "controller_rows",
+           "format_m_a", "m_a_summary", "resolve_m_a"]
 
+
+HostOrDevice: TypeAlias = jax.Array | np.ndarray
+"""An array field of an experiment's traced ``Params``: filled with numpy arrays on the host, a ``jax.Array`` once
+traced."""
+
+MagnitudeSource: TypeAlias = Literal["system", "config"]
+"""Where a :class:`SelfIdMagnitude` came from: the system's own ``m_a`` or the experiment's ``m_a`` key."""
 
 Magnitude = Annotated[float, Field(gt=0)] | Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=1)]
 """A self-ID magnitude ``m_a`` in a config: one number, or one per actuator [rad or m], > 0."""
@@ -26,7 +35,7 @@ class SelfIdMagnitude(NamedTuple):
     """The self-ID magnitude an experiment uses for one system, and where it came from."""
 
     value: np.ndarray  # (n_act,) float64 [rad or m]
-    source: Literal["system", "config"]  # the system's own m_a, or the experiment's m_a key
+    source: MagnitudeSource  # the system's own m_a, or the experiment's m_a key
 
     def summary(self) -> dict[str, Any]:
         """``{"m_a": number (all actuators equal) or list, "m_a_source": "system" | "config"}`` for summary.json."""
@@ -66,8 +75,8 @@ def m_a_summary(rows, prefix: str = "", vector: str | None = None) -> dict[str, 
     ``vector``: the column holding the per-actuator list, if not ``{prefix}m_a``.
     """
     first = rows.iloc[0]
-    return SelfIdMagnitude(np.asarray(first[vector or f"{prefix}m_a"], float),
-                           str(first[f"{prefix}m_a_source"])).summary()
+    source = cast(MagnitudeSource, str(first[f"{prefix}m_a_source"]))  # written by add_m_a_columns
+    return SelfIdMagnitude(np.asarray(first[vector or f"{prefix}m_a"], float), source).summary()
 
 
 def format_m_a(value) -> str:

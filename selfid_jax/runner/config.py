@@ -52,7 +52,7 @@ __all__ = [
 class _Loader(yaml.SafeLoader):
     """SafeLoader that reads ``1e-3`` / ``1E6`` as floats (YAML 1.2), not strings, and refuses duplicate keys."""
 
-    def construct_mapping(self, node, deep=False):
+    def construct_mapping(self, node: Any, deep: bool = False) -> dict[Any, Any]:
         """The mapping of ``node``; a key written twice in one mapping (any depth) is an error naming both lines."""
         if isinstance(node, yaml.MappingNode):
             first: dict[Any, int] = {}

@@ -340,7 +340,10 @@ def build_actuation(mj, *, actuators=None, joints_fixed=None, label="MJCF") -> A
     eqs = _equality_rows(mj, qpos_ref)
 
     # Rows in order equalities, fixed joints, actuators; each must be independent of the earlier ones.
-    basis, rows, rhs, labels = np.zeros((0, mj.nq)), [], [], []
+    basis = np.zeros((0, mj.nq))
+    rows: list[np.ndarray] = []
+    rhs: list[float] = []
+    labels: list[str] = []
     for kind, items in (("eq", [(r, b, lb) for r, b, lb, _, _ in eqs]), ("fix", fixed_rows),
                         ("act", [(r, 0.0, f"actuator {n!r} ({d})") for n, r, _, d, _ in chosen])):
         for row, b, lb in items:
@@ -389,7 +392,7 @@ def build_actuation(mj, *, actuators=None, joints_fixed=None, label="MJCF") -> A
         descs.append(desc)
     scalar_addr = {int(mj.jnt_qposadr[j]): joint_type_name(mj.jnt_type[j]) for j in range(mj.njnt)
                    if joint_type_name(mj.jnt_type[j]) in ("hinge", "slide")}
-    hinge_only = np.array([all(scalar_addr.get(k) == "hinge" for k in np.flatnonzero(A[:, i])) for i in range(n)])
+    hinge_only = np.array([all(scalar_addr.get(int(k)) == "hinge" for k in np.flatnonzero(A[:, i])) for i in range(n)])
     qmap = QposMap(
         offset=tuple(float(v) for v in offset),
         matrix=tuple(tuple(float(v) for v in r) for r in A),

@@ -102,12 +102,15 @@ def mount(arm: System, hand: System, *, offset=(0.0, 0.0, 0.0), rotation_vector=
     r = np.asarray(rotation_vector, np.float64)
     if t.shape != (3,) or r.shape != (3,) or not (np.all(np.isfinite(t)) and np.all(np.isfinite(r))):
         raise ValueError(f"offset and rotation_vector must be finite 3-vectors, got {t.tolist()}, {r.tolist()}")
+    arm_pose, hand_pose = arm.pose_fn, hand.pose_fn
+    if arm_pose is None or hand_pose is None:
+        raise ValueError("arm and hand each need a pose_fn")
     dtype = jnp.result_type(float)
     mount_tf = (jnp.asarray(t, dtype), geometry.so3_exp(jnp.asarray(r, dtype)))
     cat = lambda f: np.concatenate([np.asarray(getattr(arm, f)), np.asarray(getattr(hand, f))])  # noqa: E731
     return make_system(
         name=name or f"{arm.name}+{hand.name}", params=(arm.params, hand.params, mount_tf),
-        pose_fn=MountedPose(arm.pose_fn, hand.pose_fn, arm.n_act), has_rotation=True,
+        pose_fn=MountedPose(arm_pose, hand_pose, arm.n_act), has_rotation=True,
         limits=Limits(arm.n_act + hand.n_act, 6, cat("q_low"), cat("q_high"), cat("dq_max"), cat("m_a"),
                       cat("sample_low"), cat("sample_high"), min(arm.min_sigma, hand.min_sigma)),
     )

@@ -141,7 +141,7 @@ def parse_ets(ets) -> list[Any]:
     if isinstance(ets, str):
         items = [s for s in re.split(r"[\s⊕]+", ets.strip()) if s]
     elif _is_rtb_ets(ets):
-        out = []
+        out: list[Any] = []
         for j, e in enumerate(ets):
             if e.isjoint:
                 out.append(_from_rtb_joint(e, j))
@@ -226,7 +226,7 @@ class EtsPose:
     def pose_and_jacobian(self, model: EtsModel, q):
         """``((p (3,), R (3, 3)), J (6, n))`` from one walk of the chain."""
         p, R, joints = self._walk(model, q)
-        cols = [None] * len(self.axes)
+        cols: dict[int, jax.Array] = {}  # by actuator index (qidx is a permutation)
         for i, (a, o) in enumerate(joints):
             s = self.signs[i]
             if self.revolute[i]:
@@ -234,7 +234,7 @@ class EtsPose:
             else:
                 col = jnp.concatenate([a, jnp.zeros(3, p.dtype)])
             cols[self.qidx[i]] = s * col
-        return (p, R), jnp.stack(cols, axis=1)
+        return (p, R), jnp.stack([cols[k] for k in range(len(self.axes))], axis=1)
 
     def _walk(self, model: EtsModel, q):
         """End pose and, per joint in chain order, ``(world axis (3,), point on the axis (3,))``."""
@@ -274,16 +274,17 @@ def _compile(elements: list) -> tuple[EtsPose, np.ndarray, np.ndarray, list]:
         raise ValueError("the ETS has no joint variable: give at least one of Rx, Ry, Rz, tx, ty, tz "
                          "without a constant")
     given = [el.jindex for el in joints]
-    if all(g is None for g in given):
+    present = [g for g in given if g is not None]
+    if not present:
         qidx = tuple(range(n))
-    elif all(g is not None for g in given) and sorted(given) == list(range(n)):
-        qidx = tuple(int(g) for g in given)
+    elif len(present) == n and sorted(present) == list(range(n)):
+        qidx = tuple(int(g) for g in present)
     else:
         raise ValueError(f"joint indices must be all absent or a permutation of 0..{n - 1}, got {given}")
     pose = EtsPose(axes=tuple(el.axis for el in joints), revolute=tuple(el.kind == "R" for el in joints),
                    signs=tuple(float(el.sign) for el in joints), qidx=qidx)
     T = np.stack(consts)
-    ordered = [None] * n
+    ordered: list[_Element | None] = [None] * n
     for el, k in zip(joints, qidx):
         ordered[k] = el
     return pose, T[:, :3, :3], T[:, :3, 3], ordered

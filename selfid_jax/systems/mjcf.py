@@ -175,6 +175,7 @@ def from_mjcf(
             box_low, box_high = _sampling_box(act, q_low, q_high, home, sample_half_width)
             sample_low = box_low if sample_low is None else sample_low
             sample_high = box_high if sample_high is None else sample_high
+        pose_fn: ChainSitePose | MjxSitePose
         if fk == "chain":
             pose_fn, params = chain, ChainModel.from_mjmodel(mj)
         else:

@@ -263,10 +263,8 @@ class System:
     def with_task_dim(self, task_dim: int, *, min_sigma: float | None = None) -> System:
         """Copy of this system with another task dimension (and optionally ``min_sigma``)."""
         check_task_dim(task_dim, self.has_rotation)
-        kw = dict(task_dim=int(task_dim), task_axes=None)
-        if min_sigma is not None:
-            kw["min_sigma"] = float(min_sigma)
-        return dataclasses.replace(self, **kw)
+        sigma = self.min_sigma if min_sigma is None else float(min_sigma)
+        return dataclasses.replace(self, task_dim=int(task_dim), task_axes=None, min_sigma=sigma)
 
     def with_task_axes(self, axes, *, min_sigma: float | None = None) -> System:
         """Copy of this system whose task is the chosen components of ``[dp, rotation vector]``.
@@ -279,10 +277,8 @@ class System:
         axes = check_task_axes(axes, self.has_rotation)
         if axes in (default_axes(2), default_axes(3), default_axes(6)):
             return self.with_task_dim(len(axes), min_sigma=min_sigma)
-        kw = dict(task_dim=len(axes), task_axes=axes)
-        if min_sigma is not None:
-            kw["min_sigma"] = float(min_sigma)
-        return dataclasses.replace(self, **kw)
+        sigma = self.min_sigma if min_sigma is None else float(min_sigma)
+        return dataclasses.replace(self, task_dim=len(axes), task_axes=axes, min_sigma=sigma)
 
     def replace(self, **changes) -> System:
         """``dataclasses.replace`` (e.g. another ``m_a`` for a sweep)."""
@@ -326,10 +322,12 @@ def make_system(*, name, params, pose_fn, has_rotation, limits: Limits) -> Syste
     """A :class:`System` from :func:`validate`-checked ``limits``, arrays in the default float dtype."""
     v = validate(limits, has_rotation=has_rotation)
     fl = jnp.result_type(float)  # the default float dtype (float64 only under jax_enable_x64)
-    arrays = {k: jnp.asarray(getattr(v, k), fl) for k in ("q_low", "q_high", "dq_max", "m_a", "sample_low",
-                                                          "sample_high")}
-    return System(params=params, **arrays, name=str(name), n_act=v.n_act, task_dim=v.task_dim, pose_fn=pose_fn,
-                  min_sigma=v.min_sigma, has_rotation=has_rotation)
+    def arr(field: str) -> jax.Array:
+        return jnp.asarray(getattr(v, field), fl)
+
+    return System(params=params, q_low=arr("q_low"), q_high=arr("q_high"), dq_max=arr("dq_max"), m_a=arr("m_a"),
+                  sample_low=arr("sample_low"), sample_high=arr("sample_high"), name=str(name), n_act=v.n_act,
+                  task_dim=v.task_dim, pose_fn=pose_fn, min_sigma=v.min_sigma, has_rotation=has_rotation)
 
 
 # ---------------------------------------------------------------- builders

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from importlib import resources
 
 import numpy as np
@@ -13,7 +12,7 @@ from selfid_jax.systems.system import System
 __all__ = ["ur5e", "UR5E_XML", "UR5E_HOME"]
 
 #: Path of the shipped MJCF (site "ee" = DH tool flange frame 6).
-UR5E_XML = os.fspath(resources.files("selfid_jax.systems") / "assets" / "ur5e.xml")
+UR5E_XML = str(resources.files("selfid_jax.systems") / "assets" / "ur5e.xml")
 
 #: A working configuration (rad): elbow bent, wrist bent, flange pointing down
 #: at about (-0.49, -0.13, 0.49) m in the base frame.

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 from importlib import resources
 from typing import NamedTuple
 
@@ -58,7 +57,7 @@ __all__ = [
 ]
 
 #: Path of the shipped MJCF.
-MODEL_O_XML = os.fspath(resources.files("selfid_jax.systems") / "assets" / "model_o.xml")
+MODEL_O_XML = str(resources.files("selfid_jax.systems") / "assets" / "model_o.xml")
 #: POM site name.
 MODEL_O_SITE = "pom"
 #: Safe command box (m) about the grasp command, ``(low, high)`` offsets (the System's actuator limits).
@@ -414,6 +413,8 @@ def model_o(*, backend: str = "kinematic", task_dim: int = 3, m_a=0.0003, dq_max
     qpos0, home = model_o_keyframe(path)
     lo, hi = _offsets(safe_range)
     q_low, q_high = home + lo, home + hi
+    params: ModelOParams | tuple[settle.SettleParams | tuple[jax.Array, jax.Array], jax.Array]
+    pose_fn: ModelOKinematicPose | TiltGuardedPose
     if backend == "kinematic":
         params = load_model_o_params(path, safe_range=(lo, hi), max_tilt=max_tilt)
         pose_fn = ModelOKinematicPose(check_stability=bool(check_stability))
@@ -421,6 +422,8 @@ def model_o(*, backend: str = "kinematic", task_dim: int = 3, m_a=0.0003, dq_max
         mj = model_o_mjmodel(path)
         sid, f = int(mj.site(MODEL_O_SITE).id), jnp.float64
         lo, hi = jnp.asarray(q_low, f), jnp.asarray(q_high, f)
+        inner_params: settle.SettleParams | tuple[jax.Array, jax.Array]
+        inner: settle.MjxSettlePose | settle.NativeSettlePose
         if backend == "mjx":
             inner_params = settle.SettleParams(settle.mjx_model(mj), lo, hi, jnp.asarray(qpos0, f))
             inner = settle.MjxSettlePose(sid, int(max_steps), float(tol))

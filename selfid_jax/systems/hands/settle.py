@@ -117,21 +117,21 @@ def _mjx_settle(model, data0, ctrl, *, max_steps, tol, patience, loop):
             _, k, run = c
             return jnp.logical_and(k < max_steps, run < patience)
 
-        def body(c):
+        def while_body(c):
             d, k, run = c
             d1, run1 = step(d, run)
             return d1, k + 1, run1
 
-        d, _, run = jax.lax.while_loop(cond, body, (d0, zero, zero))
+        d, _, run = jax.lax.while_loop(cond, while_body, (d0, zero, zero))
     elif loop == "scan":
-        def body(c, _):
+        def scan_body(c, _):
             d, run = c
             d1, run1 = step(d, run)
             done = run >= patience
             d1 = jax.tree_util.tree_map(lambda a, b: jnp.where(done, a, b), d, d1)
             return (d1, jnp.where(done, run, run1)), None
 
-        (d, run), _ = jax.lax.scan(body, (d0, zero), None, length=max_steps)
+        (d, run), _ = jax.lax.scan(scan_body, (d0, zero), None, length=max_steps)
     else:
         raise ValueError(f"loop must be 'while' or 'scan', got {loop!r}")
     return mjx.kinematics(model, d), run >= patience

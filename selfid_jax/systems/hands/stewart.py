@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 from importlib import resources
 
 import jax
@@ -54,7 +53,7 @@ __all__ = [
 ]
 
 #: Path of the shipped MJCF.
-STEWART_XML = os.fspath(resources.files("selfid_jax.systems") / "assets" / "stewart_hand.xml")
+STEWART_XML = str(resources.files("selfid_jax.systems") / "assets" / "stewart_hand.xml")
 #: POM site name.
 STEWART_SITE = "pom"
 #: Half-width (m) of the default sampling box around the home leg lengths.
@@ -195,7 +194,8 @@ def load_stewart_params(path: str = STEWART_XML) -> StewartParams:
     """:class:`StewartParams` read from the MJCF at ``path``, in the default float dtype."""
     a, b, p0, R0, q_low, q_high, _ = _arrays(_mjmodel(path))
     fl = jnp.result_type(float)
-    prm = StewartParams(*(jnp.asarray(v, fl) for v in (a, b, p0, R0, q_low, q_high)), det_sign=jnp.asarray(1.0, fl))
+    ja, jb, jp0, jR0, jlow, jhigh = (jnp.asarray(v, fl) for v in (a, b, p0, R0, q_low, q_high))
+    prm = StewartParams(ja, jb, jp0, jR0, jlow, jhigh, det_sign=jnp.asarray(1.0, fl))
     det = jnp.linalg.det(stewart_inverse_jacobian(prm, prm.p0, prm.R0))
     return prm.replace(det_sign=jnp.sign(det))
 
@@ -257,6 +257,8 @@ def stewart_hand(
         raise ValueError("stewart_hand needs float64: build and call it under `with jax.enable_x64(True):`")
     mj = _mjmodel(path)
     _, _, _, _, q_low, q_high, home = _arrays(mj)
+    params: StewartParams | settle.SettleParams | tuple[jax.Array, jax.Array]
+    pose_fn: StewartKinematicPose | settle.MjxSettlePose | settle.NativeSettlePose
     if backend == "kinematic":
         params, pose_fn = load_stewart_params(path), StewartKinematicPose()
     elif backend == "mjx":
