@@ -20,7 +20,7 @@ From Python::
 
 from __future__ import annotations
 
-from typing import Annotated, Literal, NamedTuple
+from typing import TYPE_CHECKING, Annotated, Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from selfid_jax import control
 
 from selfid_jax.control import paths
-from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig, StudyConfig
+from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, HostOrDevice, PathConfig, StudyConfig
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
@@ -50,7 +50,10 @@ class SystemRun(BaseModel):
     controller: ControllerConfig | None = None
 
 
-SystemEntry = spec_or_run(SystemRun)
+if TYPE_CHECKING:  # a type built at run time for pydantic; mypy sees any entry
+    SystemEntry = Any
+else:
+    SystemEntry = spec_or_run(SystemRun)
 """A ``systems`` entry: a system spec, or ``{system: spec, path: ..., controller: ...}``."""
 
 
@@ -101,9 +104,9 @@ class Static(NamedTuple):
 class Params(NamedTuple):
     """One rollout's traced inputs (batch axis first when batched)."""
 
-    eps_limit: jax.Array  # () m_eps entries ~ uniform(1, eps_limit)
-    key: jax.Array  # (2,) uint32 PRNG key data of the trial
-    q0: jax.Array  # (n,) start configuration
+    eps_limit: HostOrDevice  # () m_eps entries ~ uniform(1, eps_limit)
+    key: HostOrDevice  # (2,) uint32 PRNG key data of the trial
+    q0: HostOrDevice  # (n,) start configuration
     controller: control.ControllerParams  # () each: controller protocol
 
 
@@ -127,7 +130,7 @@ def scaling_matrix(key, eps_limit, shape):
 def compute(static: Static, p: Params) -> Outputs:
     """Follow the star from ``p.q0`` with ``m_eps * Jinv_true(q)`` for one trial's ``m_eps``."""
     system = static.system
-    m_eps = scaling_matrix(jax.random.wrap_key_data(p.key), p.eps_limit, (system.n_act, system.task_dim))
+    m_eps = scaling_matrix(jax.random.wrap_key_data(jnp.asarray(p.key)), p.eps_limit, (system.n_act, system.task_dim))
     res = control.follow(system, control.scaled_true_inverse(system, m_eps), static.path, p.q0, p.controller,
                          steps=static.steps)
     return Outputs(*(getattr(res, f) for f in Outputs._fields))
@@ -185,7 +188,7 @@ def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller:
     meta = grid_table(
         {
             "system": [name],
-            "eps_limit": cfg.eps_limits.values(),
+            "eps_limit": list(cfg.eps_limits.values()),
             "config_id": range(cfg.n_configs),
             "trial": range(cfg.n_trials),
         }

@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 
 from selfid_jax.math import geometry
@@ -39,13 +40,13 @@ class ControllerParams(NamedTuple):
     (:class:`selfid_jax.runner.config.ControllerConfig` has the same ones).
     """
 
-    max_step: jax.Array | float = 0.0025  # () largest POM position step per control step [m]
-    tol: jax.Array | float = 0.0005  # () waypoint reached within this distance [m]
-    gain: jax.Array | float = 1.0  # () fraction of the error commanded per step (before clipping)
-    max_rot_step: jax.Array | float = 0.05  # () largest rotation step per control step [rad] (6-D tasks)
-    rot_tol: jax.Array | float = 0.01  # () waypoint orientation reached within this angle [rad] (6-D tasks)
+    max_step: ArrayLike = 0.0025  # () largest POM position step per control step [m]
+    tol: ArrayLike = 0.0005  # () waypoint reached within this distance [m]
+    gain: ArrayLike = 1.0  # () fraction of the error commanded per step (before clipping)
+    max_rot_step: ArrayLike = 0.05  # () largest rotation step per control step [rad] (6-D tasks)
+    rot_tol: ArrayLike = 0.01  # () waypoint orientation reached within this angle [rad] (6-D tasks)
     # () failed beyond this distance to the path [m]; None: 2 max|path| + 10 tol
-    diverge_dist: jax.Array | float | None = None
+    diverge_dist: ArrayLike | None = None
 
 
 DEFAULT_STEPS = 435
@@ -357,7 +358,8 @@ def follow_law(
         pose, aux = law.sense(carry.law, carry.q)
         dist = task.path_distance(pose[0])
         carry, active = _advance(task, carry, pose, ctrl)
-        V = task.twist(*task.error(pose, carry.waypoint), ctrl)
+        e_p, e_r = task.error(pose, carry.waypoint)
+        V = task.twist(e_p, e_r, ctrl)
         dq, learned, ok = law.step(carry.law, carry.q, pose, aux, V)
         q_new = system.apply(carry.q, dq)
         # a pose map returns NaN where its solve failed (closed-chain hands): that fails the rollout too

@@ -233,6 +233,7 @@ def _rollout(params: DesignParams, data, *, iters: int, steps: int, follow_from:
                          return_trajectory=True)
     pos = list(system.position_axes)
     p_goal, _ = control.waypoint_poses(path, system.pose(q_start), system.axes)
+    assert res.positions is not None  # return_trajectory=True
     points = res.positions[:, pos]  # squared distances to the path: no sqrt, whose derivative is infinite at 0
     d2 = jnp.sum((points - metrics.closest_points(points, jnp.concatenate([points[:1], p_goal[:, pos]]))) ** 2, -1)
     used = jnp.arange(d2.shape[0]) <= res.steps_used  # the poses of the steps taken and where they ended
@@ -388,7 +389,8 @@ def refine(system: System, params: DesignParams, key, q0s, path, *, opt_steps: i
 
     c, (xs, info, grads, ok) = jax.lax.scan(body, _start(jnp.asarray(params.log_m_a, float), opt, lo, hi), None,
                                             length=opt_steps)
-    return RefineResult(xs, *info[:3], info.rms_error, grads, ok, c.best_x, c.best_loss)
+    return RefineResult(xs, info.loss, info.failed_fraction, info.completion, info.rms_error, grads, ok, c.best_x,
+                        c.best_loss)
 
 
 class _Phases(NamedTuple):  # carry of optimize's scan
