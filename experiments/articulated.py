@@ -139,15 +139,15 @@ class Static(NamedTuple):
 
 class Params(NamedTuple):
     rollout: sim.RolloutParams
-    sid_key: jax.Array  # (2,) uint32
-    m_a: jax.Array  # (6,) self-ID magnitude per joint [rad]
-    eps: jax.Array  # ()
+    sid_key: scenes.ParamArray  # (2,) uint32
+    m_a: scenes.ParamArray  # (6,) self-ID magnitude per joint [rad]
+    eps: scenes.ParamArray  # ()
 
 
 def compute(static: Static, p: Params) -> sim.RolloutResult:
     """Self-ID at the start joints, then one rollout with the chosen inverse Jacobian."""
     st = static.sim
-    sid = selfid.run(st.arm, jax.random.wrap_key_data(p.sid_key), jnp.asarray(st.q0), iters=static.iters,
+    sid = selfid.run(st.arm, jax.random.wrap_key_data(jnp.asarray(p.sid_key)), jnp.asarray(st.q0), iters=static.iters,
                      eps=p.eps, m_a=p.m_a)
     est = jnp.where(jnp.all(jnp.isfinite(sid.estimate)), sid.estimate, 0.0)
     return sim.rollout(st, p.rollout._replace(jinv_est=est.astype(p.rollout.jinv_est.dtype)))
@@ -224,9 +224,10 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: ArticulatedConfig) -> pd.DataF
 
 def _stats(g: pd.DataFrame) -> dict[str, Any]:
     ok = g[g["success"]]
-    out = {"n": int(len(g)), "success_rate": float(g["success"].mean()), "slips": int(g["slipped"].sum()),
-           "nonfinite": int(g["nonfinite"].sum()), "invalid_contact_steps": int(g["invalid_steps"].sum()),
-           "alpha_min": float(g["alpha_min"].min())}
+    out: dict[str, Any] = {"n": int(len(g)), "success_rate": float(g["success"].mean()),
+                           "slips": int(g["slipped"].sum()), "nonfinite": int(g["nonfinite"].sum()),
+                           "invalid_contact_steps": int(g["invalid_steps"].sum()),
+                           "alpha_min": float(g["alpha_min"].min())}
     for m in METRICS:  # over successful rollouts (the paper's convention for time); efficiency etc. likewise
         out[m] = {"mean": float(ok[m].mean()) if len(ok) else None, "sd": float(ok[m].std(ddof=0)) if len(ok) else None}
     return out

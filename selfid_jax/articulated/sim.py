@@ -59,10 +59,10 @@ class Controller(enum.IntEnum):
             raise ValueError(f"unknown controller {label!r}; allowed: {', '.join(CONTROLLERS)}") from None
 
 
-CONTROLLERS = tuple(c.label for c in Controller)  # the labels, in value order
-ControllerLabel = Literal["tacman", "turbo", "turbo_u0", "turbo_lead"]  # CONTROLLERS as a type (typed configs)
-if get_args(ControllerLabel) != CONTROLLERS:  # a Literal cannot be built from the enum; keep the two in step here
-    raise AssertionError(f"ControllerLabel {get_args(ControllerLabel)} != Controller labels {CONTROLLERS}")
+ControllerLabel = Literal["tacman", "turbo", "turbo_u0", "turbo_lead"]  # a Controller's label, as a type (configs)
+CONTROLLERS: tuple[ControllerLabel, ...] = get_args(ControllerLabel)  # the labels, in value order
+if CONTROLLERS != tuple(c.label for c in Controller):  # a Literal cannot be built from the enum: keep them in step
+    raise AssertionError(f"ControllerLabel {CONTROLLERS} != Controller labels {tuple(c.label for c in Controller)}")
 
 
 class Static(NamedTuple):
@@ -83,25 +83,25 @@ class Static(NamedTuple):
 
 
 class RolloutParams(NamedTuple):
-    """Traced, one row (vmap adds a leading axis)."""
+    """Traced, one row (vmap adds a leading axis); hosts build the rows of a sweep as numpy arrays."""
 
     obj: scenes.ObjectParams
-    controller: jax.Array  # () int32 Controller value
-    use_estimate: jax.Array  # () bool: fixed self-ID estimate instead of the true inverse Jacobian
-    jinv_est: jax.Array  # (n, 6) self-identified inverse Jacobian
-    key: jax.Array  # (2,) uint32 key data (marker noise)
-    speed: jax.Array  # () |u0| [m/s] along the gripper's x axis
-    marker_noise: jax.Array  # () marker reading noise sd [m] (tactile.read)
-    contact_eps: jax.Array  # () Eq. 2 threshold [m]
-    qdot_max: jax.Array  # (n,) joint-velocity limits [rad/s]
-    beta: jax.Array  # () Eq. 25 safety factor
-    dev_high: jax.Array  # () Tac-Man exploration -> recovery [m]
-    dev_low: jax.Array  # () Tac-Man recovery -> exploration [m]
-    recovery_gain: jax.Array  # () Tac-Man: fraction of the in-hand pose removed per recovery step
-    slip: jax.Array  # () in-hand translation declared a slip [m]
-    slip_rot: jax.Array  # () in-hand rotation declared a slip [rad]
-    lead_max: jax.Array  # () turbo_lead: cap of the integral lead [m]
-    twist_tau: jax.Array  # () turbo_lead: handle-twist smoothing time constant [s] (0: none)
+    controller: scenes.ParamArray  # () int32 Controller value
+    use_estimate: scenes.ParamArray  # () bool: fixed self-ID estimate instead of the true inverse Jacobian
+    jinv_est: scenes.ParamArray  # (n, 6) self-identified inverse Jacobian
+    key: scenes.ParamArray  # (2,) uint32 key data (marker noise)
+    speed: scenes.ParamArray  # () |u0| [m/s] along the gripper's x axis
+    marker_noise: scenes.ParamArray  # () marker reading noise sd [m] (tactile.read)
+    contact_eps: scenes.ParamArray  # () Eq. 2 threshold [m]
+    qdot_max: scenes.ParamArray  # (n,) joint-velocity limits [rad/s]
+    beta: scenes.ParamArray  # () Eq. 25 safety factor
+    dev_high: scenes.ParamArray  # () Tac-Man exploration -> recovery [m]
+    dev_low: scenes.ParamArray  # () Tac-Man recovery -> exploration [m]
+    recovery_gain: scenes.ParamArray  # () Tac-Man: fraction of the in-hand pose removed per recovery step
+    slip: scenes.ParamArray  # () in-hand translation declared a slip [m]
+    slip_rot: scenes.ParamArray  # () in-hand rotation declared a slip [rad]
+    lead_max: scenes.ParamArray  # () turbo_lead: cap of the integral lead [m]
+    twist_tau: scenes.ParamArray  # () turbo_lead: handle-twist smoothing time constant [s] (0: none)
 
 
 class RolloutResult(NamedTuple):
@@ -298,7 +298,7 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     zero_i = jnp.zeros((), jnp.int32)
     carry = _Carry(phys, sens0, q0, tacman.turbo_init(T_g0), tacman.tacman_init(T_g0, jnp.array([1.0, 0, 0], f)),
                    T_g0.inverse() @ T_h0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), bool),
-                   jnp.zeros((), bool), zero_i, zero_i, jnp.ones((), f), jax.random.wrap_key_data(p.key))
+                   jnp.zeros((), bool), zero_i, zero_i, jnp.ones((), f), jax.random.wrap_key_data(jnp.asarray(p.key)))
 
     def body(c: _Carry, _):
         T_g, T_h = _poses(c.sens)

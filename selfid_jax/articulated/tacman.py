@@ -24,11 +24,12 @@ Pieces (each jit- and vmap-able, no Python control flow on values):
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import jaxlie
+from jax.typing import ArrayLike
 
 __all__ = [
     "Reading",
@@ -170,11 +171,13 @@ class Reading(NamedTuple):
 
 
 class TurboParams(NamedTuple):
+    """TacMan-Turbo's settings (:func:`turbo_step`, :func:`lead_step`): traced, sweepable under ``vmap``."""
+
     u0: jax.Array  # (6,) base velocity in the gripper frame [m/s, rad/s] (Eq. 4)
-    dt: jax.Array  # () control interval [s]
-    keep_u0: jax.Array  # () bool: keep the base speed in the prediction (see keep_speed)
-    lead_max: Any = 0.0  # () lead_step: cap of the integral lead s [m]
-    twist_tau: Any = 0.0  # () lead_step: time constant of the handle-twist smoothing [s] (0: none)
+    dt: ArrayLike  # () control interval [s]
+    keep_u0: ArrayLike  # () bool: keep the base speed in the prediction (see keep_speed)
+    lead_max: ArrayLike = 0.0  # () lead_step: cap of the integral lead s [m]
+    twist_tau: ArrayLike = 0.0  # () lead_step: time constant of the handle-twist smoothing [s] (0: none)
 
 
 class TurboState(NamedTuple):
@@ -275,12 +278,14 @@ def lead_step(state: TurboState, r: Reading, p: TurboParams):
 
 
 class TacManParams(NamedTuple):
-    speed: jax.Array  # () exploration speed |v0| [m/s]
-    dt: jax.Array  # () control interval [s]
-    dev_high: jax.Array  # () contact deviation that ends an exploration stage [m]
-    dev_low: jax.Array  # () deviation at which a recovery stage ends [m]
-    recovery_gain: jax.Array  # () fraction of the in-hand pose removed per recovery step (0, 1]
-    max_speed: jax.Array  # () recovery speed cap [m/s] (the rotation is capped at max_speed / 0.05 m)
+    """Tac-Man's settings: numbers, numpy or traced arrays (sweepable under ``vmap``)."""
+
+    speed: ArrayLike  # () exploration speed |v0| [m/s]
+    dt: ArrayLike  # () control interval [s]
+    dev_high: ArrayLike  # () contact deviation that ends an exploration stage [m]
+    dev_low: ArrayLike  # () deviation at which a recovery stage ends [m]
+    recovery_gain: ArrayLike  # () fraction of the in-hand pose removed per recovery step (0, 1]
+    max_speed: ArrayLike  # () recovery speed cap [m/s] (the rotation is capped at max_speed / 0.05 m)
 
 
 class TacManState(NamedTuple):
