@@ -63,7 +63,7 @@ class Pads(BaseModel):
     rows: int = Field(8, ge=1, le=32)
     cols: int = Field(8, ge=1, le=32)
     pitch: float = Field(0.0025, gt=0, le=0.01, description="marker pitch [m]")
-    noise: float = Field(5e-6, ge=0, le=1e-3, description="marker reading noise sd [m]")
+    marker_noise: float = Field(5e-6, ge=0, le=1e-3, description="marker reading noise sd [m]")
     contact_eps: float = Field(3e-4, gt=0, le=1e-2, description="Eq. 2 threshold on normal deformation [m]")
 
 
@@ -71,7 +71,8 @@ class TacManCfg(BaseModel):
     model_config = STRICT
     dev_high: float = Field(1e-3, gt=0, le=0.01, description="deviation ending an exploration stage [m]")
     dev_low: float = Field(2e-4, gt=0, le=0.01, description="deviation ending a recovery stage [m]")
-    gain: float = Field(0.5, gt=0, le=1, description="recovery gain per step")
+    recovery_gain: float = Field(0.5, gt=0, le=1, description="fraction of the in-hand pose removed per recovery "
+                                 "step")
 
     @model_validator(mode="after")
     def _order(self):
@@ -87,12 +88,12 @@ class TurboLeadCfg(BaseModel):
     safe), 5x below the 5 mm slip, and at ``gel_k`` 20 kN/m a 20 N pull, 5x
     the population's largest resistance; with a 15 deg misalignment its
     normal component (0.26 mm) stays below the 0.7 mm that lifts a pad off
-    (squeeze 1 mm, ``contact_eps`` 0.3 mm). ``tau`` 0.06 s: 3 control steps.
+    (squeeze 1 mm, ``contact_eps`` 0.3 mm). ``twist_tau`` 0.06 s: 3 control steps.
     """
 
     model_config = STRICT
     lead_max: float = Field(1e-3, ge=0, le=0.01, description="cap of the integral lead along the screw [m]")
-    tau: float = Field(0.06, ge=0, le=10, description="handle-twist smoothing time constant [s] (0: none)")
+    twist_tau: float = Field(0.06, ge=0, le=10, description="handle-twist smoothing time constant [s] (0: none)")
 
 
 class ArticulatedConfig(StudyConfig, SelfIdConfig):
@@ -102,8 +103,7 @@ class ArticulatedConfig(StudyConfig, SelfIdConfig):
     backend: Literal["native", "mjx"] = "native"
     objects: Objects
     population: Population = Population()
-    controllers: Annotated[list[Literal["tacman", "turbo", "turbo_u0", "turbo_lead"]], Field(min_length=1)] = \
-        ["tacman", "turbo", "turbo_u0", "turbo_lead"]
+    controllers: Annotated[list[sim.ControllerLabel], Field(min_length=1)] = list(sim.CONTROLLERS)
     arms: Annotated[list[Literal["true", "selfid"]], Field(min_length=1)] = ["true", "selfid"]
     speed: float = Field(0.03, gt=0, le=0.5, description="|u0| [m/s] along the gripper x axis")
     control_dt: float = Field(0.02, gt=0, le=0.2, description="control interval [s]")
@@ -139,15 +139,15 @@ class Static(NamedTuple):
 
 class Params(NamedTuple):
     rollout: sim.RolloutParams
-    sid_key: jax.Array  # (2,) uint32
-    m_a: jax.Array  # (6,) self-ID magnitude per joint [rad]
-    eps: jax.Array  # ()
+    sid_key: scenes.ParamArray  # (2,) uint32
+    m_a: scenes.ParamArray  # (6,) self-ID magnitude per joint [rad]
+    eps: scenes.ParamArray  # ()
 
 
 def compute(static: Static, p: Params) -> sim.RolloutResult:
     """Self-ID at the start joints, then one rollout with the chosen inverse Jacobian."""
     st = static.sim
-    sid = selfid.run(st.arm, jax.random.wrap_key_data(p.sid_key), jnp.asarray(st.q0), iters=static.iters,
+    sid = selfid.run(st.arm, jax.random.wrap_key_data(jnp.asarray(p.sid_key)), jnp.asarray(st.q0), iters=static.iters,
                      eps=p.eps, m_a=p.m_a)
     est = jnp.where(jnp.all(jnp.isfinite(sid.estimate)), sid.estimate, 0.0)
     return sim.rollout(st, p.rollout._replace(jinv_est=est.astype(p.rollout.jinv_est.dtype)))
@@ -197,14 +197,14 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
         full = lambda v, n=n: np.full((n,), float(v))  # noqa: E731
         rollout = sim.RolloutParams(
             obj=scenes.ObjectParams(*(np.asarray(a)[o] for a in pop)),
-            controller=np.asarray([sim.CONTROLLERS.index(c) for c in meta["controller"]], np.int32),
+            controller=np.asarray([sim.Controller.parse(c) for c in meta["controller"]], np.int32),
             use_estimate=(meta["arm"] == "selfid").to_numpy(),
             jinv_est=np.zeros((n, 6, 6)),
-            key=row_keys(cfg.seed + 1000 * k_i, n), speed=full(cfg.speed), marker_noise=full(cfg.pads.noise),
+            key=row_keys(cfg.seed + 1000 * k_i, n), speed=full(cfg.speed), marker_noise=full(cfg.pads.marker_noise),
             contact_eps=full(cfg.pads.contact_eps), qdot_max=np.full((n, 6), cfg.qdot_max), beta=full(cfg.beta),
-            dev_high=full(cfg.tacman.dev_high), dev_low=full(cfg.tacman.dev_low), rec_gain=full(cfg.tacman.gain),
-            slip=full(cfg.slip), slip_rot=full(cfg.slip_rot), lead_max=full(cfg.turbo_lead.lead_max),
-            lead_tau=full(cfg.turbo_lead.tau))
+            dev_high=full(cfg.tacman.dev_high), dev_low=full(cfg.tacman.dev_low),
+            recovery_gain=full(cfg.tacman.recovery_gain), slip=full(cfg.slip), slip_rot=full(cfg.slip_rot),
+            lead_max=full(cfg.turbo_lead.lead_max), twist_tau=full(cfg.turbo_lead.twist_tau))
         # one self-ID per object (the same estimate for every controller on it)
         params = Params(rollout, row_keys(cfg.seed + 7, o), np.repeat(m_a.value[None], n, axis=0), full(cfg.eps))
         parts.append(Part(kind, static, params, meta))
@@ -224,9 +224,10 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: ArticulatedConfig) -> pd.DataF
 
 def _stats(g: pd.DataFrame) -> dict[str, Any]:
     ok = g[g["success"]]
-    out = {"n": int(len(g)), "success_rate": float(g["success"].mean()), "slips": int(g["slipped"].sum()),
-           "nonfinite": int(g["nonfinite"].sum()), "invalid_contact_steps": int(g["invalid_steps"].sum()),
-           "alpha_min": float(g["alpha_min"].min())}
+    out: dict[str, Any] = {"n": int(len(g)), "success_rate": float(g["success"].mean()),
+                           "slips": int(g["slipped"].sum()), "nonfinite": int(g["nonfinite"].sum()),
+                           "invalid_contact_steps": int(g["invalid_steps"].sum()),
+                           "alpha_min": float(g["alpha_min"].min())}
     for m in METRICS:  # over successful rollouts (the paper's convention for time); efficiency etc. likewise
         out[m] = {"mean": float(ok[m].mean()) if len(ok) else None, "sd": float(ok[m].std(ddof=0)) if len(ok) else None}
     return out

@@ -49,7 +49,7 @@ own slope at reliable and at unreliable points.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Any, Literal, NamedTuple
+from typing import Annotated, Any, Literal, NamedTuple, TypeAlias
 
 import jax
 import jax.numpy as jnp
@@ -140,7 +140,8 @@ class DesignConfig(StudyConfig):
     """Self-ID magnitude design per system and tracker-noise level: grid, gradient refinement, held-out comparison."""
 
     experiment: Literal["design"] = "design"
-    systems: Annotated[list[SystemEntry], Field(
+    # SystemEntry is a discriminated union spec_or_run builds at runtime: pydantic reads it, mypy cannot
+    systems: Annotated[list[SystemEntry], Field(  # type: ignore[valid-type]
         min_length=1, description="built-in names, {mjcf: ...} / {pose_fn: ...}, or {system: ..., path: ..., "
         "controller: ..., m_a_grid: ..., pose_noise: ..., rot_noise: ...}")]
     path: PathConfig
@@ -182,6 +183,10 @@ def protocol(cfg: DesignConfig, entry) -> Protocol:
                     list(pose), list(rot), run.m_a)
 
 
+ParamArray: TypeAlias = jax.Array | np.ndarray
+"""A leaf of :class:`Params`: numpy where :func:`build` fills the rows, a ``jax.Array`` once traced."""
+
+
 class Static(NamedTuple):
     """What every row of one system shares (closed over by the compiled function)."""
 
@@ -197,77 +202,64 @@ class Static(NamedTuple):
 
 
 class Params(NamedTuple):
-    """One row's traced inputs (batch axis first when batched)."""
+    """One row's traced inputs (batch axis first when batched): numpy rows from :func:`build`, traced in
+    :func:`compute`."""
 
-    pose_noise: jax.Array  # () tracker position noise sd [m]
-    rot_noise: jax.Array  # () tracker rotation noise sd [rad]
-    m_a_grid: jax.Array  # (G,) magnitudes [rad or m]
-    default_m_a: jax.Array  # (n,) the reference design: the system's safe magnitude, or the entry's m_a
-    key: jax.Array  # (2,) uint32 key data of the training trials
-    eval_key: jax.Array  # (2,) uint32 key data of the held-out trials
-    q0s: jax.Array  # (S, n) start configurations
-    learning_rate: jax.Array  # () initial Adam step in log m_a
-    max_failed: jax.Array  # () reliability threshold
+    pose_noise: ParamArray  # () tracker position noise sd [m]
+    rot_noise: ParamArray  # () tracker rotation noise sd [rad]
+    m_a_grid: ParamArray  # (G,) magnitudes [rad or m]
+    default_m_a: ParamArray  # (n,) the reference design: the system's safe magnitude, or the entry's m_a
+    key: ParamArray  # (2,) uint32 key data of the training trials
+    eval_key: ParamArray  # (2,) uint32 key data of the held-out trials
+    q0s: ParamArray  # (S, n) start configurations
+    learning_rate: ParamArray  # () initial Adam step in log m_a
+    max_failed: ParamArray  # () reliability threshold
     controller: control.ControllerParams  # () each
 
 
-class Outputs(NamedTuple):
-    """One row's results: G grid points, K steps per refinement, E = 4 held-out designs (see module docstring)."""
+class HeldOut(NamedTuple):
+    """The compared designs (:data:`EVAL_DESIGNS`, E = 4) evaluated on the held-out trials."""
 
-    grid_m_a: jax.Array  # (G,) [rad or m]
-    grid_loss: jax.Array  # (G,) [log m^2]
-    grid_failed: jax.Array  # (G,) fraction of failed rollouts
-    grid_completion: jax.Array  # (G,)
-    grid_rms: jax.Array  # (G,) [m]
-    grid_grad: jax.Array  # (G, n) d loss / d log m_a_i
-    scalar_log_m_a: jax.Array  # (K,)
-    scalar_loss: jax.Array  # (K,)
-    scalar_failed: jax.Array  # (K,)
-    scalar_completion: jax.Array  # (K,)
-    scalar_rms: jax.Array  # (K,) [m]
-    scalar_grad: jax.Array  # (K,) d loss / d log m_a followed (summed over actuators; 0 where unreliable)
-    per_log_m_a: jax.Array | None  # (K, n) (None without per_actuator)
-    per_loss: jax.Array | None  # (K,)
-    per_failed: jax.Array | None  # (K,)
-    per_completion: jax.Array | None  # (K,)
-    per_rms: jax.Array | None  # (K,) [m]
-    per_grad: jax.Array | None  # (K, n) followed (0 where unreliable)
-    eval_log_m_a: jax.Array  # (E, n) the compared designs
-    eval_loss: jax.Array  # (E,) on held-out trials
-    eval_failed: jax.Array  # (E,)
-    eval_completion: jax.Array  # (E,)
-    eval_rms: jax.Array  # (E,) [m]
+    log_m_a: jax.Array  # (E, n) log of each design's per-actuator m_a [log rad or log m]
+    info: design.DesignInfo  # each field (E,)
+
+
+class Outputs(NamedTuple):
+    """One row's results: the library's own result types (see the module docstring).
+
+    The runner stores each leaf as a column named by its dotted path
+    (``search.grid.info.loss``, ``search.scalar.grad``, ``held_out.log_m_a``,
+    ...; :func:`selfid_jax.runner.sweep.named_leaves`); :func:`_outputs` reads
+    them back into these tuples.
+    """
+
+    search: design.DesignResult  # grid (G points), scalar and per-actuator refinement (K steps each; None without
+    # per_actuator) on the training trials
+    held_out: HeldOut
 
 
 def compute(static: Static, p: Params) -> Outputs:
     """Grid, scalar and per-actuator refinement on the training trials, then the designs on held-out trials."""
     system = static.system
     n = system.n_act
-    params = design.DesignParams(jnp.zeros((n,)), p.pose_noise, p.rot_noise, p.controller)
-    kw = dict(iters=static.iters, steps=static.steps, follow_from=static.follow_from)
-    key, eval_key = jax.random.wrap_key_data(p.key), jax.random.wrap_key_data(p.eval_key)
+    params = design.DesignParams(jnp.zeros((n,)), jnp.asarray(p.pose_noise), jnp.asarray(p.rot_noise), p.controller)
+    key, eval_key = jax.random.wrap_key_data(jnp.asarray(p.key)), jax.random.wrap_key_data(jnp.asarray(p.eval_key))
     res = design.optimize(system, params, p.m_a_grid, key, p.q0s, static.path, opt_steps=static.opt_steps,
                           learning_rate=p.learning_rate, max_failed=p.max_failed, per_actuator=static.per_actuator,
-                          n_trials=static.n_trials, **kw)
-    g = res.grid
-    per = res.per_actuator
+                          n_trials=static.n_trials, iters=static.iters, steps=static.steps,
+                          follow_from=static.follow_from)
+    g, per = res.grid, res.per_actuator
     scalar_vec = jnp.full((n,), res.scalar.best_log_m_a)
     designs = jnp.stack([jnp.log(p.default_m_a), jnp.full((n,), jnp.log(g.m_a[g.best])), scalar_vec,
                          per.best_log_m_a if per is not None else scalar_vec])
-    _, info = jax.vmap(lambda x: design.design_loss(system, params._replace(log_m_a=x), eval_key, p.q0s, static.path,
-                                                    n_trials=static.eval_trials, return_info=True, **kw))(designs)
 
-    return Outputs(
-        grid_m_a=g.m_a, grid_loss=g.info.loss, grid_failed=g.info.failed_fraction, grid_completion=g.info.completion,
-        grid_rms=g.info.rms_error, grid_grad=g.grad,
-        scalar_log_m_a=res.scalar.log_m_a, scalar_loss=res.scalar.loss, scalar_failed=res.scalar.failed_fraction,
-        scalar_completion=res.scalar.completion, scalar_rms=res.scalar.rms_error, scalar_grad=res.scalar.grad,
-        per_log_m_a=None if per is None else per.log_m_a, per_loss=None if per is None else per.loss,
-        per_failed=None if per is None else per.failed_fraction, per_completion=None if per is None else per.completion,
-        per_rms=None if per is None else per.rms_error, per_grad=None if per is None else per.grad,
-        eval_log_m_a=designs, eval_loss=info.loss, eval_failed=info.failed_fraction, eval_completion=info.completion,
-        eval_rms=info.rms_error,
-    )
+    def held_out(log_m_a):
+        return design.design_loss(system, params._replace(log_m_a=log_m_a), eval_key, p.q0s, static.path,
+                                  iters=static.iters, n_trials=static.eval_trials, steps=static.steps,
+                                  follow_from=static.follow_from, return_info=True)
+
+    _, info = jax.vmap(held_out)(designs)
+    return Outputs(res, HeldOut(designs, info))
 
 
 def build(cfg: DesignConfig) -> list[Part]:
@@ -317,26 +309,55 @@ def _system_part(cfg: DesignConfig, proto: Protocol, index: int) -> Part:
 
 # --------------------------------------------------------------------------- table
 
-def _stack(wide: pd.DataFrame, col: str, shape: tuple[int, ...]) -> np.ndarray:
-    return np.stack([np.asarray(v, float) for v in wide[col].to_numpy()]).reshape((len(wide), *shape))
+def _outputs(wide: pd.DataFrame) -> Outputs:
+    """The wide table's output columns back as the :class:`Outputs` ``compute`` returned.
+
+    Each leaf is ``(rows, size)``: the runner keeps one column per dotted leaf
+    name, each row's values flattened; the per-actuator refinement is None
+    where it was not run (its leaves have no columns).
+    """
+
+    def leaf(name: str) -> np.ndarray:
+        return np.stack([np.asarray(v, float).ravel() for v in wide[name].to_numpy()])
+
+    def tup(cls, prefix: str, **nested):
+        return cls(**{f: nested[f] if f in nested else leaf(f"{prefix}.{f}") for f in cls._fields})
+
+    def info(prefix: str) -> design.DesignInfo:
+        return tup(design.DesignInfo, prefix)
+
+    per = tup(design.RefineResult, "search.per_actuator") if "search.per_actuator.loss" in wide else None
+    search = design.DesignResult(tup(design.GridResult, "search.grid", info=info("search.grid.info")),
+                                 tup(design.RefineResult, "search.scalar"), per)
+    return Outputs(search, tup(HeldOut, "held_out", info=info("held_out.info")))
 
 
 def tabulate(wide: pd.DataFrame, part: Part, cfg: DesignConfig) -> pd.DataFrame:
     """One row per evaluated point: the grid, both gradient paths and the held-out designs (module docstring)."""
     n = part.static.system.n_act
-    G = int(np.shape(part.params.m_a_grid)[1])
-    K = cfg.refine.steps
+    rows = len(wide)
+    out = _outputs(wide)
     base = wide[["system", "noise_level", "pose_noise", "rot_noise"]]
+    mf = cfg.refine.max_failed
     frames = []
 
-    def add(stage, designs, log_m_a, loss, failed, completion, rms, grad, reliable):
-        count = log_m_a.shape[1]
+    def add(stage: str, total: int, log_m_a, stats: design.DesignInfo | design.RefineResult, grad, designs=None,
+            count: int | None = None) -> None:
+        """The first ``count`` (default all) of a stage's ``total`` points; ``log_m_a`` and ``grad`` (None: none) per
+        point a scalar or one value per actuator."""
+        count = total if count is None else count
+
+        def points(a):  # (rows, count, values per point)
+            return np.asarray(a, float).reshape(rows, total, -1)[:, :count]
+
+        x, loss, failed = points(log_m_a), points(stats.loss)[..., 0], points(stats.failed_fraction)[..., 0]
+        completion, rms = points(stats.completion)[..., 0], points(stats.rms_error)[..., 0]
         for j in range(count):
             df = base.copy()
             df["stage"] = stage
             df["design"] = designs[j] if designs is not None else stage
             df["index"] = j
-            vec = log_m_a[:, j].reshape(len(wide), -1) * np.ones((1, n))
+            vec = x[:, j] * np.ones((1, n))
             df["m_a"] = np.exp(vec.mean(axis=1))
             df["m_a_vec"] = list(np.exp(vec))
             df["loss"] = loss[:, j]
@@ -346,38 +367,22 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: DesignConfig) -> pd.DataFrame:
             df["completion"] = completion[:, j]
             if grad is None:
                 df["grad"] = np.nan
-                df["grad_vec"] = [np.zeros(0)] * len(wide)
+                df["grad_vec"] = [np.zeros(0)] * rows
             else:
-                gv = grad[:, j].reshape(len(wide), -1)
+                gv = points(grad)[:, j]
                 df["grad"] = gv.sum(axis=1)
-                df["grad_vec"] = list(gv) if gv.shape[1] == n else [np.zeros(0)] * len(wide)
-            df["reliable"] = reliable[:, j]
+                df["grad_vec"] = list(gv) if gv.shape[1] == n else [np.zeros(0)] * rows
+            df["reliable"] = np.isfinite(loss[:, j]) & (failed[:, j] <= mf)
             frames.append(df)
 
-    mf = cfg.refine.max_failed
-
-    def reliable(loss, failed):
-        return np.isfinite(loss) & (failed <= mf)
-
-    gl, gf = _stack(wide, "grid_loss", (G,)), _stack(wide, "grid_failed", (G,))
-    add("grid", None, np.log(_stack(wide, "grid_m_a", (G,))), gl, gf, _stack(wide, "grid_completion", (G,)),
-        _stack(wide, "grid_rms", (G,)), _stack(wide, "grid_grad", (G, n)), reliable(gl, gf))
-    sl, sf = _stack(wide, "scalar_loss", (K,)), _stack(wide, "scalar_failed", (K,))
-    add("scalar", None, _stack(wide, "scalar_log_m_a", (K,)), sl, sf, _stack(wide, "scalar_completion", (K,)),
-        _stack(wide, "scalar_rms", (K,)), _stack(wide, "scalar_grad", (K,)), reliable(sl, sf))
-    if "per_loss" in wide:
-        pl, pf = _stack(wide, "per_loss", (K,)), _stack(wide, "per_failed", (K,))
-        add("per_actuator", None, _stack(wide, "per_log_m_a", (K, n)), pl, pf, _stack(wide, "per_completion", (K,)),
-            _stack(wide, "per_rms", (K,)), _stack(wide, "per_grad", (K, n)), reliable(pl, pf))
-    E = len(EVAL_DESIGNS)
-    keep = E if "per_loss" in wide else E - 1  # without a per-actuator design its slot repeats the scalar one
-
-    def ev(col, shape=()):
-        return _stack(wide, col, (E, *shape))[:, :keep]
-
-    el, ef = ev("eval_loss"), ev("eval_failed")
-    add("eval", EVAL_DESIGNS[:keep], ev("eval_log_m_a", (n,)), el, ef, ev("eval_completion"), ev("eval_rms"), None,
-        reliable(el, ef))
+    G, K, E = int(np.shape(part.params.m_a_grid)[1]), cfg.refine.steps, len(EVAL_DESIGNS)
+    grid, scalar, per = out.search.grid, out.search.scalar, out.search.per_actuator
+    add("grid", G, np.log(grid.m_a), grid.info, grid.grad)
+    add("scalar", K, scalar.log_m_a, scalar, scalar.grad)
+    if per is not None:
+        add("per_actuator", K, per.log_m_a, per, per.grad)
+    keep = E if per is not None else E - 1  # without a per-actuator design its slot repeats the scalar one
+    add("eval", E, out.held_out.log_m_a, out.held_out.info, None, designs=EVAL_DESIGNS[:keep], count=keep)
     return pd.concat(frames, ignore_index=True)
 
 
@@ -437,7 +442,7 @@ def summarize(table: pd.DataFrame, cfg: DesignConfig) -> dict[str, Any]:
             gb = grid.loc[grid["loss"].idxmin()]
             scalar = g[g["stage"] == "scalar"]
             sb = _best_point(scalar)
-            ev = {str(r["design"]): {
+            ev: dict[str, dict[str, Any]] = {str(r["design"]): {
                 "m_a": [float(v) for v in r["m_a_vec"]], "loss": float(r["loss"]),
                 "gm_error_mm": float(r["gm_error_mm"]), "rms_error_mm": float(r["rms_error_mm"]),
                 "failed_fraction": float(r["failed_fraction"]), "completion": float(r["completion"]),
@@ -535,8 +540,8 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
         for k, (_level, g) in enumerate(t.groupby("noise_level", sort=True)):
             color = f"C{k}"
             grid = g[g["stage"] == "grid"].sort_values("index")
-            noise = float(grid["pose_noise"].iloc[0])
-            ax.plot(grid["m_a"], grid["loss"], "-", color=color, lw=1.2, label=f"noise {1e3 * noise:g} mm")
+            level_noise = float(grid["pose_noise"].iloc[0])
+            ax.plot(grid["m_a"], grid["loss"], "-", color=color, lw=1.2, label=f"noise {1e3 * level_noise:g} mm")
             bad = grid[~grid["reliable"]]
             ax.plot(bad["m_a"], bad["loss"], "x", color=color, ms=6)
             sc = g[g["stage"] == "scalar"].sort_values("index")

@@ -146,6 +146,29 @@ def test_marker_contact_set_follows_eq2():
                                atol=1e-15)
 
 
+def test_controller_labels_round_trip_and_unknown_labels_are_refused():
+    assert sim.CONTROLLERS == ("tacman", "turbo", "turbo_u0", "turbo_lead")
+    for c in sim.Controller:
+        assert sim.Controller.parse(c.label) is c and sim.CONTROLLERS[c] == c.label
+    with pytest.raises(ValueError, match="allowed: tacman, turbo, turbo_u0, turbo_lead"):
+        sim.Controller.parse("turbo_fast")
+
+
+@pytest.mark.slow  # about 8 s on 2 shared cores: the UR5e's eager forward kinematics compile on first use
+def test_tactile_options_keep_their_config_names_in_the_rollout_params():
+    """``pads.marker_noise``, ``tacman.recovery_gain``, ``turbo_lead.twist_tau``: one name from YAML to the row."""
+    from selfid_jax.experiments.articulated import ArticulatedConfig, _build
+
+    cfg = ArticulatedConfig(objects={"prismatic": 1}, controllers=["turbo_lead", "tacman"], arms=["true"],
+                            pads={"marker_noise": 7e-6}, tacman={"recovery_gain": 0.25},
+                            turbo_lead={"twist_tau": 0.1})
+    (part,) = _build(cfg)
+    r = part.params.rollout
+    assert list(r.controller) == [sim.Controller.TURBO_LEAD, sim.Controller.TACMAN]
+    for name, value in (("marker_noise", 7e-6), ("recovery_gain", 0.25), ("twist_tau", 0.1)):
+        np.testing.assert_array_equal(getattr(r, name), [value, value])
+
+
 # ----------------------------------------------------------------------------- closed loop (slow)
 
 
@@ -162,10 +185,12 @@ def _params(obj, controllers, *, use_estimate=False, jinv=None):
     B = len(controllers)
     full = lambda v: jnp.full((B,), v)  # noqa: E731
     return sim.RolloutParams(
-        scenes.ObjectParams(*(jnp.asarray(a) for a in obj)), jnp.asarray(controllers, jnp.int32),
-        jnp.full((B,), use_estimate), jnp.zeros((B, 6, 6)) if jinv is None else jnp.broadcast_to(jinv, (B, 6, 6)),
-        jax.random.key_data(jax.random.split(jax.random.key(0), B)), full(0.03), full(5e-6), full(3e-4),
-        jnp.ones((B, 6)), full(0.9), full(1e-3), full(2e-4), full(0.5), full(5e-3), full(0.3), full(1e-3), full(0.06))
+        obj=scenes.ObjectParams(*(jnp.asarray(a) for a in obj)), controller=jnp.asarray(controllers, jnp.int32),
+        use_estimate=jnp.full((B,), use_estimate),
+        jinv_est=jnp.zeros((B, 6, 6)) if jinv is None else jnp.broadcast_to(jinv, (B, 6, 6)),
+        key=jax.random.key_data(jax.random.split(jax.random.key(0), B)), speed=full(0.03), marker_noise=full(5e-6),
+        contact_eps=full(3e-4), qdot_max=jnp.ones((B, 6)), beta=full(0.9), dev_high=full(1e-3), dev_low=full(2e-4),
+        recovery_gain=full(0.5), slip=full(5e-3), slip_rot=full(0.3), lead_max=full(1e-3), twist_tau=full(0.06))
 
 
 def _objects(kind, n_rows, frictionloss=1.0):
@@ -184,7 +209,8 @@ def test_drawer_and_door_opened_by_both_controllers(kind, steps):
         arm, q0, p1, R1 = _arm()
         m, lay = scenes.compile_scene(kind, p1, R1)
         st = sim.make_static("native", lay, m, PADS, arm, q0, steps=steps, substeps=10, stride=50)
-        ctrl = [0, 2, 1, 3]
+        C = sim.Controller
+        ctrl = [C.TACMAN, C.TURBO_U0, C.TURBO, C.TURBO_LEAD]
         r = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))(_params(_objects(kind, 4), ctrl))
     assert list(np.asarray(r.success)) == [True, True, False, True]
     assert not np.any(np.asarray(r.failed))

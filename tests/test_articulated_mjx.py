@@ -48,7 +48,8 @@ def test_native_and_mjx_agree_with_friction_loss():
     with jax.numpy_rank_promotion("allow"):
         for backend in ("native", "mjx"):
             st = sim.make_static(backend, lay, m, PADS, arm, q0, steps=15, substeps=10, stride=1)
-            out[backend] = jax.jit(jax.vmap(lambda p, st=st: sim.rollout(st, p)))(_params(obj, [2, 2]))
+            params = _params(obj, [sim.Controller.TURBO_U0] * 2)
+            out[backend] = jax.jit(jax.vmap(lambda p, st=st: sim.rollout(st, p)))(params)
     a, b = out["native"], out["mjx"]
     h = np.asarray(a.handle_trace)
     assert np.all(np.max(np.abs(h - h[:, :1]), axis=(1, 2)) > 1e-4)  # both handles moved

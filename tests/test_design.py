@@ -120,6 +120,44 @@ def test_config_errors_name_the_key(tmp_path, changes, key):
         load_config(_config(tmp_path, **changes))
 
 
+def test_tabulate_reads_the_library_results_back_from_the_runner_columns():
+    """compute returns design.DesignResult and the held-out DesignInfo; the runner's dotted columns of them
+    (named_leaves, each row flattened) give one tidy row per evaluated point (here without the per-actuator stage)."""
+    from types import SimpleNamespace
+
+    from selfid_jax.experiments import design as exp
+    from selfid_jax.runner.sweep import named_leaves
+
+    B, G, K, E, n = 2, 3, 2, 4, 2
+    rng = np.random.default_rng(0)
+
+    def info(count):
+        return design.DesignInfo(*(rng.uniform(0.1, 0.2, (B, count)) for _ in design.DesignInfo._fields))
+
+    grid = design.GridResult(np.tile(np.geomspace(0.01, 0.1, G), (B, 1)), info(G), rng.normal(size=(B, G, n)),
+                             np.zeros(B, np.int32))
+    scalar = design.RefineResult(**{f: rng.uniform(0.1, 0.2, (B, K)) for f in design.RefineResult._fields})
+    out = exp.Outputs(design.DesignResult(grid, scalar, None), exp.HeldOut(rng.normal(size=(B, E, n)), info(E)))
+    cols, _ = named_leaves(out)
+    assert "search.grid.info.loss" in cols and "held_out.log_m_a" in cols
+    wide = pd.DataFrame({"system": "s", "noise_level": range(B), "pose_noise": [0.0, 1e-3], "rot_noise": 0.0,
+                         **{k: list(np.asarray(v).reshape(B, -1)) for k, v in cols.items()}})
+    part = SimpleNamespace(static=SimpleNamespace(system=SimpleNamespace(n_act=n)),
+                           params=SimpleNamespace(m_a_grid=np.zeros((B, G))))
+    df = exp.tabulate(wide, part, SimpleNamespace(refine=SimpleNamespace(steps=K, max_failed=0.5)))
+    assert df.groupby(["noise_level", "stage"]).size().unstack().loc[0].to_dict() == {"eval": 3, "grid": G,
+                                                                                      "scalar": K}
+    assert list(df[df.stage == "eval"]["design"].unique()) == ["default", "grid", "scalar"]
+    g = df[(df.stage == "grid") & (df["index"] == 1) & (df.noise_level == 1)].iloc[0]
+    assert g["m_a"] == pytest.approx(grid.m_a[1, 1]) and g["loss"] == grid.info.loss[1, 1]
+    assert g["grad"] == pytest.approx(grid.grad[1, 1].sum()) and g["reliable"]
+    sc = df[(df.stage == "scalar") & (df["index"] == 1) & (df.noise_level == 0)].iloc[0]
+    assert sc["m_a"] == pytest.approx(np.exp(scalar.log_m_a[0, 1])) and sc["grad"] == scalar.grad[0, 1]
+    ev = df[(df.stage == "eval") & (df["index"] == 2) & (df.noise_level == 0)].iloc[0]
+    np.testing.assert_allclose(ev["m_a_vec"], np.exp(out.held_out.log_m_a[0, 2]))
+    assert ev["rms_error_mm"] == pytest.approx(1e3 * out.held_out.info.rms_error[0, 2]) and np.isnan(ev["grad"])
+
+
 # ------------------------------------------------------------------ gradients (slow: compiles the rollout)
 
 @pytest.mark.slow

@@ -415,6 +415,19 @@ def test_ur5e_asset_and_metadata(ur6):
         ur6.with_task_dim(4)
 
 
+def test_builtin_registry_is_the_one_list_configs_and_the_cli_read():
+    from selfid_jax import systems
+    from selfid_jax.experiments.common import specs
+
+    assert specs.BUILTIN_FACTORIES == tuple(systems.REGISTRY) == tuple(systems.BUILTIN)
+    assert specs.X64_BUILTINS == {"stewart_hand", "model_o"}
+    assert all(systems.BUILTIN[n].endswith("[float64]") for n in specs.X64_BUILTINS)
+    for name, task_dim in (("two_link", 2), ("ur5e", 3), ("ur5e_6d", 6), ("arm5", 3)):
+        assert specs.build_system(name).task_dim == task_dim
+    with pytest.raises(ValueError, match="built-in: two_link, ur5e, ur5e_6d, stewart_hand, model_o, arm5"):
+        specs.build_system("panda")
+
+
 # ------------------------------------------------------------- jit and vmap
 @pytest.mark.parametrize("which", ["ur5e", "two_link", "three_link"])
 def test_vmap_inverse_jacobian_equals_loop(which, ur6, ur_samples, arm2, arm3):

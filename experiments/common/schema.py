@@ -13,6 +13,7 @@ import jax
 import numpy as np
 from pydantic import BaseModel, Field, field_validator, model_validator
 
+from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
 __all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig",
@@ -118,23 +119,27 @@ class EpsLimits(BaseModel):
         return np.linspace(self.start, self.stop, self.num)
 
 
+_PARAMS = ControllerParams._field_defaults  # the one place the traced controller defaults are written
+
+
 class ControllerConfig(BaseModel):
     """Inverse-Jacobian path-following protocol (state it beside every bound).
 
-    The defaults are :class:`selfid_jax.control.ControllerParams`' and
-    ``control.follow``'s (the UR5e protocol of the shipped configs). ``steps``
-    is static (the scan length); the rest are traced, see :meth:`traced`.
+    The defaults are read from :class:`selfid_jax.control.ControllerParams`
+    and ``control.DEFAULT_STEPS`` (the UR5e protocol of the shipped configs),
+    never restated here. ``steps`` is static (the scan length); the rest are
+    traced, see :meth:`traced`.
     """
 
     model_config = STRICT
 
-    max_step: float = Field(0.0025, gt=0, le=1, description="largest POM step per control step [m]")
-    tol: float = Field(0.0005, gt=0, le=1, description="waypoint reached when closer than this [m]")
-    steps: int = Field(435, ge=1, le=10**6, description="control-step budget per rollout")
-    gain: float = Field(1.0, gt=0, le=10, description="fraction of the correction applied per step")
-    max_rot_step: float = Field(0.05, gt=0, le=3.14,
+    max_step: float = Field(_PARAMS["max_step"], gt=0, le=1, description="largest POM step per control step [m]")
+    tol: float = Field(_PARAMS["tol"], gt=0, le=1, description="waypoint reached when closer than this [m]")
+    steps: int = Field(DEFAULT_STEPS, ge=1, le=10**6, description="control-step budget per rollout")
+    gain: float = Field(_PARAMS["gain"], gt=0, le=10, description="fraction of the correction applied per step")
+    max_rot_step: float = Field(_PARAMS["max_rot_step"], gt=0, le=3.14,
                                 description="largest rotation step per control step [rad] (6-D tasks)")
-    rot_tol: float = Field(0.01, gt=0, le=3.14,
+    rot_tol: float = Field(_PARAMS["rot_tol"], gt=0, le=3.14,
                            description="waypoint orientation reached within this [rad] (6-D tasks)")
 
     def traced(self) -> dict[str, float]:
@@ -201,6 +206,4 @@ class StudyConfig(BaseConfig):
 def controller_rows(controller: ControllerConfig, n_rows: int):
     """The traced controller settings of ``controller`` repeated for ``n_rows`` rows: ``ControllerParams`` of
     ``(N,)``."""
-    from selfid_jax.control import ControllerParams
-
     return ControllerParams(**{k: np.full((n_rows,), float(v)) for k, v in controller.traced().items()})

@@ -2,7 +2,7 @@
 
 In YAML::
 
-    systems: [two_link, ur5e]                       # built-in robots (selfid_jax.systems.BUILTIN)
+    systems: [two_link, ur5e]                       # built-in robots (selfid_jax.systems.REGISTRY)
     system:                                         # any MuJoCo robot, no Python
       mjcf: robots/my_arm.xml                       # relative to the config file
       site: tip                                     # the point of manipulation
@@ -36,6 +36,7 @@ from pydantic import BaseModel, Discriminator, Field, Tag, ValidationInfo, field
 
 from selfid_jax.runner.config import STRICT, unique
 from selfid_jax.runner.layout import SAFE_NAME
+from selfid_jax.systems import REGISTRY
 from selfid_jax.systems.system import System
 
 __all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "entry_spec",
@@ -46,24 +47,8 @@ __all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "Syst
 Numbers = float | list[float]
 
 
-def _builtin():
-    from selfid_jax.systems import hands
-    from selfid_jax.systems.ets import arm5
-    from selfid_jax.systems.two_link import two_link
-    from selfid_jax.systems.ur5e import ur5e
-
-    return {
-        "two_link": lambda: two_link(),
-        "ur5e": lambda: ur5e(task_dim=3),
-        "ur5e_6d": lambda: ur5e(task_dim=6),
-        "stewart_hand": lambda: hands.stewart_hand(),
-        "model_o": lambda: hands.model_o(),
-        "arm5": lambda: arm5(),
-    }
-
-
-BUILTIN_FACTORIES = ("two_link", "ur5e", "ur5e_6d", "stewart_hand", "model_o", "arm5")
-"""Names a config may use for the shipped robots (2-link xy, UR5e xyz or 6-D, Stewart Hand 6-D, Model O xyz)."""
+BUILTIN_FACTORIES = tuple(REGISTRY)
+"""Names a config may use for the shipped robots (:data:`selfid_jax.systems.REGISTRY`'s keys)."""
 
 
 class SampleBox(BaseModel):
@@ -172,21 +157,21 @@ def _kind(value) -> str | None:
 
 
 SystemSpec = Annotated[
+    # a Literal of a runtime tuple: pydantic validates it, mypy cannot check what it cannot see
     Annotated[Literal[BUILTIN_FACTORIES], Tag("<builtin>")]  # type: ignore[valid-type]
     | Annotated[MjcfSystem, Tag("<mjcf>")]
     | Annotated[PoseFnSystem, Tag("<pose_fn>")],
     Discriminator(
         _kind,
         custom_error_type="system_spec",
-        custom_error_message="a system is a built-in name ('two_link', 'ur5e', 'ur5e_6d', 'stewart_hand', 'model_o', "
-        "'arm5') or a "
+        custom_error_message="a system is a built-in name (" + ", ".join(map(repr, BUILTIN_FACTORIES)) + ") or a "
         "mapping with an 'mjcf' or a 'pose_fn' key",
     ),
 ]
 """What a config's ``system`` / ``systems`` entries accept (config errors drop the ``<tag>`` parts of keys)."""
 
 
-X64_BUILTINS: frozenset[str] = frozenset({"stewart_hand", "model_o"})
+X64_BUILTINS: frozenset[str] = frozenset(name for name, b in REGISTRY.items() if b.x64)
 """Built-in systems that run in float64 whatever the global setting (closed-chain hands)."""
 
 
@@ -256,10 +241,9 @@ def build_system(spec) -> System:
     import numpy as np
 
     if isinstance(spec, str):
-        factories = _builtin()
-        if spec not in factories:
-            raise ValueError(f"unknown system {spec!r}; built-in: {', '.join(factories)}")
-        return factories[spec]()
+        if spec not in REGISTRY:
+            raise ValueError(f"unknown system {spec!r}; built-in: {', '.join(REGISTRY)}")
+        return REGISTRY[spec].factory()
     box = {} if spec.sample_box is None else {"sample_low": spec.sample_box.low, "sample_high": spec.sample_box.high}
     if isinstance(spec, MjcfSystem):
         from selfid_jax.systems.mjcf import from_mjcf

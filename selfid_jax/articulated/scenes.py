@@ -47,9 +47,13 @@ from __future__ import annotations
 
 import functools
 from math import comb
-from typing import NamedTuple
+from typing import NamedTuple, TypeAlias
 
+import jax
 import numpy as np
+
+ParamArray: TypeAlias = jax.Array | np.ndarray
+"""A parameter leaf: numpy where a host builds the rows of a sweep, a ``jax.Array`` once traced."""
 
 __all__ = [
     "KINDS",
@@ -85,14 +89,14 @@ class SceneSettings(NamedTuple):
 class ObjectParams(NamedTuple):
     """Per-object model fields, ``G1`` frame (leading batch axis in a population)."""
 
-    axis: np.ndarray  # (3,) unit joint axis (slide for prismatic; hinge otherwise; bezier: unused)
-    hinge: np.ndarray  # (3,) point on the hinge axis [m] (prismatic, bezier: 0)
-    damping: np.ndarray  # () joint damping [N s/m or N m s/rad]
-    frictionloss: np.ndarray  # () joint friction loss [N or N m]
-    poly: np.ndarray  # (2, 5) joint-equality polycoef: helical [0, pitch, 0, 0, 0]; bezier P and Q
-    scale: np.ndarray  # () progress scale: 0.25 m, pi/3 rad, or the track length L [m]
-    order: np.ndarray  # () int Bezier order (0 for other kinds)
-    fit_error: np.ndarray  # () bezier: max |P - Bezier| [m] (0 when exact)
+    axis: ParamArray  # (3,) unit joint axis (slide for prismatic; hinge otherwise; bezier: unused)
+    hinge: ParamArray  # (3,) point on the hinge axis [m] (prismatic, bezier: 0)
+    damping: ParamArray  # () joint damping [N s/m or N m s/rad]
+    frictionloss: ParamArray  # () joint friction loss [N or N m]
+    poly: ParamArray  # (2, 5) joint-equality polycoef: helical [0, pitch, 0, 0, 0]; bezier P and Q
+    scale: ParamArray  # () progress scale: 0.25 m, pi/3 rad, or the track length L [m]
+    order: ParamArray  # () int Bezier order (0 for other kinds)
+    fit_error: ParamArray  # () bezier: max |P - Bezier| [m] (0 when exact)
 
 
 def _quat(R):
@@ -289,8 +293,8 @@ def apply_mjx(model, layout: Layout, obj: ObjectParams):
         changes[field] = arr
     model = model.replace(**changes)
     impl = getattr(model, "_impl", None)
-    if hasattr(impl, "dof_hasfrictionloss"):  # impl "jax"; a static numpy mask (pytree metadata)
-        has = np.array(impl.dof_hasfrictionloss, bool)
+    if impl is not None and hasattr(impl, "dof_hasfrictionloss"):  # impl "jax"; a static numpy mask (pytree metadata)
+        has = np.array(impl.dof_hasfrictionloss, dtype=np.bool_)
         has[[i for i, _ in fields["dof_frictionloss"]]] = True
         model = model.tree_replace({"_impl.dof_hasfrictionloss": has})
     return model
@@ -390,6 +394,7 @@ def population(kind: str, n: int, seed: int, *, misalign_deg: float = 15.0, damp
             order = int(orders[i % len(orders)])
             scale = rng.uniform(*track)
             poly, fit = _bezier(rng, order, scale, amplitude, misalign_deg)
-        rows.append(ObjectParams(axis, hinge, np.float64(damp), np.float64(fric), poly, np.float64(scale),
-                                 np.int32(order), np.float64(fit)))
+        f64 = functools.partial(np.asarray, dtype=np.float64)
+        rows.append(ObjectParams(axis, hinge, f64(damp), f64(fric), poly, f64(scale), np.asarray(order, np.int32),
+                                 f64(fit)))
     return ObjectParams(*(np.stack([np.asarray(getattr(r, f)) for r in rows]) for f in ObjectParams._fields))

@@ -3,7 +3,7 @@
 One rollout (:func:`rollout`) is a ``lax.scan`` over control steps (pure JAX,
 jit + vmap). Each step: read the gripper pose and the markers (:mod:`.tactile`),
 run the controller (Tac-Man, TacMan-Turbo literal, TacMan-Turbo keeping
-``u0``, or TacMan-Turbo with an integral lead; chosen by a traced index), map
+``u0``, or TacMan-Turbo with an integral lead; a traced :class:`Controller`), map
 the gripper twist (gripper frame) to the world frame and through the arm's
 inverse Jacobian (the true one at the current joints, or a fixed
 self-identified estimate), scale by ``alpha``
@@ -20,7 +20,8 @@ fields set by :func:`~.scenes.apply_mjx` (compiled; worth it on a GPU).
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+import enum
+from typing import Any, Literal, NamedTuple, get_args
 
 import jax
 import jax.numpy as jnp
@@ -29,10 +30,39 @@ import numpy as np
 
 from selfid_jax.articulated import scenes, tacman, tactile
 
-__all__ = ["CONTROLLERS", "RolloutParams", "RolloutResult", "Static", "rollout", "make_static"]
+__all__ = ["CONTROLLERS", "Controller", "ControllerLabel", "RolloutParams", "RolloutResult", "Static", "rollout",
+           "make_static"]
 
-CONTROLLERS = ("tacman", "turbo", "turbo_u0", "turbo_lead")  # traced index 0, 1, 2, 3
-ARMS = ("true", "selfid")
+
+class Controller(enum.IntEnum):
+    """The tactile controller of a rollout; its value is the traced ``RolloutParams.controller``.
+
+    Configs and result tables name it by :attr:`label` (the lower-case member
+    name, e.g. ``"turbo_u0"``); :meth:`parse` maps a label back.
+    """
+
+    TACMAN = 0  # reactive exploration-compensation (tacman.tacman_step)
+    TURBO = 1  # literal TacMan-Turbo, Eq. 14-18 (tacman.turbo_step)
+    TURBO_U0 = 2  # TacMan-Turbo keeping the base speed u0 in the prediction (tacman.keep_speed)
+    TURBO_LEAD = 3  # TacMan-Turbo with an integral lead on a smoothed screw (tacman.lead_step)
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+    @classmethod
+    def parse(cls, label: str) -> Controller:
+        """The member whose :attr:`label` is ``label``; ``ValueError`` naming the allowed labels otherwise."""
+        try:
+            return cls[label.upper()]
+        except KeyError:
+            raise ValueError(f"unknown controller {label!r}; allowed: {', '.join(CONTROLLERS)}") from None
+
+
+ControllerLabel = Literal["tacman", "turbo", "turbo_u0", "turbo_lead"]  # a Controller's label, as a type (configs)
+CONTROLLERS: tuple[ControllerLabel, ...] = get_args(ControllerLabel)  # the labels, in value order
+if CONTROLLERS != tuple(c.label for c in Controller):  # a Literal cannot be built from the enum: keep them in step
+    raise AssertionError(f"ControllerLabel {CONTROLLERS} != Controller labels {tuple(c.label for c in Controller)}")
 
 
 class Static(NamedTuple):
@@ -53,25 +83,25 @@ class Static(NamedTuple):
 
 
 class RolloutParams(NamedTuple):
-    """Traced, one row (vmap adds a leading axis)."""
+    """Traced, one row (vmap adds a leading axis); hosts build the rows of a sweep as numpy arrays."""
 
     obj: scenes.ObjectParams
-    controller: jax.Array  # () int32 index into CONTROLLERS
-    use_estimate: jax.Array  # () bool: fixed self-ID estimate instead of the true inverse Jacobian
-    jinv_est: jax.Array  # (n, 6) self-identified inverse Jacobian
-    key: jax.Array  # (2,) uint32 key data (marker noise)
-    speed: jax.Array  # () |u0| [m/s] along the gripper's x axis
-    marker_noise: jax.Array  # () [m]
-    contact_eps: jax.Array  # () Eq. 2 threshold [m]
-    qdot_max: jax.Array  # (n,) joint-velocity limits [rad/s]
-    beta: jax.Array  # () Eq. 25 safety factor
-    dev_high: jax.Array  # () Tac-Man exploration -> recovery [m]
-    dev_low: jax.Array  # () Tac-Man recovery -> exploration [m]
-    rec_gain: jax.Array  # () Tac-Man recovery gain
-    slip: jax.Array  # () in-hand translation declared a slip [m]
-    slip_rot: jax.Array  # () in-hand rotation declared a slip [rad]
-    lead_max: jax.Array  # () turbo_lead: cap of the integral lead [m]
-    lead_tau: jax.Array  # () turbo_lead: handle-twist smoothing time constant [s]
+    controller: scenes.ParamArray  # () int32 Controller value
+    use_estimate: scenes.ParamArray  # () bool: fixed self-ID estimate instead of the true inverse Jacobian
+    jinv_est: scenes.ParamArray  # (n, 6) self-identified inverse Jacobian
+    key: scenes.ParamArray  # (2,) uint32 key data (marker noise)
+    speed: scenes.ParamArray  # () |u0| [m/s] along the gripper's x axis
+    marker_noise: scenes.ParamArray  # () marker reading noise sd [m] (tactile.read)
+    contact_eps: scenes.ParamArray  # () Eq. 2 threshold [m]
+    qdot_max: scenes.ParamArray  # (n,) joint-velocity limits [rad/s]
+    beta: scenes.ParamArray  # () Eq. 25 safety factor
+    dev_high: scenes.ParamArray  # () Tac-Man exploration -> recovery [m]
+    dev_low: scenes.ParamArray  # () Tac-Man recovery -> exploration [m]
+    recovery_gain: scenes.ParamArray  # () Tac-Man: fraction of the in-hand pose removed per recovery step
+    slip: scenes.ParamArray  # () in-hand translation declared a slip [m]
+    slip_rot: scenes.ParamArray  # () in-hand rotation declared a slip [rad]
+    lead_max: scenes.ParamArray  # () turbo_lead: cap of the integral lead [m]
+    twist_tau: scenes.ParamArray  # () turbo_lead: handle-twist smoothing time constant [s] (0: none)
 
 
 class RolloutResult(NamedTuple):
@@ -259,8 +289,8 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     p1, R1 = jnp.asarray(lay.p1, f), jnp.asarray(lay.R1, f)
     G1 = tacman.se3(p1, R1)
     u0 = jnp.concatenate([jnp.stack([p.speed, 0.0, 0.0]).astype(f), jnp.zeros(3, f)])
-    turbo_p = tacman.TurboParams(u0, dt, p.controller == 2, p.lead_max, p.lead_tau)
-    tac_p = tacman.TacManParams(p.speed, dt, p.dev_high, p.dev_low, p.rec_gain, 2.0 * p.speed)
+    turbo_p = tacman.TurboParams(u0, dt, p.controller == Controller.TURBO_U0, p.lead_max, p.twist_tau)
+    tac_p = tacman.TacManParams(p.speed, dt, p.dev_high, p.dev_low, p.recovery_gain, 2.0 * p.speed)
 
     phys = _phys_init(static, p.obj)
     sens0 = jnp.concatenate([p1, jaxlie.SO3.from_matrix(R1).wxyz, p1, jaxlie.SO3.from_matrix(R1).wxyz])
@@ -268,7 +298,7 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     zero_i = jnp.zeros((), jnp.int32)
     carry = _Carry(phys, sens0, q0, tacman.turbo_init(T_g0), tacman.tacman_init(T_g0, jnp.array([1.0, 0, 0], f)),
                    T_g0.inverse() @ T_h0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), bool),
-                   jnp.zeros((), bool), zero_i, zero_i, jnp.ones((), f), jax.random.wrap_key_data(p.key))
+                   jnp.zeros((), bool), zero_i, zero_i, jnp.ones((), f), jax.random.wrap_key_data(jnp.asarray(p.key)))
 
     def body(c: _Carry, _):
         T_g, T_h = _poses(c.sens)
@@ -278,11 +308,11 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
         reading = tacman.Reading(T_g, ref, cur, mask)
         turbo, u_turbo, (valid_t, _) = tacman.turbo_step(c.turbo, reading, turbo_p)
         lead, u_lead, _ = tacman.lead_step(c.turbo, reading, turbo_p)
-        is_lead = p.controller == 3
+        is_lead = p.controller == Controller.TURBO_LEAD
         turbo = jax.tree_util.tree_map(lambda a, b: jnp.where(is_lead, a, b), lead, turbo)
         u_turbo = jnp.where(is_lead, u_lead, u_turbo)  # the validity flag is the same Kabsch's
         tac, u_tac, (valid_r, _) = tacman.tacman_step(c.tac, reading, tac_p)
-        is_tac = p.controller == 0
+        is_tac = p.controller == Controller.TACMAN
         u = jnp.where(is_tac, u_tac, u_turbo)
         valid = jnp.where(is_tac, valid_r, valid_t)
         R_g = T_g.rotation().as_matrix()

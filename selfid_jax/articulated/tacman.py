@@ -24,11 +24,12 @@ Pieces (each jit- and vmap-able, no Python control flow on values):
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import jaxlie
+from jax.typing import ArrayLike
 
 __all__ = [
     "Reading",
@@ -170,11 +171,13 @@ class Reading(NamedTuple):
 
 
 class TurboParams(NamedTuple):
+    """TacMan-Turbo's settings (:func:`turbo_step`, :func:`lead_step`): traced, sweepable under ``vmap``."""
+
     u0: jax.Array  # (6,) base velocity in the gripper frame [m/s, rad/s] (Eq. 4)
-    dt: jax.Array  # () control interval [s]
-    keep_u0: jax.Array  # () bool: keep the base speed in the prediction (see keep_speed)
-    lead_max: Any = 0.0  # () lead_step: cap of the integral lead s [m]
-    tau: Any = 0.0  # () lead_step: time constant of the handle-twist smoothing [s] (0: none)
+    dt: ArrayLike  # () control interval [s]
+    keep_u0: ArrayLike  # () bool: keep the base speed in the prediction (see keep_speed)
+    lead_max: ArrayLike = 0.0  # () lead_step: cap of the integral lead s [m]
+    twist_tau: ArrayLike = 0.0  # () lead_step: time constant of the handle-twist smoothing [s] (0: none)
 
 
 class TurboState(NamedTuple):
@@ -252,7 +255,7 @@ def lead_step(state: TurboState, r: Reading, p: TurboParams):
 
     As :func:`turbo_step` (Kabsch, Eq. 13-21), with the prediction ``T_pred =
     T_h advance(xi, |v0| dt + s)``: ``xi`` the per-step handle twist
-    ``log(T_h_prev^-1 T_h)`` smoothed over ``p.tau`` (:func:`smooth_twist`;
+    ``log(T_h_prev^-1 T_h)`` smoothed over ``p.twist_tau`` (:func:`smooth_twist`;
     it starts from ``u0 dt``), ``s`` the integral lead (:func:`lead_update`,
     ``v_handle = |xi_raw_v| / dt``, capped at ``p.lead_max``). The first step
     uses ``u0`` alone and leaves ``xi = u0 dt``, ``s = 0``.
@@ -262,7 +265,7 @@ def lead_step(state: TurboState, r: Reading, p: TurboParams):
     first = state.i == 0
     xi_raw = (state.T_h_prev.inverse() @ T_h).log()
     xi_prev = jnp.where(state.i > 1, state.xi, p.u0 * p.dt)
-    xi = jnp.where(first, p.u0 * p.dt, smooth_twist(xi_prev, xi_raw, p.dt, p.tau))
+    xi = jnp.where(first, p.u0 * p.dt, smooth_twist(xi_prev, xi_raw, p.dt, p.twist_tau))
     v_h = jnp.linalg.norm(xi_raw[:3]) / p.dt
     s = jnp.where(first, 0.0, lead_update(state.s, speed, v_h, p.dt, p.lead_max))
     T_pred = T_h @ advance(xi, speed * p.dt + s, p.u0)
@@ -275,12 +278,14 @@ def lead_step(state: TurboState, r: Reading, p: TurboParams):
 
 
 class TacManParams(NamedTuple):
-    speed: jax.Array  # () exploration speed |v0| [m/s]
-    dt: jax.Array  # () control interval [s]
-    dev_high: jax.Array  # () contact deviation that ends an exploration stage [m]
-    dev_low: jax.Array  # () deviation at which a recovery stage ends [m]
-    gain: jax.Array  # () recovery gain: fraction of the in-hand pose removed per step (0, 1]
-    max_speed: jax.Array  # () recovery speed cap [m/s] (the rotation is capped at max_speed / 0.05 m)
+    """Tac-Man's settings: numbers, numpy or traced arrays (sweepable under ``vmap``)."""
+
+    speed: ArrayLike  # () exploration speed |v0| [m/s]
+    dt: ArrayLike  # () control interval [s]
+    dev_high: ArrayLike  # () contact deviation that ends an exploration stage [m]
+    dev_low: ArrayLike  # () deviation at which a recovery stage ends [m]
+    recovery_gain: ArrayLike  # () fraction of the in-hand pose removed per recovery step (0, 1]
+    max_speed: ArrayLike  # () recovery speed cap [m/s] (the rotation is capped at max_speed / 0.05 m)
 
 
 class TacManState(NamedTuple):
@@ -301,7 +306,7 @@ def tacman_step(state: TacManState, r: Reading, p: TacManParams):
 
     Exploration: move at ``speed`` along ``direction`` (gripper frame) until the
     contact deviation exceeds ``dev_high``. Recovery: hold the object and move
-    the gripper onto the handle (``gain`` of the in-hand pose per step, capped)
+    the gripper onto the handle (``recovery_gain`` of the in-hand pose per step, capped)
     until the deviation is below ``dev_low``; then the exploration direction
     becomes the handle's net displacement over the cycle (in the new gripper
     frame), the adaptation that keeps the reactive loop going round a door.
@@ -319,7 +324,7 @@ def tacman_step(state: TacManState, r: Reading, p: TacManParams):
     new_dir = jnp.where(dist > 1e-4, moved_g / jnp.maximum(dist, 1e-12), state.direction)
     direction = jnp.where(end_rec, new_dir, state.direction)
     p_start = jnp.where(end_rec, T_h.translation(), state.p_start)
-    rec = _decoupled(X) * p.gain / p.dt
+    rec = _decoupled(X) * p.recovery_gain / p.dt
     v_lim, w_lim = p.max_speed, p.max_speed / 0.05
     rec = jnp.concatenate([_clip(rec[:3], v_lim), _clip(rec[3:], w_lim)])
     explore = jnp.concatenate([p.speed * direction, jnp.zeros(3, direction.dtype)])

@@ -9,9 +9,9 @@ Markers do not slip on the handle (the seed's Sec. 3.3 assumption): at step
 ``i`` a marker in contact sits at ``X_i X_1^-1 c_1`` where ``X = T_g^-1 T_h``
 is the handle's pose in the gripper frame; its normal deformation becomes
 ``delta_k + n_k . (c_i - c_1)`` (``n_k`` the pad's inward normal). The active
-set is Eq. 2: markers whose normal deformation is ``>= eps`` now and at the
-start (the pairs ``K_{1,i}``, Eq. 10). Readings get Gaussian noise of sd
-``noise`` [m] on every coordinate.
+set is Eq. 2: markers whose normal deformation is ``>= contact_eps`` now and
+at the start (the pairs ``K_{1,i}``, Eq. 10). Readings get Gaussian noise of
+sd ``marker_noise`` [m] on every coordinate.
 """
 
 from __future__ import annotations
@@ -55,17 +55,17 @@ def pads(*, rows: int = 8, cols: int = 8, pitch: float = 0.0025, bar_radius: flo
     return Pads(np.concatenate(refs), np.concatenate(normals), np.concatenate(deltas))
 
 
-def read(pads_: Pads, X_rel: jaxlie.SE3, key, noise, eps):
+def read(pads_: Pads, X_rel: jaxlie.SE3, key, marker_noise, contact_eps):
     """Marker reading at in-hand pose change ``X_rel = X_i X_1^-1``: ``(cur (M, 3), mask (M,), delta (M,))``.
 
-    ``noise`` sd [m] on each coordinate; ``eps`` the Eq. 2 contact threshold
-    [m]. ``mask`` = ``K_{1,i}``: in contact now and at the start. Markers out
+    ``marker_noise`` sd [m] on each coordinate; ``contact_eps`` the Eq. 2
+    contact threshold [m]. ``mask`` = ``K_{1,i}``: in contact now and at the start. Markers out
     of contact are reported at their reference (the gel is at rest there).
     """
     ref = jnp.asarray(pads_.ref)
     moved = jax.vmap(X_rel.apply)(ref)
     delta = jnp.asarray(pads_.delta0) + jnp.sum(jnp.asarray(pads_.normal) * (moved - ref), axis=-1)
-    start = jnp.asarray(pads_.delta0) >= eps
-    mask = start & (delta >= eps)
-    cur = jnp.where(start[:, None], moved, ref) + noise * jax.random.normal(key, ref.shape, ref.dtype)
+    start = jnp.asarray(pads_.delta0) >= contact_eps
+    mask = start & (delta >= contact_eps)
+    cur = jnp.where(start[:, None], moved, ref) + marker_noise * jax.random.normal(key, ref.shape, ref.dtype)
     return cur, mask, delta
