@@ -37,7 +37,7 @@ class ControllerParams(NamedTuple):
     """Traced controller settings of :func:`follow` (sweepable: any field may carry a batch axis under ``vmap``).
 
     The defaults are the shipped configs' UR5e protocol
-    (:class:`selfid_jax.runner.config.ControllerConfig` has the same ones).
+    (:class:`selfid_jax.experiments.common.schema.ControllerConfig` reads its defaults from here).
     """
 
     max_step: ArrayLike = 0.0025  # () largest POM position step per control step [m]
