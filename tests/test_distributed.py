@@ -4,11 +4,9 @@ leaves no finished-looking result and the rerun completes to the same table."""
 from __future__ import annotations
 
 import os
-import shutil
 import signal
 import socket
 import subprocess
-import sys
 import textwrap
 import time
 from pathlib import Path
@@ -30,10 +28,6 @@ CONFIG = textwrap.dedent("""\
     """)
 
 
-def _console() -> list[str]:
-    exe = shutil.which("selfid-jax", path=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
-    return [exe] if exe else [sys.executable, "-c", "import sys; from selfid_jax.cli import main; sys.exit(main())"]
-
 
 def _port() -> int:
     with socket.socket() as s:
@@ -41,34 +35,34 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-def _pair(cwd: Path, out: str, port: int) -> list[subprocess.Popen]:
+def _pair(console: list[str], cwd: Path, out: str, port: int) -> list[subprocess.Popen]:
     env = dict(os.environ, SELFID_JAX_CACHE_DIR="off", SELFID_JAX_TRACE_PHASES="1")
-    return [subprocess.Popen([*_console(), "sweep", "vr.yaml", "--out", out, "--no-progress",
+    return [subprocess.Popen([*console, "sweep", "vr.yaml", "--out", out, "--no-progress",
                               "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2", "--process-id", str(i),
                               "--heartbeat-timeout", "10"],
                              cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             for i in (1, 0)]
 
 
-def _single(cwd: Path, out: str) -> subprocess.CompletedProcess:
-    return subprocess.run([*_console(), "sweep", "vr.yaml", "--out", out, "--no-progress"], cwd=cwd,
+def _single(console: list[str], cwd: Path, out: str) -> subprocess.CompletedProcess:
+    return subprocess.run([*console, "sweep", "vr.yaml", "--out", out, "--no-progress"], cwd=cwd,
                           env=dict(os.environ, SELFID_JAX_CACHE_DIR="off"), capture_output=True, text=True,
                           timeout=300)
 
 
-def test_two_processes_equal_one_and_a_killed_process_resumes(tmp_path):
+def test_two_processes_equal_one_and_a_killed_process_resumes(tmp_path, console):
     (tmp_path / "vr.yaml").write_text(CONFIG)
-    one = _single(tmp_path, "one")
+    one = _single(console, tmp_path, "one")
     assert one.returncode == 0, one.stderr[-2000:]
     reference = pd.read_parquet(tmp_path / "one" / "results.parquet")
 
-    procs = _pair(tmp_path, "two", _port())
+    procs = _pair(console, tmp_path, "two", _port())
     outs = [p.communicate(timeout=300) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[1][-1500:] for o in outs]
     pd.testing.assert_frame_equal(pd.read_parquet(tmp_path / "two" / "results.parquet"), reference)
 
     # process 1 killed once process 0 (the writer) has saved a chunk
-    p1, p0 = _pair(tmp_path, "killed", _port())
+    p1, p0 = _pair(console, tmp_path, "killed", _port())
     assert p0.stderr is not None
     deadline = time.monotonic() + 240
     for line in p0.stderr:
@@ -82,6 +76,6 @@ def test_two_processes_equal_one_and_a_killed_process_resumes(tmp_path):
     killed = tmp_path / "killed"
     assert not (killed / "results.parquet").exists() and not (killed / "summary.json").exists()
     assert any((killed / "parts" / "two_link" / "chunks").glob("chunk_*.parquet"))
-    again = _single(tmp_path, "killed")
+    again = _single(console, tmp_path, "killed")
     assert again.returncode == 0, again.stderr[-2000:]
     pd.testing.assert_frame_equal(pd.read_parquet(killed / "results.parquet"), reference)

@@ -10,10 +10,8 @@ from __future__ import annotations
 
 import concurrent.futures
 import os
-import shutil
 import signal
 import subprocess
-import sys
 import textwrap
 import time
 from pathlib import Path
@@ -36,15 +34,11 @@ CONFIG = textwrap.dedent("""\
 EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}
 
 
-def _console() -> list[str]:
-    exe = shutil.which("selfid-jax", path=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
-    return [exe] if exe else [sys.executable, "-c", "import sys; from selfid_jax.cli import main; sys.exit(main())"]
 
-
-def _interrupt(args: list[str], phase: str, sig: int, cwd: Path) -> tuple[int, list[str]]:
+def _interrupt(console: list[str], args: list[str], phase: str, sig: int, cwd: Path) -> tuple[int, list[str]]:
     """Run ``selfid-jax ARGS``, send ``sig`` once ``phase`` is marked; the exit code and stderr's other lines."""
     env = dict(os.environ, SELFID_JAX_TRACE_PHASES="1", SELFID_JAX_CACHE_DIR="off")
-    p = subprocess.Popen([*_console(), *args], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    p = subprocess.Popen([*console, *args], cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                          text=True)
     seen = []
     assert p.stderr is not None
@@ -65,11 +59,11 @@ def _interrupt(args: list[str], phase: str, sig: int, cwd: Path) -> tuple[int, l
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory) -> Path:
+def finished(tmp_path_factory, console) -> Path:
     """A directory with the config and one finished run of it (``run/``), the reference table."""
     d = tmp_path_factory.mktemp("signals")
     (d / "vr.yaml").write_text(CONFIG)
-    out = subprocess.run([*_console(), "sweep", "vr.yaml", "--out", "run", "--no-progress"], cwd=d,
+    out = subprocess.run([*console, "sweep", "vr.yaml", "--out", "run", "--no-progress"], cwd=d,
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     return d
@@ -80,13 +74,13 @@ CASES = [(phase, sig, 0) for phase in ("start", "setup", "trace", "compile", "ch
                                                          ("chunk", signal.SIGINT, 1)]
 
 
-def test_sweep_interrupted_at_every_phase_exits_cleanly(finished):
+def test_sweep_interrupted_at_every_phase_exits_cleanly(finished, console):
     """Every (phase, signal, try) ends with 128 + signal and exactly one line; no segfault, none swallowed."""
 
     def case(c):
         phase, sig, attempt = c
         out = f"run_{phase}_{int(sig)}_{attempt}"
-        return c, _interrupt(["sweep", "vr.yaml", "--out", out, "--no-progress"], phase, sig, finished)
+        return c, _interrupt(console, ["sweep", "vr.yaml", "--out", out, "--no-progress"], phase, sig, finished)
 
     with concurrent.futures.ThreadPoolExecutor(max_workers=3) as pool:
         results = list(pool.map(case, CASES))
@@ -97,12 +91,13 @@ def test_sweep_interrupted_at_every_phase_exits_cleanly(finished):
             assert "finished chunks are kept" in lines[0] and "--fresh" in lines[0]
 
 
-def test_interrupted_sweep_resumes_to_the_clean_table(finished):
+def test_interrupted_sweep_resumes_to_the_clean_table(finished, console):
     """SIGINT after the first chunk, then the same command: the table equals an uninterrupted run's."""
-    rc, lines = _interrupt(["sweep", "vr.yaml", "--out", "resumed", "--no-progress"], "chunk", signal.SIGINT, finished)
+    rc, lines = _interrupt(console, ["sweep", "vr.yaml", "--out", "resumed", "--no-progress"], "chunk", signal.SIGINT,
+                           finished)
     assert rc == 130, lines
     assert not (finished / "resumed" / "results.parquet").exists()  # nothing that looks finished
-    again = subprocess.run([*_console(), "sweep", "vr.yaml", "--out", "resumed", "--no-progress"], cwd=finished,
+    again = subprocess.run([*console, "sweep", "vr.yaml", "--out", "resumed", "--no-progress"], cwd=finished,
                            capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr[-2000:]
     pd.testing.assert_frame_equal(pd.read_parquet(finished / "resumed" / "results.parquet"),
@@ -110,9 +105,9 @@ def test_interrupted_sweep_resumes_to_the_clean_table(finished):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_plot_interrupted_keeps_whole_figures(finished, sig):
+def test_plot_interrupted_keeps_whole_figures(finished, console, sig):
     """``plot`` stopped while it draws: exit 128 + signal, one line, and every figure is a whole PNG/PDF."""
-    rc, lines = _interrupt(["plot", "run"], "plot", sig, finished)
+    rc, lines = _interrupt(console, ["plot", "run"], "plot", sig, finished)
     assert rc == EXIT[sig] and len(lines) == 1, (rc, lines)
     for f in (finished / "run" / "figures").iterdir():
         data = f.read_bytes()
