@@ -30,6 +30,8 @@ HEADING = "## Layout"
 # Folders that are not Python packages: their one job, stated here.
 FOLDERS = {
     "selfid_jax/systems/assets": "the shipped MJCF models ({files}), every dimension in each file's header",
+    "selfid_jax/robot/data": "the shipped example log ({files}) of selfid-jax fit --example, made by "
+    "scripts/make_example_log.py",
     "scripts": "studies and maintenance scripts run from a checkout (not installed)",
     "configs": "sweep configs (small defaults; *_full.yaml at paper scale or larger)",
     "benchmarks": "scripts that print ratios against a baseline run in the same process",

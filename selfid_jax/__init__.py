@@ -2,16 +2,16 @@
 
 ``import selfid_jax as sj`` gives the functional API: the estimator
 (``sj.init``/``sj.update``/``sj.initial_guess``/``sj.refine``/``sj.record``,
-Eq. 6-14 and Sec. IV-D), Algorithm 1 (``sj.self_identify``, ``sj.selfid.run``),
-systems (``sj.ur5e``, ``sj.two_link``, ``sj.arm5``, ``sj.from_pose_fn``, ``sj.from_mjcf``,
-``sj.from_ets``), kinematic metrics (``sj.manipulability``), damped least-squares IK (``sj.dls``),
-the controller (``sj.follow`` with ``sj.ControllerParams``), the estimation
+Eq. 6-14 and Sec. IV-D), self-ID from a recorded log (``sj.fit``), Algorithm 1
+(``sj.self_identify``, ``sj.selfid.run``), systems (``sj.ur5e``, ``sj.two_link``, ``sj.arm5``,
+``sj.from_pose_fn``, ``sj.from_mjcf``, ``sj.from_ets``), kinematic metrics (``sj.manipulability``),
+damped least-squares IK (``sj.dls``), the controller (``sj.follow`` with ``sj.ControllerParams``), the estimation
 baselines (``sj.baselines``) and the experiment runner (``sj.experiment``, loaded
 on first use). README.md has runnable examples.
 
 Layers, bottom to top (import-linter contracts in ``pyproject.toml``):
 ``math`` < ``systems`` < ``identify`` | ``control`` < ``baselines`` <
-``design`` | ``articulated`` < ``experiments``; ``runner`` knows none of them.
+``design`` | ``articulated`` | ``robot`` < ``experiments`` < ``app`` < ``cli``; ``runner`` knows none of them.
 
 Importing the package appends CPU XLA flags to ``XLA_FLAGS`` (see
 ``selfid_jax._xla``); import it before running any JAX computation.
@@ -46,6 +46,8 @@ _LAZY: dict[str, tuple[str, str | None]] = {
         "EstimatorState", "converged", "init", "initial_guess", "magnitude_inverse_jacobian", "objective", "record",
         "signed_inverse_jacobian", "update")},
     "refine": ("selfid_jax.identify.refine", "refine"),
+    "robot": ("selfid_jax.robot", None),
+    "fit": ("selfid_jax.robot.fit", "fit"),
     **{name: ("selfid_jax.systems", name) for name in (
         "System", "arm5", "from_ets", "from_mjcf", "from_pose_fn", "model_o", "stewart_hand", "two_link", "ur5e")},
 }
@@ -71,6 +73,8 @@ if TYPE_CHECKING:
         update,
     )
     from selfid_jax.identify.refine import refine
+    from selfid_jax import robot
+    from selfid_jax.robot.fit import fit
     from selfid_jax.math import geometry
     from selfid_jax.systems import (
         System, arm5, from_ets, from_mjcf, from_pose_fn, manipulability, model_o, stewart_hand, two_link, ur5e,
@@ -111,6 +115,7 @@ __all__ = [
     "from_ets",
     "manipulability",
     "control",
+    "fit",
     "follow",
     "from_mjcf",
     "from_pose_fn",
@@ -133,6 +138,7 @@ __all__ = [
     "record",
     "refine",
     "refine_lib",
+    "robot",
     "selfid",
     "self_identify",
     "signed_inverse_jacobian",

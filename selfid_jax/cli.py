@@ -1,4 +1,4 @@
-"""The ``selfid-jax`` console script: the runner's command line with this package's built-in systems listed."""
+"""The ``selfid-jax`` console script: the runner's command line with this package's systems and ``fit`` command."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ def _systems() -> Mapping[str, str]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.cli.main` with the built-in systems; the exit code.
+    """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.cli.main` with the built-in systems and ``fit``
+    (:mod:`selfid_jax.app.fit`); the exit code.
 
     As the console script (``argv`` None) it first takes over SIGINT and SIGTERM
     (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported.
@@ -22,9 +23,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     if argv is None:
         signals.install()
+    from selfid_jax.app import fit
     from selfid_jax.runner import cli
 
-    return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None)
+    return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None,
+                    commands={"fit": fit.command()})
 
 
 if __name__ == "__main__":

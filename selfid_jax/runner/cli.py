@@ -39,10 +39,25 @@ import time
 import functools
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
-__all__ = ["main"]
+__all__ = ["Command", "main"]
 
 _PROG = "selfid-jax"
+
+
+class Command(NamedTuple):
+    """A subcommand added by the package above the runner (e.g. ``fit``): argparse wiring and its body.
+
+    ``run(args) -> exit code`` reports bad input by raising
+    :class:`~selfid_jax.runner.errors.ConfigError` (or ``OSError``): one line on
+    stderr, exit 2, like the runner's own commands.
+    """
+
+    help: str  # one line for `selfid-jax --help`
+    description: str  # the subcommand's --help text
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
 
 
 class _UsageError(Exception):
@@ -53,7 +68,7 @@ class _Terminated(Exception):
     """A second SIGTERM: stop now, between Python bytecodes."""
 
 
-def _parser() -> argparse.ArgumentParser:
+def _parser(extra: Mapping[str, Command] | None = None) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=_PROG, description="Self-identified inverse Jacobians: sweeps and figures.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -108,6 +123,8 @@ def _parser() -> argparse.ArgumentParser:
         description="List the installed experiments (entry-point group selfid_jax.experiments), the built-in "
         "systems and the configs under ./configs.",
     )
+    for name, command in (extra or {}).items():
+        command.add_arguments(sub.add_parser(name, help=command.help, description=command.description))
     return p
 
 
@@ -357,11 +374,12 @@ def _os_error(err: OSError, command: str) -> str:
 
 def main(argv: Sequence[str] | None = None,
          catalogues: Mapping[str, Callable[[], Mapping[str, str]]] | None = None,
-         *, handle_signals: bool | None = None) -> int:
+         *, handle_signals: bool | None = None, commands: Mapping[str, Command] | None = None) -> int:
     """The ``selfid-jax`` command line; returns the exit code.
 
     ``catalogues``: extra sections of ``selfid-jax list``, title -> a function
     returning ``{name: one-line description}`` (the package adds its built-in systems).
+    ``commands``: extra subcommands, name -> :class:`Command` (the package adds ``fit``).
     ``handle_signals``: take over SIGINT and SIGTERM (:func:`selfid_jax.runner.signals.install`:
     exit 130 / 143 with one line at any phase); default: when ``argv`` is None, i.e. as the
     console script, never when called from Python with arguments (a test, a notebook).
@@ -373,12 +391,13 @@ def main(argv: Sequence[str] | None = None,
     signals.phase("start")
     from selfid_jax.runner.errors import ConfigError
 
-    args = _parser().parse_args(argv)
-    if args.command in ("sweep", "demo"):
+    args = _parser(commands).parse_args(argv)
+    if args.command in ("sweep", "demo", *(commands or {})):
         _enable_compilation_cache()
-    commands: dict[str, Callable[[argparse.Namespace], int]] = {
-        "sweep": _sweep, "plot": _plot, "demo": _demo, "list": functools.partial(_list, catalogues=catalogues or {})}
-    command = commands[args.command]
+    table: dict[str, Callable[[argparse.Namespace], int]] = {
+        "sweep": _sweep, "plot": _plot, "demo": _demo, "list": functools.partial(_list, catalogues=catalogues or {}),
+        **{name: c.run for name, c in (commands or {}).items()}}
+    command = table[args.command]
     try:
         return command(args)
     except (_UsageError, ConfigError) as err:
