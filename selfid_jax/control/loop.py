@@ -318,8 +318,8 @@ def completed(completion, failed):
 def follow_law(
     system: System,
     law: StepLaw,
-    path,
-    q0,
+    path: ArrayLike,
+    q0: ArrayLike,
     controller: ControllerParams = ControllerParams(),
     *,
     steps: int = DEFAULT_STEPS,
@@ -410,9 +410,9 @@ def follow_law(
 
 def follow(
     system: System,
-    jinv,
-    path,
-    q0,
+    jinv: Fixed | JacobianInverse | FromFunction,
+    path: ArrayLike,
+    q0: ArrayLike,
     controller: ControllerParams = ControllerParams(),
     *,
     steps: int = DEFAULT_STEPS,

@@ -35,6 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from selfid_jax.systems.validation import Values
+
 from selfid_jax.systems.system import System, make_system
 from selfid_jax.systems.validation import Limits
 
@@ -294,12 +296,12 @@ def from_ets(
     ets,
     *,
     task_dim: int = 3,
-    q_low=None,
-    q_high=None,
-    m_a=0.03,
-    dq_max=0.1,
-    sample_low=None,
-    sample_high=None,
+    q_low: Values | None = None,
+    q_high: Values | None = None,
+    m_a: Values = 0.03,
+    dq_max: Values = 0.1,
+    sample_low: Values | None = None,
+    sample_high: Values | None = None,
     min_sigma: float = 1e-3,
     name: str = "ets",
 ) -> System:

@@ -13,6 +13,8 @@ import os
 
 import numpy as np
 
+from selfid_jax.systems.validation import Values
+
 from selfid_jax.systems.actuation import build_actuation
 from selfid_jax.systems.kinematics import (
     ChainModel,
@@ -82,15 +84,15 @@ def from_mjcf(
     actuators=None,
     joints_fixed=None,
     task_dim: int,
-    m_a,
+    m_a: Values,
     fk: str = "chain",
-    home=None,
-    sample_half_width=None,
-    dq_max=0.1,
-    q_low=None,
-    q_high=None,
-    sample_low=None,
-    sample_high=None,
+    home: Values | None = None,
+    sample_half_width: Values | None = None,
+    dq_max: Values = 0.1,
+    q_low: Values | None = None,
+    q_high: Values | None = None,
+    sample_low: Values | None = None,
+    sample_high: Values | None = None,
     min_sigma: float = 1e-3,
     name: str | None = None,
 ) -> System:

@@ -39,6 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from selfid_jax.systems.validation import Values
+
 from selfid_jax.math import geometry
 from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.validation import Limits, check_task_axes, check_task_dim, default_axes, validate
@@ -336,13 +338,13 @@ def from_pose_fn(
     n_act: int,
     *,
     task_dim: int,
-    q_low,
-    q_high,
-    dq_max,
-    m_a,
+    q_low: Values,
+    q_high: Values,
+    dq_max: Values,
+    m_a: Values,
     params: Any = None,
-    sample_low=None,
-    sample_high=None,
+    sample_low: Values | None = None,
+    sample_high: Values | None = None,
     min_sigma: float = 1e-3,
     name: str = "custom",
 ) -> System:

@@ -8,9 +8,14 @@ inside ``jit``. Units as in ``System``: rad or m per actuator.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
+from jax.typing import ArrayLike
+
+Values = ArrayLike | Sequence[float]
+"""One number or one per actuator (a scalar, a list, a numpy or JAX array) [rad or m]."""
 
 __all__ = ["TASK_DIMS", "AXIS_NAMES", "Limits", "check_task_dim", "check_task_axes", "default_axes", "vector",
            "validate"]
