@@ -324,12 +324,33 @@ def report(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+COLUMNS = {
+    "method": "the method's name (methods[].name of the config) [label]",
+    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
+    "pose_noise": "tracker position noise sd [m]",
+    "rot_noise": "tracker rotation noise sd [rad]",
+    "m_a_level": "index of the self-ID magnitude level (m_a list of the config) [id]",
+    "m_a": "the level's self-ID magnitude (geometric mean over actuators if per actuator) [rad or m]",
+    "config_id": "feasible start configuration index [id]",
+    "trial": "self-ID stream index [id]",
+    "m_a_vec": "(n_act,) the level's self-ID magnitude per actuator [rad or m: the actuator's unit]",
+    "m_a_source": "where m_a came from: 'system' (the system's own) or 'config' (the m_a key) [label]",
+    "iterations": "self-ID iterations the estimate had when the star was followed (a checkpoint) [iterations]",
+    "completion": "fraction of the star's waypoints reached [-]",
+    "mean_error": "mean distance to the path over the steps used [m]",
+    "failed": "non-finite state or divergence from the path [bool]",
+    "converged_at": "the method's first iteration meeting Sec. IV-D in this stream, -1 if none [iteration]",
+}
+"""The results columns (``results.parquet``): one row per stream, method and iteration count."""
+
+
 EXPERIMENT = Experiment(
     name="ablation",
     config=AblationConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     tabulate=tabulate,
     plot=plots.ablation_figures,
     report=report,

@@ -311,12 +311,45 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     return written
 
 
+COLUMNS = {
+    "kind": "object kind: prismatic, revolute, helical or bezier [label]",
+    "object": "object index within its kind [id]",
+    "controller": "controller: tacman, turbo, turbo_u0 or turbo_lead [label]",
+    "arm": "arm inverse Jacobian: 'true' or 'selfid' (the fixed self-ID estimate) [label]",
+    "order": "Bezier order of the track, 0 for other kinds [-]",
+    "fit_error_mm": "Bezier: max distance of the track to its Bezier curve, 0 when exact [mm]",
+    "m_a": "(n_act,) self-ID actuation magnitude per actuator [rad]",
+    "m_a_source": "where m_a came from: 'system' (the system's own) or 'config' (the m_a key) [label]",
+    "success": "reached the kind's success progress (revolute/helical > 60 deg, prismatic > 250 mm, Bezier 98 % "
+               "of the track) [bool]",
+    "failed": "slipped or non-finite [bool]",
+    "slipped": "the handle slipped out of the grasp [bool]",
+    "nonfinite": "the physics state went non-finite (rollout frozen there) [bool]",
+    "steps_used": "control steps until success (or all) [steps]",
+    "progress": "final normalised progress along the path, 1 = success threshold [-]",
+    "efficiency": "action efficiency: 100 min(progress, level) / level / steps_used [% of the path per step]",
+    "jerk": "mean ||d^3 q / dt^3|| over the steps used [rad/s^3]",
+    "invalid_steps": "steps whose contact set failed Eq. 11-12 [steps]",
+    "alpha_min": "smallest velocity scaling alpha applied (Eq. 25) [-]",
+    "handle_trace": "(3 S,) handle positions in the G1 frame every stride-th step, row-major (S, 3) [m]",
+    "gripper_trace": "(3 S,) gripper positions in the G1 frame every stride-th step, row-major (S, 3) [m]",
+    "progress_trace": "(S,) normalised progress every stride-th step [-]",
+    "dev_trace": "(S,) contact deviation every stride-th step [m]",
+    "scene_id": "constant identifying the scene template [id]",
+    "time_s": "time to success (steps_used * control_dt), NaN if not successful [s]",
+    "dev_mean_mm": "mean contact deviation over the steps used [mm]",
+    "dev_max_mm": "max contact deviation [mm]",
+}
+"""The results columns (``results.parquet``): one row per object, controller and arm."""
+
+
 EXPERIMENT = Experiment(
     name="articulated",
     config=ArticulatedConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     tabulate=tabulate,
     plot=plot,
     report=report,

@@ -26,7 +26,7 @@ from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.control import paths
 from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
-                                                  add_m_a_columns, m_a_summary)
+                                                  add_m_a_columns, m_a_columns, m_a_summary)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
@@ -276,12 +276,36 @@ def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
     ax.legend(fontsize=7)
 
 
+COLUMNS = {
+    "system": "the run's system name [label]",
+    "config_id": "start configuration index [id]",
+    **m_a_columns(),
+    "q0": "(n_act,) start configuration of self-ID [rad or m]",
+    "converged_at": "self-ID iteration meeting the Sec. IV-D test, -1 if never [iteration]",
+    "relative_error": "||J_est - J_true^+||_F / ||J_true^+||_F where the star starts [-]",
+    "task_error": "||J(q) J_est - I||_F where the star starts: the part of the error the controller sees [-]",
+    "completion_estimated": "fraction of the star's waypoints reached with the self-ID estimate [-]",
+    "completion_true": "fraction of the star's waypoints reached with the true inverse Jacobian [-]",
+    "mean_error_estimated": "mean distance to the path over the steps used, with the estimate [m]",
+    "mean_error_true": "mean distance to the path over the steps used, with the true inverse Jacobian [m]",
+    "estimate": "(n_act * task_dim,) final self-ID estimate, row-major (n_act, task_dim) [actuator unit per task "
+                "unit: rad/m for an arm's position task]",
+    "truth": "(n_act * task_dim,) true inverse Jacobian where the star starts, row-major (n_act, task_dim) "
+             "[actuator unit per task unit]",
+    "deltas": "(iters,) ||J_t - J_{t-1}||_F per self-ID iteration [actuator unit per task unit]",
+    "positions_estimated": "((steps + 1) * 3,) end-effector positions with the estimate, row-major (steps + 1, 3) [m]",
+    "positions_true": "((steps + 1) * 3,) end-effector positions with the true inverse, row-major (steps + 1, 3) [m]",
+}
+"""The results columns (``results.parquet``): one row per system and start configuration."""
+
+
 EXPERIMENT = Experiment(
     name="demo",
     config=DemoConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     plot=plot,
     report=report,
     description="the main job: self-ID of each robot from 4 starts, then a star with the estimate and the truth",

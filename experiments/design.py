@@ -604,12 +604,36 @@ def _protocol_line(summary: dict) -> str:
             f"gradient unreliable above {r['max_failed']:g} failed; path from {summary['follow_from']}")
 
 
+COLUMNS = {
+    "system": "system name [label]",
+    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
+    "pose_noise": "tracker position noise sd [m]",
+    "rot_noise": "tracker rotation noise sd [rad]",
+    "stage": "'grid', 'scalar', 'per_actuator' (refinement paths) or 'eval' (held-out comparison) [label]",
+    "design": "on eval rows the design compared ('default', 'grid', 'scalar', 'per_actuator'); else the stage "
+              "[label]",
+    "index": "the point's index within its stage, in evaluation order [id]",
+    "m_a": "self-ID magnitude of the point, geometric mean over actuators [rad or m]",
+    "m_a_vec": "(n_act,) self-ID magnitude of the point per actuator [rad or m: the actuator's unit]",
+    "loss": "design loss: mean over rollouts of log(mse + floor), failures saturated [log m^2]",
+    "gm_error_mm": "1e3 exp(loss / 2): geometric mean over rollouts of the RMS path error [mm]",
+    "rms_error_mm": "RMS path error over the rollouts that did not fail [mm]",
+    "failed_fraction": "fraction of the point's rollouts that failed [-]",
+    "completion": "mean fraction of the path's waypoints reached [-]",
+    "grad": "d loss / d log m_a summed over actuators; NaN on eval rows [log m^2 per unit log m_a]",
+    "grad_vec": "(n_act,) d loss / d log m_a_i per actuator; empty on eval and scalar rows [log m^2 per unit log m_a]",
+    "reliable": "finite loss and failed_fraction <= refine.max_failed: the gradient may be followed [bool]",
+}
+"""The results columns (``results.parquet``): one row per evaluated point (module docstring)."""
+
+
 EXPERIMENT = Experiment(
     name="design",
     config=DesignConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     tabulate=tabulate,
     plot=plot,
     report=report,

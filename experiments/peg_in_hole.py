@@ -47,7 +47,7 @@ from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.math import geometry
 from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
-                                                  check_noise_pairs, format_m_a, m_a_summary)
+                                                  check_noise_pairs, format_m_a, m_a_columns, m_a_summary)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
@@ -351,12 +351,39 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     return save_figure(fig, out_dir, "peg_in_hole")
 
 
+COLUMNS = {
+    "system": "the composed system's name (ur5e+model_o) [label]",
+    "inverse": "inverse Jacobians used: 'estimated' (self-ID) or 'analytical' (the true ones) [label]",
+    "layout": "layout index (arm yaw, grasp waypoint, hole) in the config's layouts [id]",
+    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
+    "pose_noise": "tracker position noise sd [m]",
+    "rot_noise": "tracker rotation noise sd [rad]",
+    "trial": "trial index (self-ID streams) [id]",
+    "arm_converged_at": "arm self-ID iteration meeting Sec. IV-D, -1 if never [iteration]",
+    **m_a_columns("arm_", " of the arm"),
+    **m_a_columns("hand_", " of the hand"),
+    "hand_converged_at": "hand self-ID iteration meeting Sec. IV-D (run where this pipeline's arm left it), -1 if "
+                         "never [iteration]",
+    "grasp_completion": "fraction of the arm's move to the grasp waypoint completed [-]",
+    "hand_completion": "fraction of the hand's tilt waypoints reached [-]",
+    "insert_completion": "fraction of the arm's lift, move and lower waypoints reached [-]",
+    "hand_rot_deg": "hand's final rotation error within its task's [rx, ry]; 0 where failed [deg]",
+    "arm_pos_mm": "final distance to the insertion position; 0 where failed [mm]",
+    "arm_rot_deg": "final orientation error to the insertion orientation; 0 where failed [deg]",
+    "inserted": "insertion completed within insert_tol and insert_rot_tol_deg, no phase failed [bool]",
+    "failed": "a phase failed (non-finite pose, divergence) [bool]",
+    "positions": "(9,) POM position at the grasp waypoint, after the tilt and at the end, row-major (3, 3) [m]",
+}
+"""The results columns (``results.parquet``): one row per layout, noise level, trial and inverse Jacobian."""
+
+
 EXPERIMENT = Experiment(
     name="peg_in_hole",
     config=PegConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     tabulate=tabulate,
     plot=plot,
     report=report,

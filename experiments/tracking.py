@@ -34,7 +34,7 @@ from selfid_jax.math import geometry
 
 from selfid_jax.control import metrics, paths
 from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
-                                                  check_noise_pairs, format_m_a, m_a_summary)
+                                                  check_noise_pairs, format_m_a, m_a_columns, m_a_summary)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
@@ -403,12 +403,42 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     return written
 
 
+COLUMNS = {
+    "system": "system name [label]",
+    "inverse": "inverse Jacobian followed: 'estimated' (self-ID) or 'analytical' (the true one) [label]",
+    "letter_id": "index of the path (letter or rotation axis) in the config's path [id]",
+    "path": "the path's label (its letter or rotation axis) [label]",
+    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
+    "pose_noise": "tracker position noise sd [m]",
+    "rot_noise": "tracker rotation noise sd [rad]",
+    "config_id": "feasible start configuration index [id]",
+    "trial": "self-ID stream index [id]",
+    "converged_at": "self-ID iteration meeting the Sec. IV-D test, -1 if never [iteration]",
+    **m_a_columns(),
+    "completion": "fraction of the path's waypoints reached [-]",
+    "waypoint_error_mm": "mean position error when each waypoint was reached [mm]",
+    "error_x_mm": "mean |distance to the path| along x over the steps used [mm]",
+    "error_y_mm": "mean |distance to the path| along y over the steps used [mm]",
+    "error_z_mm": "mean |distance to the path| along z over the steps used [mm]",
+    "rot_final_deg": "orientation error to the last waypoint at the end; 0 without rotation [deg]",
+    "rot_step_deg": "mean orientation error to the pursued waypoint over the steps used; 0 without rotation [deg]",
+    "failed": "non-finite state or divergence from the path [bool]",
+    "steps_used": "control steps taken [steps]",
+    "positions": "((steps + 1) * 3,) POM positions, row-major (steps + 1, 3) [m]",
+    "error_trace_mm": "((steps + 1) * 3,) |distance to the path| along x, y, z at each step, row-major "
+                      "(steps + 1, 3) [mm]",
+    "rot_trace_deg": "(steps + 1,) orientation error to the pursued waypoint at each step [deg]",
+}
+"""The results columns (``results.parquet``): one row per rollout and inverse Jacobian."""
+
+
 EXPERIMENT = Experiment(
     name="tracking",
     config=TrackingConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     tabulate=tabulate,
     plot=plot,
     report=report,

@@ -244,12 +244,28 @@ def plot(table: pd.DataFrame, summary: dict, out_dir):
     return plots.valid_region_figure(table, summary, out_dir)
 
 
+COLUMNS = {
+    "system": "system name [label]",
+    "eps_limit": "upper limit of the scaling entries: m_eps drawn elementwise uniform(1, eps_limit) [-]",
+    "config_id": "feasible start configuration index [id]",
+    "trial": "m_eps draw index (one rollout each) [id]",
+    "completion": "fraction of the star's waypoints reached [-]",
+    "mean_error": "mean distance of the POM to the path over the steps used [m]",
+    "max_error": "largest distance of the POM to the path over the steps used [m]",
+    "waypoint_error": "mean over waypoints of the position error when reached (at the end if not) [m]",
+    "steps_used": "control steps until the last waypoint was reached (or the budget) [steps]",
+    "failed": "non-finite state or divergence from the path [bool]",
+}
+"""The results columns (``results.parquet``): one row per system, eps_limit, start configuration and trial."""
+
+
 EXPERIMENT = Experiment(
     name="valid_region",
     config=ValidRegionConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     plot=plot,
     report=report,
     description="valid inverse-Jacobian region: completion vs elementwise scaling of the true inverse (Fig. 2)",

@@ -282,12 +282,32 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     return save_figure(fig, out_dir, "valid_region_workspace", dpi=110)
 
 
+COLUMNS = {
+    "system": "system name [label]",
+    "config_id": "start configuration index [id]",
+    "eps_limit": "upper limit of the scaling entries: m_eps drawn elementwise uniform(1, eps_limit) [-]",
+    "trial": "m_eps draw index (one rollout each) [id]",
+    "manipulability_bin": "manipulability quantile bin the start was drawn from, 0 the lowest [id]",
+    "manipulability": "Yoshikawa's prod sigma of the task Jacobian at the start [task units per actuator unit, "
+                      "m^3/rad^3 for a position task]",
+    "condition": "sigma_max / sigma_min of the task Jacobian at the start [-]",
+    "completion": "fraction of the star's waypoints reached [-]",
+    "mean_error": "mean distance of the POM to the path over the steps used [m]",
+    "failed": "non-finite state or divergence from the path [bool]",
+    "steps_used": "control steps until the last waypoint was reached (or the budget) [steps]",
+    "spectral_radius": "rho(I - gain J(q0) (m_eps * Jinv(q0))) of this rollout's m_eps; < 1 predicts convergence [-]",
+    "predicted_stable": "fraction of prediction_draws fresh m_eps draws with rho < 1 [-]",
+}
+"""The results columns (``results.parquet``): one row per start configuration, eps_limit and trial."""
+
+
 EXPERIMENT = Experiment(
     name="valid_region_workspace",
     config=ValidRegionWorkspaceConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     plot=plot,
     report=report,
     description="valid inverse-Jacobian region per start configuration vs manipulability, with the spectral-radius "

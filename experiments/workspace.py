@@ -240,12 +240,29 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     return paths
 
 
+COLUMNS = {
+    "system": "system name [label]",
+    "x": "tool position x [m]",
+    "y": "tool position y [m]",
+    "z": "tool position z [m]",
+    "sqrt_manipulability": "seed 004's omega = sqrt(prod sigma) of the 6 x n geometric Jacobian [mixed units]",
+    "yoshikawa": "Yoshikawa's prod sigma of the 6 x n geometric Jacobian [mixed units]",
+    "condition": "sigma_max / sigma_min of the mixed-unit 6 x n Jacobian (depends on the length unit) [-]",
+    "position_sqrt_manipulability": "sqrt(prod sigma) of the position rows Jv (3 x n) [m^1.5/rad^1.5]",
+    "position_yoshikawa": "prod sigma of the position rows Jv (3 x n) [m^3/rad^3]",
+    "position_condition": "sigma_max / sigma_min of the position rows Jv [-]",
+    "unit_consistent_condition": "sigma_max / sigma_min of [Jv; L Jw], L the config's length [-]",
+}
+"""The results columns (``results.parquet``): one row per sampled configuration (revolute joints: rad)."""
+
+
 EXPERIMENT = Experiment(
     name="workspace",
     config=WorkspaceConfig,
     build=build,
     compute=compute,
     summarize=summarize,
+    columns=COLUMNS,
     plot=plot,
     report=report,
     description="reachable-workspace maps: manipulability and condition per r-z / x-z cell (seed 004)",

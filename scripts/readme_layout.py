@@ -35,7 +35,7 @@ FOLDERS = {
     "scripts": "studies and maintenance scripts run from a checkout (not installed)",
     "configs": "sweep configs (small defaults; *_full.yaml at paper scale or larger)",
     "benchmarks": "scripts that print ratios against a baseline run in the same process",
-    "docs": "the figures shown in this README",
+    "docs": "the figures shown in this README and results_columns.md (every results column and its unit)",
     "tests": 'pytest (float64, strict rank promotion); -m "not slow" is the fast tier',
 }
 # Folders listed with their own modules; the others are one line each.

@@ -18,7 +18,7 @@ from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
 __all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig",
            "SelfIdConfig", "SelfIdMagnitude", "StudyConfig", "add_m_a_columns", "check_noise_pairs", "controller_rows",
-           "format_m_a", "m_a_summary", "resolve_m_a"]
+           "format_m_a", "m_a_columns", "m_a_summary", "resolve_m_a"]
 
 
 HostOrDevice: TypeAlias = jax.Array | np.ndarray
@@ -68,6 +68,15 @@ def add_m_a_columns(meta, choice: SelfIdMagnitude, prefix: str = "") -> None:
     """
     meta[f"{prefix}m_a"] = [tuple(choice.value.tolist())] * len(meta)  # tuples: the run manifest hashes meta
     meta[f"{prefix}m_a_source"] = choice.source
+
+
+def m_a_columns(prefix: str = "", of: str = "") -> dict[str, str]:
+    """The results-column documentation (an ``Experiment``'s ``columns``) of :func:`add_m_a_columns`' columns."""
+    return {
+        f"{prefix}m_a": f"(n_act,) self-ID actuation magnitude per actuator{of} [rad or m: the actuator's unit]",
+        f"{prefix}m_a_source": f"where {prefix}m_a came from: 'system' (the system's own) or 'config' (the m_a key) "
+                               "[label]",
+    }
 
 
 def m_a_summary(rows, prefix: str = "", vector: str | None = None) -> dict[str, Any]:

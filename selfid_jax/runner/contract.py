@@ -17,8 +17,11 @@ An :class:`Experiment` is a frozen bundle of pure pieces:
 * ``summarize(table, cfg) -> dict`` (JSON-ready) and
   ``plot(table, summary, out_dir) -> list[Path]`` (reads saved results only);
 * optionally ``tabulate(wide, part, cfg) -> DataFrame`` (reshape one part's
-  ``row``-per-batch-element table, e.g. one row per method and checkpoint) and
-  ``report(summary) -> str`` (what ``selfid-jax sweep`` prints).
+  ``row``-per-batch-element table, e.g. one row per method and checkpoint),
+  ``report(summary) -> str`` (what ``selfid-jax sweep`` prints) and
+  ``columns``: the results table's column names, each with its one-line
+  meaning and unit in brackets (``"mean distance to the path [m]"``); a run
+  whose table holds a column not listed warns :class:`UndocumentedColumns`.
 
 :mod:`selfid_jax.runner.registry` finds experiments by name and
 :func:`selfid_jax.runner.execute.run` runs one into a run directory.
@@ -29,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -38,7 +41,11 @@ import pandas as pd
 from selfid_jax.runner.config import BaseConfig
 from selfid_jax.runner.layout import SAFE_NAME
 
-__all__ = ["Experiment", "Part"]
+__all__ = ["Experiment", "Part", "UndocumentedColumns"]
+
+
+class UndocumentedColumns(UserWarning):
+    """A results table holds columns its experiment's ``columns`` does not document (the tests make it an error)."""
 
 
 class Part(NamedTuple):
@@ -64,6 +71,7 @@ class Experiment:
     tabulate: Callable[[pd.DataFrame, Part, Any], pd.DataFrame] | None = None
     report: Callable[[dict], str] | None = None
     description: str = ""
+    columns: Mapping[str, str] | None = None  # results column -> "one-line meaning [unit]"; None: not documented
 
     def __post_init__(self):
         if not self.name.isidentifier():

@@ -10,6 +10,7 @@ the results and summary) runs under that hold.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -17,14 +18,14 @@ import pandas as pd
 
 from selfid_jax.runner import lock
 from selfid_jax.runner.config import dump_config
-from selfid_jax.runner.contract import Experiment, Part
+from selfid_jax.runner.contract import Experiment, Part, UndocumentedColumns
 from selfid_jax.runner.fingerprint import fingerprint
 from selfid_jax.runner.layout import PARTS_DIR
 from selfid_jax.runner.rundir import create_run_dir, record_refused, write_results, write_summary
 from selfid_jax.runner.errors import SweepResumeError
 from selfid_jax.runner.sweep import run_chunked
 
-__all__ = ["precision", "run"]
+__all__ = ["check_columns", "precision", "run"]
 
 
 def precision(x64: bool):
@@ -75,6 +76,18 @@ def run(
             raise
 
 
+def check_columns(experiment: Experiment, table: pd.DataFrame) -> list[str]:
+    """Warn :class:`~selfid_jax.runner.contract.UndocumentedColumns` for the columns of ``table`` that
+    ``experiment.columns`` does not list (nothing if it is ``None``); returns them."""
+    if experiment.columns is None:
+        return []
+    missing = [str(c) for c in table.columns if c not in experiment.columns]
+    if missing:
+        warnings.warn(f"experiment {experiment.name!r}: results columns not documented in its columns: {missing}",
+                      UndocumentedColumns, stacklevel=3)
+    return missing
+
+
 def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress: bool, parts):
     import jax
 
@@ -101,6 +114,7 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
     table = pd.concat(tables, ignore_index=True)
     if jax.process_index() != 0:
         return None
+    check_columns(experiment, table)
     write_results(out_dir, table)
     summary = experiment.summarize(table, cfg)
     write_summary(out_dir, summary)
