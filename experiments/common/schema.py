@@ -52,7 +52,10 @@ def resolve_m_a(m_a, system, where: str = "m_a") -> SelfIdMagnitude:
     """
     n = int(system.n_act)
     if m_a is None:
-        return SelfIdMagnitude(np.asarray(system.m_a, float).reshape(n), "system")
+        own = np.asarray(system.m_a).reshape(n)
+        if own.dtype == np.float32:  # the shortest decimal of each float32 (0.03, not 0.029999999329)
+            own = np.array([float(np.format_float_positional(v, unique=True)) for v in own])
+        return SelfIdMagnitude(own.astype(float), "system")
     value = np.asarray(m_a, float)
     if value.ndim == 1 and value.shape != (n,):
         raise ValueError(f"{where}: {len(value)} values for the {n} actuators of {system.name!r} "
