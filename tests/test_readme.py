@@ -186,3 +186,12 @@ def test_readme_paths_exist():
             if not (list(ROOT.glob(variant)) if "*" in variant else (ROOT / variant).exists()):
                 missing.append(variant)
     assert not missing, missing
+
+
+def test_ci_runs_exactly_the_readme_commands():
+    """The README's two Quick-start commands: the first installs and runs the demo; ``.ci/run`` runs the second."""
+    quick = README.read_text().split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    commands = re.findall(r"```bash\n(.+?)\n```", quick)
+    assert len(commands) == 2 and commands[0] == "pip install . && selfid-jax demo", commands
+    ci_lines = [s.strip() for s in (ROOT / ".ci" / "run").read_text().splitlines()]
+    assert commands[1] in ci_lines, commands[1]
