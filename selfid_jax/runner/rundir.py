@@ -274,31 +274,30 @@ def create_run_dir(
     if not is_held(run_dir):
         raise RuntimeError(f"create_run_dir({run_dir}): hold the run directory's lock first "
                            "(selfid_jax.runner.lock.hold)")
-    if True:  # under the caller's lock
-        if fresh:
-            clear_run_dir(run_dir)
-        elif cfg_file.exists():
-            diff = _diff_keys(read_run_config(run_dir), resolved)
-            if diff:
-                msg = (f"{run_dir}: holds results of a different config; differing keys: " + "; ".join(diff)
-                       + ". Use --fresh (fresh=True) to discard them, or choose another --out.")
-                record_refused(run_dir, msg, config_path=config_path, overrides=overrides)
-                raise RunDirError(msg)
-        elif any((run_dir / d).exists() for d in (CHUNKS_DIR, PARTS_DIR, RESULTS_FILE)):
-            raise RunDirError(
-                f"{run_dir}: holds results but no {CONFIG_FILE}; use --fresh to discard them or another --out."
-            )
+    if fresh:
+        clear_run_dir(run_dir)
+    elif cfg_file.exists():
+        diff = _diff_keys(read_run_config(run_dir), resolved)
+        if diff:
+            msg = (f"{run_dir}: holds results of a different config; differing keys: " + "; ".join(diff)
+                   + ". Use --fresh (fresh=True) to discard them, or choose another --out.")
+            record_refused(run_dir, msg, config_path=config_path, overrides=overrides)
+            raise RunDirError(msg)
+    elif any((run_dir / d).exists() for d in (CHUNKS_DIR, PARTS_DIR, RESULTS_FILE)):
+        raise RunDirError(
+            f"{run_dir}: holds results but no {CONFIG_FILE}; use --fresh to discard them or another --out."
+        )
 
-        info = _attempt(config_path, overrides)
-        vfile = run_dir / VERSIONS_FILE
-        if cfg_file.exists() and vfile.exists():
-            first = _read_versions(vfile)
-            first.setdefault("resumed", []).append(info)
-            write_json(vfile, first)
-        else:
-            atomic_write_text(cfg_file, yaml.safe_dump(resolved, sort_keys=False))
-            write_json(vfile, info)
-        _ATTEMPTS[run_dir.resolve()] = info
+    info = _attempt(config_path, overrides)
+    vfile = run_dir / VERSIONS_FILE
+    if cfg_file.exists() and vfile.exists():
+        first = _read_versions(vfile)
+        first.setdefault("resumed", []).append(info)
+        write_json(vfile, first)
+    else:
+        atomic_write_text(cfg_file, yaml.safe_dump(resolved, sort_keys=False))
+        write_json(vfile, info)
+    _ATTEMPTS[run_dir.resolve()] = info
     return run_dir
 
 
