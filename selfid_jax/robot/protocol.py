@@ -1,0 +1,102 @@
+"""The robot protocol: what a driver for a real (or virtual) arm or hand implements, and nothing more.
+
+A driver reads a timestamped actuator position and tracker pose
+(:meth:`Robot.read`), commands an absolute actuator target (:meth:`Robot.move`),
+reports its limits (:meth:`Robot.limits`) and closes (:meth:`Robot.close`).
+Everything else (drawing actuations within ``m_a`` and the limits, the
+estimator, the convergence test, the safety envelope, the log) belongs to the
+online runner (:mod:`selfid_jax.robot.online`), so a driver stays a few lines
+over the vendor's API. numpy in, numpy out; no JAX here.
+
+Units: actuator positions in the actuator's own units (rad for revolute
+joints, m for prismatic ones); tracker positions in metres in the tracker's
+(world, camera) frame; orientations as unit quaternions ``(w, x, y, z)``;
+times in seconds on the driver's monotonic clock.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = ["Observation", "RobotLimits", "Robot", "RobotError", "RobotConnectionError", "check_limits"]
+
+
+class RobotError(RuntimeError):
+    """A driver could not do what it was asked (a refused command, a fault the robot reported)."""
+
+
+class RobotConnectionError(RobotError):
+    """The connection to the robot was lost or timed out: the runner stops, nothing more is commanded."""
+
+
+class Observation(NamedTuple):
+    """One reading of the robot and its tracker.
+
+    ``t`` is when the actuator positions were read; ``tracker_t`` is when the
+    tracker pose was measured (older than ``t`` by the tracker's latency; it
+    does not advance while the marker is lost). ``valid`` is False when the
+    tracker reports no pose (a dropout): ``position``/``quaternion`` then hold
+    the last good pose or NaN and must not be used.
+    """
+
+    t: float  # s, time of the actuator reading
+    q: np.ndarray  # (n,) actuator positions (rad or m)
+    position: np.ndarray  # (3,) tracked point, m, tracker frame
+    quaternion: np.ndarray  # (4,) (w, x, y, z) orientation of the tracked body, tracker frame
+    tracker_t: float  # s, time of the tracker measurement
+    valid: bool  # False on a tracker dropout
+
+
+class RobotLimits(NamedTuple):
+    """What a robot allows: ``(n,)`` position limits and the largest single commanded step (actuator units)."""
+
+    lower: np.ndarray  # (n,) lowest actuator position
+    upper: np.ndarray  # (n,) highest actuator position
+    max_step: np.ndarray  # (n,) largest |target - q| the robot accepts in one move
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A driver. ``move`` returns once the command is sent (not when the motion ends); the runner waits its
+    settle time and then calls ``read``. Any method may raise :class:`RobotConnectionError`."""
+
+    def limits(self) -> RobotLimits:
+        """The actuator limits (constant for a session)."""
+        ...
+
+    def read(self) -> Observation:
+        """The latest actuator positions and tracker pose."""
+        ...
+
+    def move(self, target: np.ndarray) -> None:
+        """Command the actuators towards the absolute position ``target (n,)``."""
+        ...
+
+    def close(self) -> None:
+        """Stop the robot where it is and release the connection (idempotent)."""
+        ...
+
+
+def check_limits(limits: RobotLimits, n: int | None = None) -> RobotLimits:
+    """``limits`` as float64 ``(n,)`` arrays, with ``lower < upper`` and ``max_step > 0`` everywhere, finite.
+
+    Raises ValueError naming the field and actuator otherwise (a driver's limits are checked before any motion).
+    """
+    lower, upper, step = (np.atleast_1d(np.asarray(x, np.float64)) for x in limits)
+    n = lower.shape[0] if n is None else n
+    for name, x in (("lower", lower), ("upper", upper), ("max_step", step)):
+        if x.shape != (n,):
+            raise ValueError(f"robot limits: {name} has shape {x.shape}, expected ({n},)")
+        bad = np.flatnonzero(~np.isfinite(x))
+        if bad.size:
+            raise ValueError(f"robot limits: {name}[{bad[0]}] is {x[bad[0]]}, must be finite")
+    bad = np.flatnonzero(lower >= upper)
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"robot limits: actuator {i} has lower {lower[i]} >= upper {upper[i]}")
+    bad = np.flatnonzero(step <= 0)
+    if bad.size:
+        raise ValueError(f"robot limits: max_step[{bad[0]}] is {step[bad[0]]}, must be > 0")
+    return RobotLimits(lower, upper, step)
