@@ -259,3 +259,18 @@ def test_sweep_too_large_is_refused_before_allocating(tmp_path, monkeypatch):
     monkeypatch.setenv("SELFID_JAX_MAX_MEMORY_GB", "1")
     with pytest.raises(SizeError, match=r"about 3\.0 GiB.*limit of 1\.0 GiB"):
         check_memory(2**20, 2**10)
+
+
+def test_set_reaches_list_entries_by_index(cfg_file):
+    """``--set systems.1.controller.steps=300`` (or ``systems[1]...``) edits one entry; a bad index names the length."""
+    base = "systems=[two_link, {system: ur5e, controller: {max_step: 0.0025, tol: 0.0005, steps: 435}}]"
+    for key in ("systems.1.controller.steps", "systems[1].controller.steps"):
+        cfg = load_config(cfg_file, [base, f"{key}=300"])
+        assert cfg.systems[1].controller.steps == 300 and cfg.systems[0] == "two_link"
+    assert apply_overrides({"a": [1, 2, 3]}, ["a.2=9"]) == {"a": [1, 2, 9]}
+    msg = _error(cfg_file, ["systems.5.controller.steps=1"])
+    assert "systems has 2 entries (indices 0 .. 1), no entry 5" in msg
+    msg = _error(cfg_file, ["systems.steps=1"])
+    assert "index it by number" in msg and "'two_link'" not in msg  # the list is not printed
+    msg = _error(cfg_file, [base, "systems.1.controller.steps=-4"])
+    assert "key 'systems[1].controller.steps'" in msg and "(from --set systems.1.controller.steps=-4)" in msg

@@ -156,13 +156,21 @@ def unique(values: list, what: str) -> list:
 
 # --------------------------------------------------------------------------- overrides
 
+_INDEX = re.compile(r"\[(\d+)\]")
+
+
 def parse_override(text: str) -> tuple[tuple[str, ...], Any]:
-    """``"a.b=1e-3"`` -> ``(("a", "b"), 0.001)``; the value is parsed as YAML."""
+    """``"a.b=1e-3"`` -> ``(("a", "b"), 0.001)``; the value is parsed as YAML.
+
+    List entries are reached by index, as ``systems.0.controller.steps`` or
+    ``systems[0].controller.steps`` (both give ``("systems", "0", "controller", "steps")``).
+    """
     key, sep, raw = text.partition("=")
-    key = key.strip()
+    key = _INDEX.sub(r".\1", key.strip())
     parts = tuple(key.split("."))
     if not sep or not key or any(not p.strip() for p in parts):
-        raise ValueError(f"--set {text!r}: expected KEY=VALUE with a dotted KEY, e.g. controller.tol=0.001")
+        raise ValueError(f"--set {text!r}: expected KEY=VALUE with a dotted KEY, e.g. controller.tol=0.001 "
+                         "or systems.0.controller.steps=300")
     try:
         value = yaml_load(raw) if raw.strip() else ""
     except yaml.YAMLError as err:
@@ -170,25 +178,46 @@ def parse_override(text: str) -> tuple[tuple[str, ...], Any]:
     return tuple(p.strip() for p in parts), value
 
 
+def _child(node: Any, part: str, text: str, where: str, *, create: bool) -> Any:
+    """The entry ``part`` of ``node`` (a mapping key or a list index), created as ``{}`` if missing and ``create``."""
+    if isinstance(node, list):
+        if not part.isdigit():
+            raise ValueError(f"--set {text!r}: {where or 'the top level'} is a list of {len(node)} entries; "
+                             f"index it by number ({where}.0 .. {where}.{len(node) - 1}), not {part!r}")
+        i = int(part)
+        if i >= len(node):
+            raise ValueError(f"--set {text!r}: {where} has {len(node)} entries (indices 0 .. {len(node) - 1}), "
+                             f"no entry {i}")
+        return node[i]
+    nxt = node.get(part)
+    if nxt is None and create:
+        nxt = node[part] = {}
+    return nxt
+
+
 def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
-    """Return a deep copy of ``data`` with each ``a.b=value`` override set.
+    """Return a deep copy of ``data`` with each ``a.b=value`` override set (``a.0.b``: entry 0 of the list ``a``).
 
     Missing intermediate mappings are created (validation then reports the key
-    as unknown if the model has no such key).
+    as unknown if the model has no such key); a list index must exist.
     """
     out = _deepcopy(data)
     for text in overrides:
         parts, value = parse_override(text)
-        node = out
+        node: Any = out
         for i, part in enumerate(parts[:-1]):
-            nxt = node.get(part)
-            if nxt is None:
-                nxt = node[part] = {}
-            if not isinstance(nxt, dict):
+            where = ".".join(parts[:i])
+            nxt = _child(node, part, text, where, create=True)
+            if not isinstance(nxt, dict | list):
                 dotted = ".".join(parts[: i + 1])
-                raise ValueError(f"--set {text!r}: key {dotted!r} holds {nxt!r}, not a mapping")
+                raise ValueError(f"--set {text!r}: key {dotted!r} holds {_summary(nxt, 80)}, not a mapping or list")
             node = nxt
-        node[parts[-1]] = value
+        last = parts[-1]
+        if isinstance(node, list):
+            _child(node, last, text, ".".join(parts[:-1]), create=False)
+            node[int(last)] = value
+        else:
+            node[last] = value
     return out
 
 
@@ -235,7 +264,7 @@ def read_config(path: str | Path, overrides: Sequence[str] = ()) -> tuple[dict, 
         data = apply_overrides(data, overrides)
     except ValueError as err:
         raise ConfigError(f"{path}: {err}") from None
-    return data, {".".join(parse_override(o)[0]): o for o in overrides}
+    return data, {_dotted([int(p) if p.isdigit() else p for p in parse_override(o)[0]]): o for o in overrides}
 
 
 def validate(model: type[BaseConfig], data: Mapping, path: str | Path, set_keys: Mapping[str, str] = {}) -> BaseConfig:
@@ -403,6 +432,6 @@ def _format_error(path: Path, model: type[BaseModel], err: Mapping[str, Any], se
             text += f"; allowed: {_describe(tp, meta, doc)}"
     source = ""
     for dotted, override in set_keys.items():
-        if key == dotted or key.startswith((dotted + ".", dotted + "[")) or dotted.startswith(key + "."):
+        if key == dotted or key.startswith((dotted + ".", dotted + "[")) or dotted.startswith((key + ".", key + "[")):
             source = f" (from --set {override})"
     return f"{path}: key '{key}': {text}{source}"
