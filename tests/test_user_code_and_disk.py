@@ -82,3 +82,20 @@ def test_plot_beside_a_running_sweep_is_refused(tmp_path):
         holder.kill()
     assert out.returncode == 2 and f"process {holder.pid}" in out.stderr, out.stderr
     assert not (run / "figures").exists()
+
+
+def test_output_path_is_checked_before_any_compute(tmp_path, capsys, monkeypatch):
+    """``--out`` naming a file (or a path through one) exits 2 naming it, before the experiment is even set up."""
+    from selfid_jax.runner import cli as runner_cli
+
+    def no_compute(*args, **kwargs):
+        raise AssertionError("the experiment was set up although --out is unusable")
+
+    monkeypatch.setattr(runner_cli, "_build", no_compute)
+    a_file = tmp_path / "results.txt"
+    a_file.write_text("user data\n")
+    for out, words in ((a_file, "so it cannot be the run directory"), (a_file / "run", f"a folder of {a_file}")):
+        assert cli.main(["demo", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert str(a_file) in err and words in err
+    assert a_file.read_text() == "user data\n"
