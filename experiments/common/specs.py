@@ -5,12 +5,12 @@ In YAML::
     systems: [two_link, ur5e]                       # built-in robots (selfid_jax.systems.REGISTRY)
     system:                                         # any MuJoCo robot, no Python
       mjcf: robots/my_arm.xml                       # relative to the config file
-      site: tip                                     # the point of manipulation
-      actuators: [shoulder, elbow, wrist]           # default: every actuator of the model
+      site: tip                                     # the point of manipulation (or body: + offset: [x, y, z])
+      actuators: [shoulder, elbow, wrist]           # default: every actuator; 'joints': every hinge/slide
       joints_fixed: {gripper_slide: 0.01}           # joints held away from qpos0
       task_dim: 3
       m_a: [0.03, 0.03, 0.05]                       # per actuator, or one number
-      home: [0.0, -0.8, 1.2]                        # centre of the start-configuration box
+      home: [0.0, -0.8, 1.2]                        # start-box centre, or {keyframe: home} (the default)
       sample_half_width: 0.4                        # box half-width around home [rad or m]
     system:                                         # a pure JAX pose function
       pose_fn: my_package.robots:planar_three_link  # fn(params, q) -> (p, R) or p
@@ -39,9 +39,8 @@ from selfid_jax.runner.layout import SAFE_NAME
 from selfid_jax.systems import REGISTRY
 from selfid_jax.systems.system import System
 
-__all__ = ["BUILTIN_FACTORIES", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system", "entry_spec",
-           "needs_x64", "spec_or_run", "unique_system_names",
-           "system_name"]
+__all__ = ["BUILTIN_FACTORIES", "Keyframe", "MjcfSystem", "PoseFnSystem", "SampleBox", "SystemSpec", "build_system",
+           "entry_spec", "needs_x64", "spec_or_run", "unique_system_names", "system_name"]
 
 
 Numbers = float | list[float]
@@ -66,19 +65,32 @@ class SampleBox(BaseModel):
         return self
 
 
+class Keyframe(BaseModel):
+    """A keyframe of the model, by name: its ``qpos`` in actuator coordinates."""
+
+    model_config = STRICT
+
+    keyframe: str = Field(min_length=1, description="keyframe name")
+
+
 class MjcfSystem(BaseModel):
     """A MuJoCo model: the actuation space is its actuators (or the named subset)."""
 
     model_config = STRICT
 
-    mjcf: str = Field(description="MJCF file, relative to the config file")
-    site: str = Field(min_length=1, description="name of the POM site")
-    actuators: list[str] | None = Field(None, min_length=1, description="actuator names (default: all)")
+    mjcf: str = Field(description="MJCF or URDF (.urdf) file, relative to the config file")
+    site: str | None = Field(None, min_length=1, description="name of the POM site (or give body and offset)")
+    body: str | None = Field(None, min_length=1, description="name of the POM's body, when the model has no site")
+    offset: list[float] | None = Field(None, min_length=3, max_length=3,
+                                       description="POM position in the body's frame [m] (with body; default 0 0 0)")
+    actuators: list[str] | Literal["joints"] | None = Field(
+        None, min_length=1, description="actuator names (default: all), or 'joints': every hinge and slide joint")
     joints_fixed: dict[str, float] | None = Field(None, description="joint name -> held value (rad or m)")
     task_dim: Literal[2, 3, 6] = 3
     m_a: Numbers = Field(0.03, description="self-ID magnitude, one number or one per actuator [rad or m]")
     dq_max: Numbers = Field(0.1, description="largest actuator step per control step [rad or m]")
-    home: list[float] | None = Field(None, description="centre of the start box (default: qpos0)")
+    home: list[float] | Keyframe | None = Field(
+        None, description="centre of the start box, or {keyframe: NAME} (default: the 'home' keyframe, else qpos0)")
     sample_half_width: float | None = Field(None, gt=0, description="half-width of the start box around home")
     sample_box: SampleBox | None = Field(None, description="explicit start box (instead of home +- half-width)")
     min_sigma: float = Field(1e-3, ge=0, description="start configurations need sigma_min(J) above this")
@@ -103,6 +115,15 @@ class MjcfSystem(BaseModel):
             raise ValueError(f"MJCF file {str(path)!r} not found" + (" (relative paths are relative to the config file)"
                                                                       if base is not None else ""))
         return str(path.resolve())
+
+    @model_validator(mode="after")
+    def _one_pom(self):
+        if (self.site is None) == (self.body is None):
+            raise ValueError("give the point of manipulation as 'site: NAME' or as 'body: NAME' (with 'offset: "
+                             "[x, y, z]' in the body frame), exactly one of them")
+        if self.offset is not None and self.body is None:
+            raise ValueError("'offset' needs 'body' (a site has its own position)")
+        return self
 
     @field_validator("m_a", "dq_max")
     @classmethod
@@ -248,8 +269,10 @@ def build_system(spec) -> System:
     if isinstance(spec, MjcfSystem):
         from selfid_jax.systems.mjcf import from_mjcf
 
-        extra = {k: getattr(spec, k) for k in ("actuators", "joints_fixed", "home", "sample_half_width")
-                 if getattr(spec, k) is not None}
+        extra = {k: getattr(spec, k) for k in ("actuators", "joints_fixed", "home", "sample_half_width", "body",
+                                               "offset") if getattr(spec, k) is not None}
+        if isinstance(spec.home, Keyframe):
+            extra["home"] = {"keyframe": spec.home.keyframe}
         return from_mjcf(spec.mjcf, spec.site, task_dim=spec.task_dim, m_a=spec.m_a, dq_max=spec.dq_max,
                          min_sigma=spec.min_sigma, name=system_name(spec), **extra, **box)
     from selfid_jax.systems.system import from_pose_fn

@@ -90,6 +90,7 @@ class Actuation(NamedTuple):
     low: np.ndarray  # (n,) limits (see build_actuation), may be -inf
     high: np.ndarray  # (n,) may be +inf
     hinge_only: np.ndarray  # (n,) True where the actuator moves hinge joints only (rad units)
+    lengths: np.ndarray | None = None  # (n, nq) actuator coordinates of a qpos: q = lengths @ qpos
 
 
 def joint_type_name(t) -> str:
@@ -398,4 +399,5 @@ def build_actuation(mj, *, actuators=None, joints_fixed=None, label="MJCF") -> A
         matrix=tuple(tuple(float(v) for v in r) for r in A),
         names=tuple(c[0] for c in chosen),
     )
-    return Actuation(qmap=qmap, descs=tuple(descs), home=home, low=low, high=high, hinge_only=hinge_only)
+    return Actuation(qmap=qmap, descs=tuple(descs), home=home, low=low, high=high, hinge_only=hinge_only,
+                     lengths=C_act)

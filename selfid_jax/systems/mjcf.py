@@ -10,6 +10,7 @@ Only kinematics are used, so any integrator, solver or option loads.
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 
@@ -26,7 +27,8 @@ from selfid_jax.systems.kinematics import (
 from selfid_jax.systems.system import System, make_system
 from selfid_jax.systems.validation import Limits, check_task_dim, vector
 
-__all__ = ["from_mjcf", "MjxSitePose", "ChainSitePose", "ChainModel", "HINGE_HALF_WIDTH", "RANGE_FRACTION"]
+__all__ = ["from_mjcf", "POM_SITE", "resolve_home", "MjxSitePose", "ChainSitePose", "ChainModel", "HINGE_HALF_WIDTH",
+           "RANGE_FRACTION"]
 
 #: Default sampling half-width (rad) around home for actuators that move hinges only.
 HINGE_HALF_WIDTH = 0.5
@@ -34,34 +36,101 @@ HINGE_HALF_WIDTH = 0.5
 RANGE_FRACTION = 0.25
 
 
-def _load_mjmodel(path_or_model):
+POM_SITE = "selfid_jax_pom"
+"""Name of the site :func:`from_mjcf` adds for a point of manipulation given as ``body`` + ``offset``."""
+
+
+def _is_urdf(path_or_model) -> bool:
+    if isinstance(path_or_model, os.PathLike) or (isinstance(path_or_model, str)
+                                                  and not path_or_model.lstrip().startswith("<")):
+        return os.fspath(path_or_model).lower().endswith(".urdf")
+    return isinstance(path_or_model, str) and path_or_model.lstrip().startswith(("<robot", "<?xml")) \
+        and "<robot" in path_or_model[:2000]
+
+
+def _load_mjmodel(path_or_model, *, body: str | None = None, offset=None):
+    """``(mujoco.MjModel, label)`` of a path, an XML string (MJCF or URDF) or an ``MjModel``.
+
+    A URDF keeps its fixed-joint links as bodies (``fusestatic`` off), so a tool link can be the POM's ``body``.
+    With ``body``, a site :data:`POM_SITE` is added to that body at ``offset`` (m, body frame) before compiling.
+    """
     import mujoco
 
     if isinstance(path_or_model, mujoco.MjModel):
+        if body is not None:
+            raise ValueError("body= needs the model's file or XML string (a compiled mujoco.MjModel cannot gain a "
+                             "site); pass the path, or a site= the model has")
         return path_or_model, "<MjModel>"
-    if isinstance(path_or_model, (str, os.PathLike)) and not str(path_or_model).lstrip().startswith("<"):
-        label = os.fspath(path_or_model)
-        try:
-            return mujoco.MjModel.from_xml_path(label), label
-        except Exception as e:  # noqa: BLE001 - mujoco raises ValueError/Exception
-            raise ValueError(f"could not load MJCF file {label!r}: {e}") from e
-    if isinstance(path_or_model, str):
-        try:
-            return mujoco.MjModel.from_xml_string(path_or_model), "<xml string>"
-        except Exception as e:  # noqa: BLE001
-            raise ValueError(f"could not parse MJCF XML string: {e}") from e
-    raise ValueError(f"path_or_model must be a path, an XML string or a mujoco.MjModel, got {type(path_or_model)}")
+    is_file = isinstance(path_or_model, (str, os.PathLike)) and not str(path_or_model).lstrip().startswith("<")
+    if not is_file and not isinstance(path_or_model, str):
+        raise ValueError(f"path_or_model must be a path, an XML string or a mujoco.MjModel, got {type(path_or_model)}")
+    label = os.fspath(path_or_model) if is_file else "<xml string>"
+    kind = "URDF" if _is_urdf(path_or_model) else "MJCF"
+    try:
+        if kind == "MJCF" and body is None:
+            if is_file:
+                return mujoco.MjModel.from_xml_path(label), label
+            return mujoco.MjModel.from_xml_string(path_or_model), label
+        spec = mujoco.MjSpec.from_file(label) if is_file else mujoco.MjSpec.from_string(path_or_model)
+        if kind == "URDF":
+            spec.compiler.fusestatic = False  # keep fixed-joint links (a tool flange) as bodies
+    except Exception as e:  # noqa: BLE001 - mujoco raises ValueError/Exception
+        what = f"{kind} file {label!r}" if is_file else f"{kind} XML string"
+        raise ValueError(f"could not load {what}: {e}") from e
+    if body is not None:
+        b = spec.body(str(body))
+        if b is None:
+            names = [x.name for x in spec.bodies if x.name and x.name != "world"]
+            raise ValueError(f"body {body!r} not found in {kind} {label}; bodies are {names}")
+        b.add_site(name=POM_SITE, pos=[float(v) for v in offset])
+    try:
+        return spec.compile(), label
+    except Exception as e:  # noqa: BLE001
+        raise ValueError(f"could not compile {kind} {label}: {e}") from e
+
+
+def _keyframe_home(mj, act, key: str, label: str) -> np.ndarray:
+    """Actuator coordinates ``(n,)`` of keyframe ``key``'s ``qpos``."""
+    import mujoco
+
+    k = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_KEY, str(key))
+    if k < 0:
+        names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_KEY, i) for i in range(mj.nkey)]
+        raise ValueError(f"home: keyframe {key!r} not found in {label}; keyframes are {names}")
+    return act.lengths @ np.asarray(mj.key_qpos[k], np.float64)
+
+
+def resolve_home(mj, act, home, q_low, q_high, label: str) -> tuple[np.ndarray, str]:
+    """``(home (n,), where it came from)``: ``home`` as given, keyframe ``home["keyframe"]``, else the model's
+    ``home`` keyframe if it has one, else ``qpos0`` (clipped into the limits with a warning naming each actuator)."""
+    import mujoco
+
+    n = len(act.qmap.names)
+    if isinstance(home, dict):
+        if set(home) != {"keyframe"}:
+            raise ValueError(f"home: a vector of {n} actuator positions or {{'keyframe': NAME}}, got {home!r}")
+        source = f"keyframe {home['keyframe']!r}"
+        home = _keyframe_home(mj, act, home["keyframe"], label)
+    elif home is None and mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_KEY, "home") >= 0:
+        source, home = "keyframe 'home'", _keyframe_home(mj, act, "home", label)
+    elif home is None:
+        outside = [f"{nm!r} at {h:.6g} outside [{lo:.6g}, {hi:.6g}]" for nm, h, lo, hi
+                   in zip(act.qmap.names, act.home, q_low, q_high) if not lo <= h <= hi]
+        if outside:
+            warnings.warn(f"{label}: qpos0 puts actuator {'; '.join(outside)}; home is clipped into the limits "
+                          "(pass home=[...] or add a 'home' keyframe)", stacklevel=3)
+        return np.clip(act.home, q_low, q_high), "qpos0"
+    else:
+        source = "home"
+    home = vector("home", home, n)
+    if np.any(home < q_low) or np.any(home > q_high):
+        raise ValueError(f"home ({source}) {home} must lie inside the limits [{q_low}, {q_high}]")
+    return home, source
 
 
 def _sampling_box(act, q_low, q_high, home, sample_half_width):
     """``(low, high)`` ``(n,)``: ``home +- half-width`` clipped to ``[q_low, q_high]`` (see :func:`from_mjcf`)."""
     n = len(act.qmap.names)
-    if home is None:
-        home = np.clip(act.home, q_low, q_high)
-    else:
-        home = vector("home", home, n)
-        if np.any(home < q_low) or np.any(home > q_high):
-            raise ValueError(f"home {home} must lie inside the limits [{q_low}, {q_high}]")
     if sample_half_width is None:
         width = np.where(act.hinge_only, HINGE_HALF_WIDTH, RANGE_FRACTION * (q_high - q_low))
         bad = [f"{nm!r} ({d})" for nm, d, w in zip(act.qmap.names, act.descs, width) if not np.isfinite(w)]
@@ -79,14 +148,16 @@ def _sampling_box(act, q_low, q_high, home, sample_half_width):
 
 def from_mjcf(
     path_or_model,
-    site: str,
+    site: str | None = None,
     *,
+    body: str | None = None,
+    offset: Values = (0.0, 0.0, 0.0),
     actuators=None,
     joints_fixed=None,
     task_dim: int,
     m_a: Values,
     fk: str = "chain",
-    home: Values | None = None,
+    home: Values | dict | None = None,
     sample_half_width: Values | None = None,
     dq_max: Values = 0.1,
     q_low: Values | None = None,
@@ -96,7 +167,13 @@ def from_mjcf(
     min_sigma: float = 1e-3,
     name: str | None = None,
 ) -> System:
-    """A :class:`System` from an MJCF model: actuator coordinates ``q (n_act,)`` -> pose of site ``site``.
+    """A :class:`System` from an MJCF or URDF model: actuator coordinates ``q (n_act,)`` -> pose of the POM.
+
+    The point of manipulation (POM) is a site of the model (``site``) or a
+    point of a body (``body``, at ``offset`` metres in the body frame; a site
+    :data:`POM_SITE` is added there), so a model without sites needs no edits.
+    A URDF loads directly; its fixed-joint links (a tool flange) stay bodies,
+    and, having no actuators, it is used with ``actuators="joints"``.
 
     Actuation (:func:`~selfid_jax.systems.actuation.build_actuation`): ``q_i``
     is actuator ``i``'s transmission length without gear (rad / m): its joint's
@@ -118,8 +195,9 @@ def from_mjcf(
     force and is not used).
 
     Sampling box (default): ``home +- sample_half_width`` clipped to the
-    limits, ``home`` = ``qpos0`` in actuator coordinates (clipped to the
-    limits), half-width :data:`HINGE_HALF_WIDTH` = 0.5 rad for actuators moving
+    limits, ``home`` = the model's ``home`` keyframe if it has one, else
+    ``qpos0`` in actuator coordinates (clipped to the limits, with a warning
+    naming each actuator outside them), half-width :data:`HINGE_HALF_WIDTH` = 0.5 rad for actuators moving
     hinges only, else :data:`RANGE_FRACTION` = 1/4 of the actuator's range.
 
     Only kinematics are used: ``fk="chain"`` stores just the arrays the walk
@@ -130,8 +208,10 @@ def from_mjcf(
     (``implicit``...), solver or option loads.
 
     Args:
-      path_or_model: MJCF file path, XML string, or a ``mujoco.MjModel``.
-      site: name of the POM site.
+      path_or_model: MJCF or URDF file path (``.urdf``), XML string, or a ``mujoco.MjModel``.
+      site: name of the POM site; give exactly one of ``site`` and ``body``.
+      body: name of the POM's body (needs a path or XML string, not an ``MjModel``).
+      offset: ``(3,)`` POM position in ``body``'s frame [m].
       actuators: None (all actuators with a joint or fixed-tendon
         transmission; others skipped with a warning), a list of actuator names
         (in ``q`` order), or ``"joints"`` (every hinge/slide joint, ``q = qpos``).
@@ -139,7 +219,7 @@ def from_mjcf(
       task_dim: 2, 3 or 6.
       m_a: safe self-ID magnitude, scalar or ``(n_act,)`` (actuator units).
       fk: ``"chain"`` (default, several times faster) or ``"mjx"``; equal to rounding.
-      home: ``(n_act,)`` centre of the default sampling box.
+      home: ``(n_act,)`` centre of the default sampling box, or ``{"keyframe": name}``.
       sample_half_width: scalar or ``(n_act,)`` half-width of the default box.
       dq_max: per-step actuator limit, scalar or ``(n_act,)``.
       q_low, q_high: override the limits, scalar or ``(n_act,)``.
@@ -152,20 +232,33 @@ def from_mjcf(
       an ``mjx.Model``; ``system.pose_fn.qmap`` holds the actuator names and map.
 
     Raises:
-      ValueError: naming the site, actuator, joint or argument at fault.
+      ValueError: naming the site, body, keyframe, actuator, joint or argument at fault.
     """
     import mujoco
 
     if fk not in ("chain", "mjx"):
         raise ValueError(f"fk must be 'mjx' or 'chain', got {fk!r}")
     check_task_dim(task_dim)
-    mj, label = _load_mjmodel(path_or_model)
+    if (site is None) == (body is None):
+        raise ValueError("give the point of manipulation as site='name' or as body='name' (with offset=(x, y, z) "
+                         f"in the body frame), exactly one of them; got site={site!r}, body={body!r}")
+    if body is not None:
+        if not isinstance(body, str):
+            raise ValueError(f"body must be a body name (str), got {body!r}")
+        offset = vector("offset", offset, 3)
+        if not np.all(np.isfinite(offset)):
+            raise ValueError(f"offset must be finite, got {offset}")
+    mj, label = _load_mjmodel(path_or_model, body=body, offset=offset)
+    if body is not None:
+        site = POM_SITE
     if not isinstance(site, str):
         raise ValueError(f"site must be a site name (str), got {site!r}")
     site_id = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_SITE, site)
     if site_id < 0:
         names = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_SITE, i) for i in range(mj.nsite)]
-        raise ValueError(f"site {site!r} not found in MJCF {label}; sites are {names}")
+        bodies = [mujoco.mj_id2name(mj, mujoco.mjtObj.mjOBJ_BODY, i) for i in range(1, mj.nbody)]
+        raise ValueError(f"site {site!r} not found in {label}; sites are {names}; or give the POM as a body and "
+                         f"an offset (body='name', offset=(x, y, z)); bodies are {bodies}")
 
     act = build_actuation(mj, actuators=actuators, joints_fixed=joints_fixed, label=label)
     chain = chain_site_pose(mj, int(site_id), site, act.qmap)  # also rejects free/ball joints on the chain
@@ -174,6 +267,7 @@ def from_mjcf(
         q_low = vector("q_low", act.low if q_low is None else q_low, n)
         q_high = vector("q_high", act.high if q_high is None else q_high, n)
         if sample_low is None or sample_high is None:
+            home, _ = resolve_home(mj, act, home, q_low, q_high, label)
             box_low, box_high = _sampling_box(act, q_low, q_high, home, sample_half_width)
             sample_low = box_low if sample_low is None else sample_low
             sample_high = box_high if sample_high is None else sample_high
