@@ -91,8 +91,9 @@ def _walk(folder: Path, depth: int, rows: list[tuple[str, str]]) -> None:
     for sub in subfolders:
         if sub.is_symlink():
             target = sub.readlink().as_posix().rstrip("/")
-            rows.append((f"{indent}  {sub.name}/",
-                         f"a link to {target}/: {rel}.{sub.name} is the top-level {sub.name}/ below"))
+            what = (f"{rel}.{sub.name} is the top-level {sub.name}/ below" if (sub / "__init__.py").is_file()
+                    else f"the top-level {sub.name}/ below, installed as package data")
+            rows.append((f"{indent}  {sub.name}/", f"a link to {target}/: {what}"))
         else:
             _walk(sub, depth + 1, rows)
 

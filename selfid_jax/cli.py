@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 
 def _systems() -> Mapping[str, str]:
     from selfid_jax import systems
 
     return systems.BUILTIN
+
+
+def _config_dirs() -> tuple[tuple[str, Path], ...]:
+    """Where ``selfid-jax sweep NAME`` looks: ``./configs``, then the configs installed with the package."""
+    from importlib import resources
+
+    return (("./configs", Path("configs")), ("installed", Path(str(resources.files("selfid_jax") / "configs"))))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -27,7 +35,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from selfid_jax.runner import cli
 
     return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None,
-                    commands={"fit": fit.command()})
+                    commands={"fit": fit.command()}, config_dirs=_config_dirs())
 
 
 if __name__ == "__main__":

@@ -77,7 +77,8 @@ def _parser(extra: Mapping[str, Command] | None = None) -> argparse.ArgumentPars
         description="Validate CONFIG, run its experiment in resumable chunks into a run directory, print the "
         "report and draw the figures. Run the same command again after an interruption to resume.",
     )
-    s.add_argument("config", type=Path, help="YAML config with a top-level 'experiment:' key (see 'selfid-jax list')")
+    s.add_argument("config", type=Path, help="YAML config with a top-level 'experiment:' key, or the name of a "
+                   "shipped config (e.g. valid_region_ur5e: ./configs first, then the installed ones; selfid-jax list)")
     s.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a config value by dotted key, e.g. --set controller.tol=1e-3 (repeatable)",
@@ -121,7 +122,7 @@ def _parser(extra: Mapping[str, Command] | None = None) -> argparse.ArgumentPars
     sub.add_parser(
         "list", help="list the experiments, built-in systems and shipped configs",
         description="List the installed experiments (entry-point group selfid_jax.experiments), the built-in "
-        "systems and the configs under ./configs.",
+        "systems and the configs under ./configs and installed with the package, with where they live.",
     )
     for name, command in (extra or {}).items():
         command.add_arguments(sub.add_parser(name, help=command.help, description=command.description))
@@ -273,6 +274,7 @@ def _sweep(args: argparse.Namespace) -> int:
                 raise _UsageError(f"--{env[11:].lower().replace('_', '-')} must be positive, got {flag}")
             os.environ[env] = str(flag)
 
+    args.config = _find_config(args.config, args.config_dirs)
     cfg = registry.load(args.config, args.overrides)
     exp = registry.get(cfg.experiment)
     run_dir = args.out if args.out is not None else Path("runs") / args.config.stem
@@ -325,11 +327,34 @@ def _list(args: argparse.Namespace, catalogues: Mapping[str, Callable[[], Mappin
         print(f"{title}:")
         for name, doc in entries().items():
             print(f"  {name:14s} {doc}")
-    configs = sorted(Path("configs").glob("*.yaml"))
-    print("configs (./configs):" if configs else "configs: none in ./configs")
-    for path in configs:
-        print(f"  {path}")
+    for label, folder in args.config_dirs:
+        configs = sorted(Path(folder).glob("*.yaml"))
+        if configs:
+            print(f"configs ({label}: {folder}; selfid-jax sweep NAME runs NAME.yaml):")
+            for path in configs:
+                print(f"  {path.stem:34s} {path}")
+        else:
+            print(f"configs ({label}: {folder}): none")
     return 0
+
+
+def _find_config(config: Path, dirs: Sequence[tuple[str, Path]]) -> Path:
+    """``config`` if it is a file, else ``NAME`` or ``NAME.yaml`` from the first of ``dirs`` that has it.
+
+    Only a bare name (no folder part) is looked up, so a mistyped path is reported as that path.
+    """
+    if config.exists() or config.parent != Path(".") or not dirs:
+        return config
+    names = [config.name] if config.suffix in (".yaml", ".yml") else [config.name + ".yaml", config.name]
+    for _, folder in dirs:
+        for name in names:
+            if (Path(folder) / name).is_file():
+                return Path(folder) / name
+    from selfid_jax.runner.errors import ConfigError
+
+    where = " or ".join(f"{folder}" for _, folder in dirs)
+    raise ConfigError(f"{config}: config file not found, and no {names[0]} in {where} "
+                      f"('{_PROG} list' shows the shipped configs)")
 
 
 def _enable_compilation_cache() -> None:
@@ -380,12 +405,15 @@ def _os_error(err: OSError, command: str) -> str:
 
 def main(argv: Sequence[str] | None = None,
          catalogues: Mapping[str, Callable[[], Mapping[str, str]]] | None = None,
-         *, handle_signals: bool | None = None, commands: Mapping[str, Command] | None = None) -> int:
+         *, handle_signals: bool | None = None, commands: Mapping[str, Command] | None = None,
+         config_dirs: Sequence[tuple[str, Path]] = (("./configs", Path("configs")),)) -> int:
     """The ``selfid-jax`` command line; returns the exit code.
 
     ``catalogues``: extra sections of ``selfid-jax list``, title -> a function
     returning ``{name: one-line description}`` (the package adds its built-in systems).
     ``commands``: extra subcommands, name -> :class:`Command` (the package adds ``fit``).
+    ``config_dirs``: ``(label, folder)`` pairs, in order, where ``sweep NAME`` looks for ``NAME.yaml``
+    and ``list`` lists configs (the package adds its installed configs after ``./configs``).
     ``handle_signals``: take over SIGINT and SIGTERM (:func:`selfid_jax.runner.signals.install`:
     exit 130 / 143 with one line at any phase); default: when ``argv`` is None, i.e. as the
     console script, never when called from Python with arguments (a test, a notebook).
@@ -398,6 +426,7 @@ def main(argv: Sequence[str] | None = None,
     from selfid_jax.runner.errors import ConfigError
 
     args = _parser(commands).parse_args(argv)
+    args.config_dirs = tuple(config_dirs)
     if args.command in ("sweep", "demo", *(commands or {})):
         _enable_compilation_cache()
     table: dict[str, Callable[[argparse.Namespace], int]] = {
