@@ -3,7 +3,10 @@ log (selfid_jax.robot.journal), and the ``selfid-jax online`` command."""
 
 from __future__ import annotations
 
+import json
 import shutil
+import sys
+import textwrap
 import time
 
 import jax
@@ -287,8 +290,97 @@ def test_follow_divergence_and_box_stop(tmp_path, converged_run):
     assert result.status == online.Stop.BOX and "path leaves the box" in result.detail and fake.moves == []
 
 
+# --------------------------------------------------------------------------- the command
+
+
+DRIVER = '''
+import numpy as np
+CREATED = []
+
+def make(**kw):
+    from test_online import FakeArm
+    arm = FakeArm(**{k: np.array(v) if isinstance(v, list) else v for k, v in kw.items()})
+    CREATED.append(arm)
+    return arm
+'''
+
+
+@pytest.fixture
+def driver_module(tmp_path, monkeypatch):
+    (tmp_path / "fake_driver.py").write_text(DRIVER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.syspath_prepend(str(__import__("pathlib").Path(__file__).parent))
+    sys.modules.pop("fake_driver", None)
+    import fake_driver
+
+    yield fake_driver
+    sys.modules.pop("fake_driver", None)
+
+
+def _config(tmp_path, body):
+    path = tmp_path / "online.yaml"
+    path.write_text(textwrap.dedent(body))
+    return path
+
+
+def test_cli_runs_resumes_and_writes_the_estimate(tmp_path, driver_module, capsys):
+    from selfid_jax.cli import main
+
+    cfg = _config(tmp_path, """
+        robot: {driver: "fake_driver:make", args: {noise: 0.0}}
+        selfid: {task: "x,y,z", m_a: 0.03, eps_rel: 0.05, max_samples: 40, seed: 3, settle_s: 0.0, poll_s: 0.001}
+        safety: {stale_s: 1.0, max_step: 0.1}
+    """)
+    out = tmp_path / "run"
+    assert main(["online", str(cfg), "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "converged" and summary["converged_at"] > 2
+    assert summary["moves"] == len(driver_module.CREATED[0].moves)
+    with np.load(out / "inverse_jacobian.npz") as z:
+        assert z["inverse_jacobian"].shape == (3, 3) and int(z["converged_at"]) == summary["converged_at"]
+    assert json.loads((out / "inverse_jacobian.json").read_text())["task_axes"] == ["x", "y", "z"]
+    assert main(["online", str(cfg), "--out", str(out)]) == 2  # a log is there: --resume or another --out
+    assert "--resume" in capsys.readouterr().err
+    assert main(["online", str(cfg), "--out", str(out), "--resume"]) == 0
+    assert driver_module.CREATED[-1].moves == []  # converged already: no random move on resume
+    assert main(["online", str(cfg), "--out", str(out), "--resume", "--set", "selfid.seed=5"]) == 2
+    assert "seed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("body, key", [
+    ("robot: {driver: 'fake_driver:make'}\nselfid: {m_a: 0.03, bogus: 1}\n", "selfid.bogus"),
+    ("robot: {driver: 'fake_driver:make'}\nsafety: {stale_s: -1}\n", "safety.stale_s"),
+    ("robot: {driver: 'fake_driver:make', host: h, port: 1}\n", "robot"),
+    ("selfid: {m_a: 0.03}\n", "robot"),
+    ("robot: {driver: 'fake_driver:make'}\nselfid: {task: 'x,w'}\n", "selfid.task"),
+    ("robot: {driver: 'fake_driver:make'}\nselfid: {task: 'x,y'}\npath: {plane: xz}\n", "path.plane"),
+    ("robot: {driver: 'fake_driver:make'}\nsafety: {limits_lower: [0, 0]}\n", "safety.limits_lower"),
+    ("robot: {driver: 'no_such_module:make'}\n", "robot.driver"),
+])
+def test_cli_bad_config_exits_2_naming_the_key(tmp_path, driver_module, capsys, body, key):
+    from selfid_jax.cli import main
+
+    assert main(["online", str(_config(tmp_path, body)), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert key in err, err
+    assert all(arm.moves == [] for arm in driver_module.CREATED)
+    if key != "safety.limits_lower":  # that one needs the robot's n: checked after connecting, before motion
+        assert driver_module.CREATED == []
+
+
 def test_robot_protocol_fake_is_a_robot():
     assert isinstance(FakeArm(), Robot)
+
+
+def test_example_config_validates():
+    from selfid_jax.app.online import OnlineConfig, options
+    from selfid_jax.runner.config import read_config, validate
+
+    path = __import__("pathlib").Path(__file__).resolve().parents[1] / "configs" / "online_ur5e.yaml"
+    cfg = validate(OnlineConfig, read_config(path)[0], path)
+    opts = options(cfg)
+    assert cfg.robot.host == "127.0.0.1" and opts.path is not None and opts.path.size == 0.02
+    assert online.follow_offsets(opts.path, (0, 1, 2)).shape == (10, 3)
 
 
 def test_task_difference_is_the_pose_change_with_rotation():
