@@ -4,6 +4,7 @@ log (selfid_jax.robot.journal), and the ``selfid-jax online`` command."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import shutil
 import sys
 import textwrap
@@ -309,7 +310,7 @@ def make(**kw):
 def driver_module(tmp_path, monkeypatch):
     (tmp_path / "fake_driver.py").write_text(DRIVER)
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.syspath_prepend(str(__import__("pathlib").Path(__file__).parent))
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
     sys.modules.pop("fake_driver", None)
     import fake_driver
 
@@ -376,7 +377,7 @@ def test_example_config_validates():
     from selfid_jax.app.online import OnlineConfig, options
     from selfid_jax.runner.config import read_config, validate
 
-    path = __import__("pathlib").Path(__file__).resolve().parents[1] / "configs" / "online_ur5e.yaml"
+    path = Path(__file__).resolve().parents[1] / "configs" / "online_ur5e.yaml"
     cfg = validate(OnlineConfig, read_config(path)[0], path)
     opts = options(cfg)
     assert cfg.robot.host == "127.0.0.1" and opts.path is not None and opts.path.size == 0.02
@@ -396,3 +397,40 @@ def test_task_difference_is_the_pose_change_with_rotation():
     np.testing.assert_allclose(online.task_difference(b, a, (0, 2, 3, 5)), [*(p1 - p0)[[0, 2]], w[0], w[2]],
                                atol=1e-12)
     np.testing.assert_allclose(online.quaternion_matrix(wxyz[1]), r1.as_matrix(), atol=1e-12)
+
+
+@pytest.mark.slow
+def test_cli_sigterm_stops_cleanly_and_resumes(tmp_path, driver_module, console):
+    import os
+    import signal
+    import subprocess
+
+    cfg = _config(tmp_path, """
+        robot: {driver: "fake_driver:make"}
+        selfid: {m_a: 0.03, eps_rel: 1.0e-15, max_samples: 100000, settle_s: 0.01, poll_s: 0.001}
+    """)  # a threshold below float64 round-off: never converges, so only the signal ends it
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).parent),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([*console, "online", str(cfg), "--out", str(out)], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    log = out / online.LOG_FILE
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < deadline and \
+            not (log.exists() and log.read_bytes().count(b'"e":"sample"') >= 5):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    last = read_journal(log).records[-1]
+    assert last == {"e": "stop", "reason": "interrupted", "detail": "stop requested"}
+    assert json.loads((out / "summary.json").read_text())["status"] == "interrupted"
+    assert "stopped: interrupted" in stdout
+    # the session continues in-process from its log: 3 more random moves, then max_samples
+    from selfid_jax.cli import main
+
+    done = sum(1 for r in read_journal(log).records if r["e"] == "sample")
+    assert main(["online", str(cfg), "--out", str(out), "--resume", "--set", f"selfid.max_samples={done + 3}"]) == 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "max_samples" and summary["replayed"] == summary["samples"] - 3 >= 5
+    assert len(driver_module.CREATED[-1].moves) == 3
