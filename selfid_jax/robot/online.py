@@ -62,7 +62,6 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from selfid_jax.control import paths
@@ -76,7 +75,7 @@ from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, 
 
 __all__ = ["LOG_FILE", "Envelope", "FollowOptions", "OnlineOptions", "OnlineResult", "ResumeError", "Stop",
            "actuation_target", "envelope", "follow_offsets", "init_state", "quaternion_matrix", "run_online",
-           "sample_step", "task_difference"]
+           "host_step", "sample_step", "task_difference"]
 
 LOG_FILE = "session.jsonl"
 LOG_VERSION = 1
@@ -309,11 +308,25 @@ def sample_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, met
 
     ``eps`` and ``eps_rel`` are passed as arrays of the state's dtype, so one
     compilation per ``(n, m, method, dtype)`` serves every threshold and every
-    sample of every session in the process.
+    sample of every session in the process. The inputs are cast with numpy
+    (``jit`` transfers numpy arguments on its fast path; ``jnp.asarray`` on
+    each would cost more than the step itself at batch 1).
     """
     dtype = state.estimate.dtype
-    return _step(state, jnp.asarray(dtheta, dtype), jnp.asarray(V, dtype), jnp.asarray(eps, dtype),
-                 jnp.asarray(eps_rel, dtype), method=method, options=())
+    return _step(state, np.asarray(dtheta, dtype), np.asarray(V, dtype), np.asarray(eps, dtype),
+                 np.asarray(eps_rel, dtype), method=method, options=())
+
+
+def host_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form"
+              ) -> tuple[estimator.EstimatorState, fit.StepInfo, int]:
+    """:func:`sample_step` and what the online loop reads back: ``(state, info as numpy, converged_at)``.
+
+    One ``device_get`` of the info and ``converged_at`` together: the whole
+    per-sample cost of the loop's estimator (``benchmarks/online_step.py``).
+    """
+    state, info = sample_step(state, dtheta, V, eps, eps_rel, method=method)
+    info, conv = jax.device_get((info, state.converged_at))
+    return state, info, int(conv)
 
 
 # --------------------------------------------------------------------------- the session
@@ -427,9 +440,8 @@ class _Session:
     def step(self, dtheta: np.ndarray, V: np.ndarray):
         assert self.state is not None
         t0 = time.perf_counter()
-        state, info = sample_step(self.state, dtheta, V, self.opts.eps, self.opts.eps_rel, method=self.opts.method)
-        info = jax.device_get(info)
-        conv = int(state.converged_at)
+        state, info, conv = host_step(self.state, dtheta, V, self.opts.eps, self.opts.eps_rel,
+                                      method=self.opts.method)
         self.step_ms.append(1e3 * (time.perf_counter() - t0))
         self.state = state
         self.samples += 1
