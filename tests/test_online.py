@@ -434,3 +434,11 @@ def test_cli_sigterm_stops_cleanly_and_resumes(tmp_path, driver_module, console)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "max_samples" and summary["replayed"] == summary["samples"] - 3 >= 5
     assert len(driver_module.CREATED[-1].moves) == 3
+
+
+def test_the_step_compiles_once_per_shape(tmp_path, converged_run):
+    before = online._step._cache_size()
+    for i, (eps, eps_rel) in enumerate(((0.0, 0.2), (1e-3, 0.0), (0.1, 0.3))):
+        result = online.run_online(FakeArm(), opts(eps=eps, eps_rel=eps_rel, max_samples=4), tmp_path / str(i))
+        assert result.samples >= 2
+    assert online._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace
