@@ -1,0 +1,385 @@
+"""``selfid-jax online CONFIG``: self-ID a connected robot live (Algorithm 1), then optionally follow a path.
+
+    selfid-jax online CONFIG [--resume] [--out DIR] [--set key.sub=value ...]
+
+CONFIG (YAML, strict: unknown keys, wrong types and out-of-range values are
+refused with the dotted key, before connecting)::
+
+    robot:                      # either the TCP client of `selfid-jax robot-sim` ...
+      host: 127.0.0.1
+      port: 50007
+      timeout_s: 5.0
+    # robot: {driver: "package.module:Class", args: {...}}   # ... or a user's driver, Class(**args)
+    selfid: {task: "x,y,z", m_a: 0.03, eps: 0.0, eps_rel: 0.05, max_samples: 200, seed: 0,
+             settle_s: 0.2, poll_s: 0.01, method: closed_form, v_tol: 1.0e-9}
+    safety: {box_low: [x, y, z], box_high: [x, y, z], max_step: 0.05, stale_s: 1.0, diverge_dist: 0.05,
+             limits_lower: [...], limits_upper: [...]}
+    path: {kind: star, size: 0.02, plane: xy, gain: 0.5, tol: 0.002, max_task_step: 0.005, steps: 500}
+    out: runs/online_ur5e       # default runs/online_<config stem>; --out wins
+
+:func:`selfid_jax.robot.online.run_online` does the session under the run
+directory's lock; the session log ``session.jsonl`` is appended as it
+happens, and at the end this writes, each whole
+(:mod:`selfid_jax.runner.files`): ``online_config.json`` (the resolved
+config), ``summary.json`` (status, counts, step latency) and
+``inverse_jacobian.npz`` / ``.json`` (the estimate, as ``selfid-jax fit``
+writes it). ``--resume`` continues a stopped session from its log.
+
+Exit codes: 0 converged (or path completed), 1 another stop (max_samples,
+stale, box, limits, divergence, connection, robot_error: the summary says
+which), 2 bad input (config, run directory, a log that disagrees), 130
+interrupted. A first SIGTERM stops the session cleanly (the robot is closed,
+the log ends with the stop); Ctrl-C ends the process at once, like a crash:
+the log then lacks at most the line in flight and ``--resume`` continues.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import io
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+from pydantic import BaseModel, Field, field_validator, model_validator
+
+from selfid_jax.runner.config import STRICT
+
+if TYPE_CHECKING:
+    from selfid_jax.robot.online import OnlineOptions, OnlineResult
+
+__all__ = ["OnlineConfig", "add_arguments", "command", "connect", "options", "run", "summary"]
+
+SUMMARY_FILE = "summary.json"
+CONFIG_JSON = "online_config.json"
+JINV_NPZ = "inverse_jacobian.npz"
+JINV_JSON = "inverse_jacobian.json"
+
+DESCRIPTION = (
+    "Self-identify a connected robot's inverse Jacobian live (Algorithm 1: random actuations within m_a and the "
+    "limits, the estimator after each sample, the Sec. IV-D convergence test; no random move after convergence), "
+    "then follow a path with the estimate if the config has one. A safety envelope (actuator limits, a task-space "
+    "box, a step cap, a stale-tracker watchdog, a divergence stop) holds throughout. Every observation, command "
+    "and sample is appended to RUN/session.jsonl as it happens; --resume continues a stopped session from it."
+)
+
+Positive = Annotated[float, Field(gt=0)]
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class RobotSection(BaseModel):
+    """How to reach the robot: ``host``/``port`` (the TCP client) or ``driver``/``args`` (a user's class)."""
+
+    model_config = STRICT
+
+    host: str | None = Field(None, description="robot server's host (selfid-jax robot-sim or a bridge)")
+    port: int | None = Field(None, ge=1, le=65535)
+    timeout_s: float = Field(5.0, gt=0, description="s, the TCP client's timeout per request")
+    driver: str | None = Field(None, description="'package.module:Class' of a driver implementing Robot")
+    args: dict[str, Any] = Field(default_factory=dict, description="keyword arguments of the driver class")
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        tcp, drv = self.host is not None or self.port is not None, self.driver is not None
+        if tcp == drv:
+            raise ValueError("give either host and port (the TCP client) or driver (a user's driver class), "
+                             "not both" if tcp else "give host and port, or driver")
+        if tcp and (self.host is None or self.port is None):
+            raise ValueError("the TCP client needs both host and port")
+        if self.args and not drv:
+            raise ValueError("args are for a driver class")
+        if drv and ":" not in str(self.driver):
+            raise ValueError(f"driver must be 'package.module:Class', got {self.driver!r}")
+        return self
+
+
+class SelfIDSection(BaseModel):
+    """Algorithm 1's settings (OnlineOptions)."""
+
+    model_config = STRICT
+
+    task: str = Field("x,y,z", description="task axes out of x,y,z,rx,ry,rz")
+    m_a: Positive | list[Positive] = Field(0.03, description="self-ID magnitude, actuator units, scalar or per "
+                                           "actuator")
+    eps: float = Field(0.0, ge=0, description="absolute Sec. IV-D threshold")
+    eps_rel: float = Field(0.05, ge=0, description="relative Sec. IV-D threshold")
+    max_samples: int = Field(200, ge=1, le=10**7, description="most random moves")
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+    settle_s: float = Field(0.2, ge=0, description="s after each move before reading")
+    poll_s: float = Field(0.01, gt=0, description="s between reads while waiting for a fresh pose")
+    method: Literal["closed_form", "optax"] = "closed_form"
+    v_tol: float = Field(1e-9, ge=0)
+
+    @field_validator("task")
+    @classmethod
+    def _task(cls, v: str) -> str:
+        from selfid_jax.robot.log import parse_task
+
+        parse_task(v)
+        return v
+
+
+class SafetySection(BaseModel):
+    """The safety envelope (selfid_jax.robot.online.Envelope)."""
+
+    model_config = STRICT
+
+    box_low: Vec3 | None = Field(None, description="m, lowest tracked x, y, z")
+    box_high: Vec3 | None = Field(None, description="m, highest tracked x, y, z")
+    max_step: Positive | list[Positive] | None = Field(None, description="actuator units per move; default the "
+                                                       "driver's")
+    stale_s: float = Field(1.0, gt=0, description="s, tracker watchdog")
+    diverge_dist: float = Field(0.05, gt=0, description="task units, distance from the path that stops following")
+    limits_lower: list[float] | None = Field(None, description="actuator units, narrows the driver's limits")
+    limits_upper: list[float] | None = None
+
+
+class PathSection(BaseModel):
+    """The path followed after convergence (selfid_jax.robot.online.FollowOptions)."""
+
+    model_config = STRICT
+
+    kind: Literal["star"] = "star"
+    size: float = Field(0.02, gt=0, description="m, the star's outer radius")
+    plane: Literal["xy", "xz", "yz"] = "xy"
+    gain: float = Field(0.5, gt=0, le=1)
+    tol: float = Field(0.002, gt=0, description="task units")
+    max_task_step: float = Field(0.005, gt=0, description="task units per move")
+    steps: int = Field(500, ge=1, le=10**7)
+
+
+class OnlineConfig(BaseModel):
+    """The ``selfid-jax online`` config."""
+
+    model_config = STRICT
+
+    robot: RobotSection
+    selfid: SelfIDSection = Field(default_factory=SelfIDSection)
+    safety: SafetySection = Field(default_factory=SafetySection)
+    path: PathSection | None = None
+    out: str | None = None
+
+
+def options(cfg: OnlineConfig) -> OnlineOptions:
+    """The config as :class:`~selfid_jax.robot.online.OnlineOptions` (the same names, one level flatter)."""
+    from selfid_jax.robot.online import FollowOptions, OnlineOptions
+
+    s, f = cfg.selfid, cfg.safety
+    path = None if cfg.path is None else FollowOptions(**cfg.path.model_dump())
+    return OnlineOptions(task=s.task, m_a=s.m_a, eps=s.eps, eps_rel=s.eps_rel, max_samples=s.max_samples, seed=s.seed,
+                         settle_s=s.settle_s, poll_s=s.poll_s, method=s.method, v_tol=s.v_tol, lower=f.limits_lower,
+                         upper=f.limits_upper, max_step=f.max_step, box_low=f.box_low, box_high=f.box_high,
+                         stale_s=f.stale_s, diverge_dist=f.diverge_dist, path=path)
+
+
+def connect(section: RobotSection):
+    """A connected :class:`~selfid_jax.robot.protocol.Robot` from the config's ``robot`` section.
+
+    Raises ConfigError naming ``robot.driver`` / ``robot.host`` when the
+    driver cannot be imported, is not a Robot, or the connection fails.
+    """
+    from selfid_jax.robot.protocol import Robot, RobotError
+    from selfid_jax.runner.errors import ConfigError
+
+    if section.driver is not None:
+        key = "robot.driver"
+        module, _, name = section.driver.partition(":")
+        try:
+            factory = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError) as err:
+            raise ConfigError(f"{key}: cannot import {section.driver!r}: {err}") from None
+        try:
+            robot = factory(**section.args)
+        except (RobotError, OSError) as err:
+            raise ConfigError(f"{key}: cannot connect with {section.driver}: {err}") from None
+    else:
+        key = "robot.host"
+        try:
+            RemoteRobot = importlib.import_module("selfid_jax.robot.transport").RemoteRobot  # noqa: N806
+        except (ImportError, AttributeError):
+            raise ConfigError(f"{key}: the TCP client (selfid_jax.robot.transport) is not in this installation; "
+                              "use robot.driver") from None
+        try:
+            robot = RemoteRobot(section.host, section.port, timeout=section.timeout_s)
+        except (RobotError, OSError) as err:
+            raise ConfigError(f"{key}: cannot connect to {section.host}:{section.port}: {err}") from None
+    if not isinstance(robot, Robot):
+        raise ConfigError(f"{key}: {type(robot).__name__} does not implement the Robot protocol "
+                          "(limits, read, move, close)")
+    return robot
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The ``online`` subcommand's arguments."""
+    p.add_argument("config", type=Path, help="YAML config (see the description and configs/online_ur5e.yaml)")
+    p.add_argument("--resume", action="store_true", help="continue the session logged in the run directory")
+    p.add_argument("--out", type=Path, default=None, help="run directory (default: the config's out, else "
+                   "runs/online_<config stem>)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config value, e.g. --set selfid.m_a=0.02 (repeatable)")
+
+
+def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
+    """``summary.json`` of a session: its stop, counts, convergence and the estimator step's latency."""
+    import numpy as np
+
+    from selfid_jax.systems.validation import AXIS_NAMES
+
+    ms = result.step_ms
+    n, m = result.estimate.shape
+    return {
+        "command": "online",
+        "status": result.status.value,
+        "detail": result.detail,
+        "n": n,
+        "m": m,
+        "task_axes": [AXIS_NAMES[a] for a in result.axes],
+        "converged": result.converged,
+        "converged_at": result.converged_at,
+        "samples": result.samples,
+        "rejected": result.rejected,
+        "moves": result.moves,
+        "follow_steps": result.follow_steps,
+        "waypoints": result.waypoints,
+        "waypoints_total": result.waypoints_total,
+        "replayed": result.replayed,
+        "truncated_log_lines": result.truncated,
+        "step_ms_p50": float(np.percentile(ms, 50)) if ms.size else None,
+        "step_ms_p99": float(np.percentile(ms, 99)) if ms.size else None,
+        "eps": cfg.selfid.eps,
+        "eps_rel": cfg.selfid.eps_rel,
+        "log": str(result.log),
+    }
+
+
+def _npz(**arrays) -> bytes:
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _check_sizes(cfg: OnlineConfig, n: int, path: Path) -> None:
+    """Per-actuator config values against the robot's ``n`` (known once connected; before any motion)."""
+    from selfid_jax.runner.errors import ConfigError
+
+    for key, value in (("selfid.m_a", cfg.selfid.m_a), ("safety.max_step", cfg.safety.max_step),
+                       ("safety.limits_lower", cfg.safety.limits_lower),
+                       ("safety.limits_upper", cfg.safety.limits_upper)):
+        if isinstance(value, list) and len(value) != n:
+            raise ConfigError(f"{path}: key '{key}': {len(value)} values, but the robot has {n} actuators")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Body of ``selfid-jax online``: validate, connect, run the session, write the summary; the exit code."""
+    from selfid_jax.runner.config import read_config, validate
+    from selfid_jax.runner.errors import ConfigError, RunDirError
+
+    data, set_keys = read_config(args.config, args.overrides)
+    cfg: OnlineConfig = validate(OnlineConfig, data, args.config, set_keys)  # type: ignore[arg-type,assignment]
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # one estimator per process: float64, like `fit`
+    from selfid_jax.robot import online
+    from selfid_jax.robot.log import parse_task
+
+    opts = options(cfg)
+    if opts.path is not None:
+        try:
+            online.follow_offsets(opts.path, parse_task(opts.task) or ())
+        except ValueError as err:
+            raise ConfigError(f"{args.config}: {err}") from None
+    out = args.out if args.out is not None else Path(cfg.out) if cfg.out else \
+        Path("runs") / f"online_{args.config.stem}"
+    if (out / "config.yaml").exists():
+        raise RunDirError(f"{out}: holds a sweep's run directory (config.yaml); choose another --out")
+    log = out / online.LOG_FILE
+    if log.exists() and not args.resume:
+        raise RunDirError(f"{out}: already holds a session log ({online.LOG_FILE}); continue it with --resume or "
+                          "choose another --out")
+    if args.resume and not log.exists():
+        raise RunDirError(f"{out}: no session log ({online.LOG_FILE}) to resume; run without --resume")
+
+    import threading
+
+    from selfid_jax.runner import signals
+    from selfid_jax.runner.config import dump_config
+    from selfid_jax.runner.files import write_json
+    from selfid_jax.runner.lock import hold
+
+    stop = threading.Event()
+    with hold(out):
+        signals.phase("connect")
+        robot = connect(cfg.robot)
+        try:  # run_online closes the robot however it ends; close (idempotent) here too if it never starts
+            from selfid_jax.robot.protocol import RobotError, check_limits
+
+            try:
+                n = check_limits(robot.limits()).lower.shape[0]
+            except (RobotError, ValueError) as err:
+                raise ConfigError(f"robot: its limits cannot be used: {err}") from None
+            _check_sizes(cfg, n, args.config)
+            write_json(out / CONFIG_JSON, dump_config(cfg))
+            signals.phase("online")
+            try:
+                with signals.graceful(f"selfid-jax online: interrupted; the session log {log} is intact "
+                                      "(continue with --resume)", stop.set):
+                    result = online.run_online(robot, opts, out, resume=args.resume, stop_requested=stop.is_set)
+            except ValueError as err:  # bad options, a log that disagrees: all before any motion
+                raise ConfigError(f"{args.config}: {' '.join(str(err).split())}") from None
+        finally:
+            robot.close()
+        signals.phase("write")
+        files = write_run(result, cfg, out)
+    _report(result, files)
+    if result.status == online.Stop.INTERRUPTED:
+        return 130
+    return 0 if result.status in (online.Stop.CONVERGED, online.Stop.COMPLETED) else 1
+
+
+def write_run(result: OnlineResult, cfg: OnlineConfig, out: Path) -> dict[str, Path]:
+    """Write ``summary.json`` and ``inverse_jacobian.npz``/``.json`` into ``out`` (each atomically)."""
+    import numpy as np
+
+    from selfid_jax.identify import estimator
+    from selfid_jax.runner.files import atomic_write_bytes, write_json
+
+    info = summary(result, cfg)
+    meta = {k: info[k] for k in ("n", "m", "task_axes", "converged_at", "converged", "samples", "eps", "eps_rel",
+                                 "status")}
+    guess = np.asarray(estimator.initial_guess(result.state))
+    paths = {name: out / name for name in (SUMMARY_FILE, JINV_NPZ, JINV_JSON)}
+    atomic_write_bytes(paths[JINV_NPZ], _npz(
+        inverse_jacobian=result.estimate, initial_guess=guess, task_axes=np.array(info["task_axes"]),
+        **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"}))
+    write_json(paths[JINV_JSON], {"inverse_jacobian": result.estimate, "initial_guess": guess, **meta,
+                                  "log": str(result.log)})
+    write_json(paths[SUMMARY_FILE], info)
+    return paths
+
+
+def _report(result: OnlineResult, files: dict[str, Path]) -> None:
+    rejected = ", ".join(f"{v} {k}" for k, v in result.rejected.items()) or "none"
+    resumed = f" ({result.replayed} replayed from the log)" if result.replayed else ""
+    print(f"self-ID: {result.samples} samples{resumed}, {result.moves} random moves, rejected: {rejected}")
+    if result.converged:
+        print(f"converged at sample {result.converged_at}")
+    if result.waypoints_total:
+        print(f"follow: {result.waypoints}/{result.waypoints_total} waypoints in {result.follow_steps} moves")
+    if result.step_ms.size:
+        import numpy as np
+
+        print(f"estimator step: p50 {np.percentile(result.step_ms, 50):.3f} ms, "
+              f"p99 {np.percentile(result.step_ms, 99):.3f} ms per sample")
+    print(f"stopped: {result.status.value}: {result.detail}")
+    print(f"inverse Jacobian: {files[JINV_NPZ]} (and {JINV_JSON}); log: {result.log}")
+
+
+def command():
+    """The ``online`` subcommand for :func:`selfid_jax.runner.cli.main`."""
+    from selfid_jax.runner.cli import Command
+
+    return Command(help="self-ID a connected robot live (Algorithm 1), then follow a path; resumable",
+                   description=DESCRIPTION, add_arguments=add_arguments, run=run)

@@ -1,0 +1,444 @@
+"""The online runner (selfid_jax.robot.online) against an in-process fake arm with injectable faults, its session
+log (selfid_jax.robot.journal), and the ``selfid-jax online`` command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+import shutil
+import sys
+import textwrap
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from selfid_jax.robot import fit as fit_mod
+from selfid_jax.robot import online
+from selfid_jax.robot.journal import Journal, JournalError, floats, read_journal
+from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, RobotLimits
+
+START = np.array([0.3, 0.6, -0.9])  # rad: yaw, shoulder, elbow; away from the arm's singularities
+L1, L2, H = 0.4, 0.3, 0.1  # m
+FAST = dict(settle_s=0.0, poll_s=0.001)
+
+
+def arm_pose(q):
+    """Position (3,) m and quaternion (w, x, y, z) of the tip of a yaw-pitch-pitch arm (numpy)."""
+    a, b = q[1], q[1] + q[2]
+    r = L1 * np.cos(a) + L2 * np.cos(b)
+    p = np.array([r * np.cos(q[0]), r * np.sin(q[0]), H + L1 * np.sin(a) + L2 * np.sin(b)])
+    cz, sz, cy, sy = np.cos(q[0] / 2), np.sin(q[0] / 2), np.cos(-b / 2), np.sin(-b / 2)
+    return p, np.array([cz * cy, -sz * sy, cz * sy, sz * cy])  # Rz(q0) Ry(-b)
+
+
+class FakeArm:
+    """A protocol driver around :func:`arm_pose`, with faults; records every command it is given.
+
+    ``dropouts``: 1-based read numbers with no pose. ``freeze_at``: from this
+    read on the tracker_t and pose stop advancing. ``fail_move_at``: 0-based move index raising
+    RobotConnectionError (the move is not made); ``interrupt_at``: the same with KeyboardInterrupt.
+    ``mirror``: the kinematics are mirrored about the start (the Jacobian's sign flips: a grasp that changed).
+    """
+
+    def __init__(self, q0=START, *, lower=(-3.0, -3.0, -3.0), upper=(3.0, 3.0, 3.0), max_step=0.2, dropouts=(),
+                 freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5):
+        self.q = np.array(q0, np.float64)
+        self.lim = RobotLimits(np.array(lower, np.float64), np.array(upper, np.float64), np.full(3, max_step))
+        self.dropouts, self.freeze_at = set(dropouts), freeze_at
+        self.fail_move_at, self.interrupt_at = fail_move_at, interrupt_at
+        self.centre = self.q.copy() if mirror else None
+        self.noise = noise
+        self.moves: list[tuple[np.ndarray, np.ndarray]] = []  # (q before, target)
+        self.reads = 0
+        self.closed = self.closed_at = self.frozen_since = None
+        self._t = self._tt = -np.inf
+        self._pose = None
+        self._lost = None
+
+    def limits(self):
+        return self.lim
+
+    def read(self):
+        self.reads += 1
+        t = self._t = max(time.monotonic(), self._t + 1e-9)
+        qk = self.q if self.centre is None else 2 * self.centre - self.q
+        p, quat = arm_pose(qk)
+        p = p + self.noise * np.sin(1e3 * self.q.sum() + np.arange(3))  # deterministic "noise": a function of q
+        if self.freeze_at is not None and self.reads >= self.freeze_at:
+            self.frozen_since = self.frozen_since or time.monotonic()
+            return Observation(t, self.q.copy(), *self._pose, self._tt, True)
+        if self.reads in self.dropouts:  # the marker was lost 1 ms before this read; tracker_t stays there
+            self._lost = self._lost if self._lost is not None else t - 1e-3
+            return Observation(t, self.q.copy(), np.full(3, np.nan), np.full(4, np.nan), self._lost, False)
+        self._tt, self._pose, self._lost = t, (p, quat), None
+        return Observation(t, self.q.copy(), p, quat, t, True)
+
+    def move(self, target):
+        if len(self.moves) == self.fail_move_at:
+            raise RobotConnectionError("fake: connection reset")
+        if len(self.moves) == self.interrupt_at:
+            raise KeyboardInterrupt
+        self.moves.append((self.q.copy(), np.array(target, np.float64)))
+        self.q = np.array(target, np.float64)
+
+    def close(self):
+        self.closed, self.closed_at = True, time.monotonic()
+
+
+def opts(**kw):
+    base = dict(task="x,y,z", m_a=0.03, eps=0.0, eps_rel=0.05, max_samples=60, seed=3, **FAST)
+    return online.OnlineOptions(**{**base, **kw})
+
+
+def assert_in_envelope(fake, env_lower, env_upper, max_step):
+    for q, target in fake.moves:
+        assert np.all(target >= env_lower) and np.all(target <= env_upper)
+        assert np.all(np.abs(target - q) <= max_step + 1e-12)
+
+
+def accepted_samples(log_path):
+    recs = [r for r in read_journal(log_path).records if r["e"] == "sample" and r["accepted"]]
+    return np.array([floats(r["dtheta"]) for r in recs]), np.array([floats(r["V"]) for r in recs])
+
+
+def states_equal(a, b):
+    return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+@pytest.fixture(scope="module")
+def converged_run(tmp_path_factory):
+    """One uninterrupted session to convergence (no path): the reference for resume and follow tests."""
+    run = tmp_path_factory.mktemp("online") / "ref"
+    fake = FakeArm()
+    result = online.run_online(fake, opts(), run)
+    assert result.status == online.Stop.CONVERGED, result.detail
+    return run, fake, result
+
+
+# --------------------------------------------------------------------------- self-ID
+
+
+def test_selfid_with_dropouts_matches_offline_fit(tmp_path):
+    lower = (START[0] - 0.01, -3.0, -3.0)  # joint 0 has 1 cm of room below: draws there are reflected
+    fake = FakeArm(lower=lower, dropouts={3, 5})  # reads 3 and 5 follow moves 2 and 3
+    result = online.run_online(fake, opts(), tmp_path)
+    assert result.status == online.Stop.CONVERGED and fake.closed
+    assert result.rejected == {"dropout": 2}
+    # exactly converged_at + rejected random moves, none after convergence
+    assert len(fake.moves) == result.moves == result.converged_at + 2 == result.samples + 2
+    recs = read_journal(result.log).records
+    kinds = [r["e"] for r in recs]
+    assert "move" not in kinds[kinds.index("converged"):]
+    assert_in_envelope(fake, np.array(lower), fake.lim.upper, 0.03)
+    assert not any(t[0] == lower[0] for _, t in fake.moves)  # reflected, not clipped onto the limit
+    # the same samples offline give the same convergence iteration and estimate
+    dtheta, V = accepted_samples(result.log)
+    trace = fit_mod.fit_samples(dtheta, V, 0.0, 0.05)
+    assert int(trace.converged_at) == result.converged_at > 2
+    np.testing.assert_allclose(result.estimate, np.asarray(trace.estimate), rtol=1e-10, atol=1e-12)
+    # the samples are the arm's own: q differences and tracker position differences
+    q0, t0 = fake.moves[0]
+    np.testing.assert_allclose(dtheta[0], t0 - q0, atol=1e-15)
+    assert np.all(result.step_ms > 0) and result.step_ms.shape == (result.samples,)
+
+
+def test_actuation_target_reflects_then_clips():
+    lower, upper, m_a = np.array([0.0, 0.0]), np.array([1.0, 0.02]), np.array([0.1, 0.1])
+    for k in range(200):
+        q = np.array([0.05 if k % 2 else 0.97, 0.01])
+        target = online.actuation_target(7, k, q, m_a, lower, upper)
+        assert np.all(target >= lower) and np.all(target <= upper)
+        d = np.random.default_rng([7, k]).uniform(-1, 1, 2) * m_a
+        assert np.isclose(abs(target[0] - q[0]), abs(d[0]))  # one side fits: reflected, magnitude kept
+        assert abs(target[1] - q[1]) <= abs(d[1]) + 1e-15  # neither side fits: clipped
+    np.testing.assert_array_equal(online.actuation_target(7, 5, q, m_a, lower, upper),
+                                  online.actuation_target(7, 5, q, m_a, lower, upper))
+
+
+def test_stale_tracker_stops_within_stale_s(tmp_path):
+    fake = FakeArm(freeze_at=4)  # read 4 follows move 3: from then on the tracker stops advancing
+    result = online.run_online(fake, opts(stale_s=0.15), tmp_path)
+    assert result.status == online.Stop.STALE, result.detail
+    assert result.rejected == {"stale": 1}
+    assert len(fake.moves) == 3  # nothing commanded once the tracker froze
+    assert fake.closed_at - fake.frozen_since <= 0.15 + 0.0 + 0.1  # stale_s + settle_s + slack
+
+
+def test_box_stops_without_further_motion(tmp_path):
+    p0, _ = arm_pose(START)
+    fake = FakeArm(noise=0.0)
+    result = online.run_online(fake, opts(box_low=p0 - 0.002, box_high=p0 + 0.002), tmp_path / "a")
+    assert result.status == online.Stop.BOX and len(fake.moves) == 1 and "outside the box" in result.detail
+    fake = FakeArm()
+    result = online.run_online(fake, opts(box_low=p0 + 0.01, box_high=p0 + 0.1), tmp_path / "b")
+    assert result.status == online.Stop.BOX and fake.moves == []  # the start is outside: no motion at all
+
+
+def test_bad_options_refused_before_any_motion(tmp_path):
+    for bad, word in ((dict(m_a=0.3), "m_a"), (dict(m_a=[0.1, 0.1]), "m_a"), (dict(task="x,q"), "q"),
+                      (dict(max_step=0.01), "m_a"), (dict(box_low=[0, 0], box_high=[1, 1, 1]), "box_low"),
+                      (dict(method="slsqp"), "method"), (dict(stale_s=0.0), "stale_s"),
+                      (dict(path=online.FollowOptions(plane="xz"), task="x,y"), "path.plane")):
+        fake = FakeArm()
+        with pytest.raises(ValueError, match=word):
+            online.run_online(fake, opts(**bad), tmp_path / word)
+        assert fake.moves == [] and fake.reads == 0 and fake.closed
+
+
+def test_interrupt_closes_and_keeps_the_log(tmp_path):
+    fake = FakeArm(interrupt_at=2)
+    result = online.run_online(fake, opts(), tmp_path / "kbd")
+    assert result.status == online.Stop.INTERRUPTED and fake.closed and len(fake.moves) == 2
+    assert read_journal(result.log).records[-1] == {"e": "stop", "reason": "interrupted",
+                                                     "detail": "interrupted (KeyboardInterrupt)"}
+    fake = FakeArm()
+    result = online.run_online(fake, opts(), tmp_path / "req", stop_requested=lambda: len(fake.moves) >= 3)
+    assert result.status == online.Stop.INTERRUPTED and len(fake.moves) == 3
+
+
+# --------------------------------------------------------------------------- log and resume
+
+
+def test_connection_error_then_resume_equals_uninterrupted(tmp_path, converged_run):
+    _, ref_fake, ref = converged_run
+    assert ref.converged_at > 4
+    fake = FakeArm(fail_move_at=3)
+    cut = online.run_online(fake, opts(), tmp_path)
+    assert cut.status == online.Stop.CONNECTION and fake.closed and cut.samples == 3
+    contents = read_journal(cut.log)
+    assert contents.records[-1]["reason"] == "connection" and contents.truncated == 0
+    with open(cut.log, "ab") as f:  # a crash in the middle of the next line
+        f.write(b'{"e":"obs","phase":"selfid","t":12.5,"q":[0.1,')
+    again = FakeArm(q0=fake.q)
+    result = online.run_online(again, opts(), tmp_path, resume=True)
+    assert result.status == online.Stop.CONVERGED and result.truncated == 1 and result.replayed == 3
+    assert states_equal(result.state, ref.state)
+    assert result.converged_at == ref.converged_at
+    assert result.moves == ref.moves + 1  # the command whose call raised is counted: it may have been sent
+    assert len(again.moves) == len(ref_fake.moves) - 3
+    np.testing.assert_array_equal(again.q, ref_fake.q)
+    contents = read_journal(result.log)  # the cut line was removed before appending: the log reads cleanly
+    assert contents.truncated == 0 and [r["e"] for r in contents.records].count("session") == 2
+
+
+def test_resume_refuses_a_disagreeing_header(tmp_path, converged_run):
+    run, _, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    for change, field in ((dict(m_a=0.02), "m_a"), (dict(seed=4), "seed"), (dict(task="x,y"), "m"),
+                          (dict(eps_rel=0.1), "eps_rel")):
+        fake = FakeArm()
+        with pytest.raises(online.ResumeError, match=f"log's {field} is"):
+            online.run_online(fake, opts(**change), tmp_path / "r", resume=True)
+        assert fake.moves == [] and fake.closed
+    with pytest.raises(online.ResumeError, match="already holds a session log"):
+        online.run_online(FakeArm(), opts(), tmp_path / "r")
+    with pytest.raises(online.ResumeError, match="no session log"):
+        online.run_online(FakeArm(), opts(), tmp_path / "none", resume=True)
+
+
+def test_journal_tolerates_only_a_cut_last_line(tmp_path):
+    path = tmp_path / "log.jsonl"
+    with Journal(path) as j:
+        j.append({"e": "header", "n": 2, "x": np.float64(np.nan)})
+        j.append({"e": "obs", "q": np.array([1.0, 1 / 3])})
+    c = read_journal(path)
+    assert c.truncated == 0 and c.header["x"] is None and c.records[0]["q"] == [1.0, 1 / 3]
+    path.write_bytes(path.read_bytes() + b'{"e":"ob')
+    c = read_journal(path)
+    assert c.truncated == 1 and len(c.records) == 1
+    with Journal(path, good_bytes=c.good_bytes) as j:
+        j.append({"e": "stop"})
+    assert [r["e"] for r in read_journal(path).records] == ["obs", "stop"]
+    lines = path.read_bytes().split(b"\n")
+    path.write_bytes(b"\n".join([lines[0], b"garbage", *lines[1:]]))
+    with pytest.raises(JournalError, match="line 2"):
+        read_journal(path)
+
+
+# --------------------------------------------------------------------------- following
+
+
+def test_follow_after_resume_completes_within_the_envelope(tmp_path, converged_run):
+    run, ref_fake, ref = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    fake = FakeArm(q0=ref_fake.q, max_step=0.05)
+    path = online.FollowOptions(size=0.02, tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
+    result = online.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert result.status == online.Stop.COMPLETED, result.detail
+    assert result.waypoints == result.waypoints_total == 10 and result.replayed == ref.samples
+    assert result.moves == ref.moves and result.follow_steps == len(fake.moves) <= 400  # no random move
+    assert_in_envelope(fake, fake.lim.lower, fake.lim.upper, 0.03)
+    p_end, _ = arm_pose(fake.q)
+    np.testing.assert_allclose(p_end, arm_pose(ref_fake.q)[0], atol=0.0015)  # the star closes where it began
+
+
+def test_follow_divergence_and_box_stop(tmp_path, converged_run):
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "d")
+    fake = FakeArm(q0=ref_fake.q, mirror=True)  # the arm's Jacobian flipped after self-ID: the estimate is wrong
+    result = online.run_online(fake, opts(path=online.FollowOptions(size=0.05), diverge_dist=0.01),
+                               tmp_path / "d", resume=True)
+    assert result.status == online.Stop.DIVERGENCE and 0 < len(fake.moves) < 20, result.detail
+    recs = read_journal(result.log).records
+    assert recs[-1]["reason"] == "divergence"
+    shutil.copytree(run, tmp_path / "b")
+    p, _ = arm_pose(ref_fake.q)
+    fake = FakeArm(q0=ref_fake.q)
+    result = online.run_online(fake, opts(path=online.FollowOptions(size=0.05), box_low=p - [1, 0.05, 1],
+                                          box_high=p + 1), tmp_path / "b", resume=True)
+    assert result.status == online.Stop.BOX and "path leaves the box" in result.detail and fake.moves == []
+
+
+# --------------------------------------------------------------------------- the command
+
+
+DRIVER = '''
+import numpy as np
+CREATED = []
+
+def make(**kw):
+    from test_online import FakeArm
+    arm = FakeArm(**{k: np.array(v) if isinstance(v, list) else v for k, v in kw.items()})
+    CREATED.append(arm)
+    return arm
+'''
+
+
+@pytest.fixture
+def driver_module(tmp_path, monkeypatch):
+    (tmp_path / "fake_driver.py").write_text(DRIVER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
+    sys.modules.pop("fake_driver", None)
+    import fake_driver
+
+    yield fake_driver
+    sys.modules.pop("fake_driver", None)
+
+
+def _config(tmp_path, body):
+    path = tmp_path / "online.yaml"
+    path.write_text(textwrap.dedent(body))
+    return path
+
+
+def test_cli_runs_resumes_and_writes_the_estimate(tmp_path, driver_module, capsys):
+    from selfid_jax.cli import main
+
+    cfg = _config(tmp_path, """
+        robot: {driver: "fake_driver:make", args: {noise: 0.0}}
+        selfid: {task: "x,y,z", m_a: 0.03, eps_rel: 0.05, max_samples: 40, seed: 3, settle_s: 0.0, poll_s: 0.001}
+        safety: {stale_s: 1.0, max_step: 0.1}
+    """)
+    out = tmp_path / "run"
+    assert main(["online", str(cfg), "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "converged" and summary["converged_at"] > 2
+    assert summary["moves"] == len(driver_module.CREATED[0].moves)
+    with np.load(out / "inverse_jacobian.npz") as z:
+        assert z["inverse_jacobian"].shape == (3, 3) and int(z["converged_at"]) == summary["converged_at"]
+    assert json.loads((out / "inverse_jacobian.json").read_text())["task_axes"] == ["x", "y", "z"]
+    assert main(["online", str(cfg), "--out", str(out)]) == 2  # a log is there: --resume or another --out
+    assert "--resume" in capsys.readouterr().err
+    assert main(["online", str(cfg), "--out", str(out), "--resume"]) == 0
+    assert driver_module.CREATED[-1].moves == []  # converged already: no random move on resume
+    assert main(["online", str(cfg), "--out", str(out), "--resume", "--set", "selfid.seed=5"]) == 2
+    assert "seed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("body, key", [
+    ("robot: {driver: 'fake_driver:make'}\nselfid: {m_a: 0.03, bogus: 1}\n", "selfid.bogus"),
+    ("robot: {driver: 'fake_driver:make'}\nsafety: {stale_s: -1}\n", "safety.stale_s"),
+    ("robot: {driver: 'fake_driver:make', host: h, port: 1}\n", "robot"),
+    ("selfid: {m_a: 0.03}\n", "robot"),
+    ("robot: {driver: 'fake_driver:make'}\nselfid: {task: 'x,w'}\n", "selfid.task"),
+    ("robot: {driver: 'fake_driver:make'}\nselfid: {task: 'x,y'}\npath: {plane: xz}\n", "path.plane"),
+    ("robot: {driver: 'fake_driver:make'}\nsafety: {limits_lower: [0, 0]}\n", "safety.limits_lower"),
+    ("robot: {driver: 'no_such_module:make'}\n", "robot.driver"),
+])
+def test_cli_bad_config_exits_2_naming_the_key(tmp_path, driver_module, capsys, body, key):
+    from selfid_jax.cli import main
+
+    assert main(["online", str(_config(tmp_path, body)), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert key in err, err
+    assert all(arm.moves == [] for arm in driver_module.CREATED)
+    if key != "safety.limits_lower":  # that one needs the robot's n: checked after connecting, before motion
+        assert driver_module.CREATED == []
+
+
+def test_robot_protocol_fake_is_a_robot():
+    assert isinstance(FakeArm(), Robot)
+
+
+def test_example_config_validates():
+    from selfid_jax.app.online import OnlineConfig, options
+    from selfid_jax.runner.config import read_config, validate
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "online_ur5e.yaml"
+    cfg = validate(OnlineConfig, read_config(path)[0], path)
+    opts = options(cfg)
+    assert cfg.robot.host == "127.0.0.1" and opts.path is not None and opts.path.size == 0.02
+    assert online.follow_offsets(opts.path, (0, 1, 2)).shape == (10, 3)
+
+
+def test_task_difference_is_the_pose_change_with_rotation():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    r0, w = Rotation.from_rotvec(rng.normal(size=3)), rng.normal(scale=0.1, size=3)
+    r1 = Rotation.from_rotvec(w) * r0  # log(R1 R0^T) = w, world frame
+    wxyz = [np.roll(r.as_quat(), 1) for r in (r0, r1)]
+    p0, p1 = rng.normal(size=3), rng.normal(size=3)
+    a = Observation(0.0, np.zeros(1), p0, wxyz[0], 0.0, True)
+    b = Observation(1.0, np.zeros(1), p1, -wxyz[1], 1.0, True)  # the quaternion's sign does not matter
+    np.testing.assert_allclose(online.task_difference(b, a, (0, 2, 3, 5)), [*(p1 - p0)[[0, 2]], w[0], w[2]],
+                               atol=1e-12)
+    np.testing.assert_allclose(online.quaternion_matrix(wxyz[1]), r1.as_matrix(), atol=1e-12)
+
+
+@pytest.mark.slow
+def test_cli_sigterm_stops_cleanly_and_resumes(tmp_path, driver_module, console):
+    import os
+    import signal
+    import subprocess
+
+    cfg = _config(tmp_path, """
+        robot: {driver: "fake_driver:make"}
+        selfid: {m_a: 0.03, eps_rel: 1.0e-15, max_samples: 100000, settle_s: 0.01, poll_s: 0.001}
+    """)  # a threshold below float64 round-off: never converges, so only the signal ends it
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).parent),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([*console, "online", str(cfg), "--out", str(out)], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    log = out / online.LOG_FILE
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < deadline and \
+            not (log.exists() and log.read_bytes().count(b'"e":"sample"') >= 5):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    last = read_journal(log).records[-1]
+    assert last == {"e": "stop", "reason": "interrupted", "detail": "stop requested"}
+    assert json.loads((out / "summary.json").read_text())["status"] == "interrupted"
+    assert "stopped: interrupted" in stdout
+    # the session continues in-process from its log: 3 more random moves, then max_samples
+    from selfid_jax.cli import main
+
+    done = sum(1 for r in read_journal(log).records if r["e"] == "sample")
+    assert main(["online", str(cfg), "--out", str(out), "--resume", "--set", f"selfid.max_samples={done + 3}"]) == 1
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "max_samples" and summary["replayed"] == summary["samples"] - 3 >= 5
+    assert len(driver_module.CREATED[-1].moves) == 3
+
+
+def test_the_step_compiles_once_per_shape(tmp_path, converged_run):
+    before = online._step._cache_size()
+    for i, (eps, eps_rel) in enumerate(((0.0, 0.2), (1e-3, 0.0), (0.1, 0.3))):
+        result = online.run_online(FakeArm(), opts(eps=eps, eps_rel=eps_rel, max_samples=4), tmp_path / str(i))
+        assert result.samples >= 2
+    assert online._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace
