@@ -400,7 +400,9 @@ def test_task_difference_is_the_pose_change_with_rotation():
 
 
 @pytest.mark.slow
-def test_cli_sigterm_stops_cleanly_and_resumes(tmp_path, driver_module, console):
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module, console, signame):
+    """A first SIGTERM or Ctrl-C stops after the move in flight, closes the robot and keeps the log (not os._exit)."""
     import os
     import signal
     import subprocess
@@ -419,7 +421,7 @@ def test_cli_sigterm_stops_cleanly_and_resumes(tmp_path, driver_module, console)
     while proc.poll() is None and time.monotonic() < deadline and \
             not (log.exists() and log.read_bytes().count(b'"e":"sample"') >= 5):
         time.sleep(0.05)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(getattr(signal, signame))
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr
     last = read_journal(log).records[-1]

@@ -325,7 +325,7 @@ def run(args: argparse.Namespace) -> int:
             signals.phase("online")
             try:
                 with signals.graceful(f"selfid-jax online: interrupted; the session log {log} is intact "
-                                      "(continue with --resume)", stop.set):
+                                      "(continue with --resume)", stop.set, interrupt=True):
                     result = online.run_online(robot, opts, out, resume=args.resume, stop_requested=stop.is_set)
             except ValueError as err:  # bad options, a log that disagrees: all before any motion
                 raise ConfigError(f"{args.config}: {' '.join(str(err).split())}") from None

@@ -13,7 +13,8 @@ finished chunks are kept, a figure or summary is the old file or the new one.
 
 Inside :func:`graceful` (the chunk loop of a run), a first SIGTERM instead asks
 the sweep to stop after the chunk in flight (:func:`selfid_jax.runner.sweep.request_stop`);
-a second SIGTERM, or a SIGINT, ends the process at once.
+a second SIGTERM, or a SIGINT, ends the process at once. With ``interrupt=True``
+(the robot commands) a first SIGINT asks to stop as well.
 
 :func:`phase` marks the phases of a command on stderr when ``$SELFID_JAX_TRACE_PHASES``
 is set (the signal tests use it to aim at each phase).
@@ -38,6 +39,7 @@ class _State:
     prog = "selfid-jax"
     message: str | None = None  # the line for an interruption inside graceful(); None outside
     stop: Callable[[], None] | None = None  # asks the sweep to stop after the chunk in flight
+    interrupt = False  # a first SIGINT also calls stop (a command that moves a robot)
     terms = 0
 
 
@@ -70,10 +72,10 @@ def _wait() -> None:
     while True:
         signum = signal.sigwait(_SIGNALS)
         with _lock:
-            if signum == signal.SIGTERM:
+            if signum == signal.SIGTERM or _State.interrupt:
                 _State.terms += 1
             stop = _State.stop
-            if signum == signal.SIGTERM and _State.terms == 1 and stop is not None:
+            if (signum == signal.SIGTERM or _State.interrupt) and _State.terms == 1 and stop is not None:
                 stop()  # the sweep saves the chunk in flight, then raises SweepInterrupted in the main thread
                 continue
             line = _State.message or f"{_State.prog}: {'interrupted' if signum == signal.SIGINT else 'terminated'}"
@@ -82,12 +84,17 @@ def _wait() -> None:
 
 
 @contextlib.contextmanager
-def graceful(message: str, stop: Callable[[], None]) -> Iterator[None]:
-    """Inside the block: an interruption prints ``message``; a first SIGTERM calls ``stop`` instead of exiting."""
+def graceful(message: str, stop: Callable[[], None], *, interrupt: bool = False) -> Iterator[None]:
+    """Inside the block: an interruption prints ``message``; a first SIGTERM calls ``stop`` instead of exiting.
+
+    ``interrupt``: a first SIGINT (Ctrl-C) calls ``stop`` too, for a command that moves a robot, which
+    must stop it and close the connection rather than vanish mid-move; a second signal of either kind
+    ends the process at once.
+    """
     with _lock:
-        _State.message, _State.stop, _State.terms = message, stop, 0
+        _State.message, _State.stop, _State.terms, _State.interrupt = message, stop, 0, interrupt
     try:
         yield
     finally:
         with _lock:
-            _State.message, _State.stop = None, None
+            _State.message, _State.stop, _State.interrupt = None, None, False
