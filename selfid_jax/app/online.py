@@ -28,9 +28,10 @@ writes it). ``--resume`` continues a stopped session from its log.
 Exit codes: 0 converged (or path completed), 1 another stop (max_samples,
 stale, box, limits, divergence, connection, robot_error: the summary says
 which), 2 bad input (config, run directory, a log that disagrees), 130
-interrupted. A first SIGTERM stops the session cleanly (the robot is closed,
-the log ends with the stop); Ctrl-C ends the process at once, like a crash:
-the log then lacks at most the line in flight and ``--resume`` continues.
+interrupted. A first SIGTERM or Ctrl-C stops the session cleanly after the
+move in flight (the robot is closed, the log ends with the stop); a second
+one ends the process at once, like a crash: the log then lacks at most the
+line in flight and ``--resume`` continues.
 """
 
 from __future__ import annotations
