@@ -165,7 +165,7 @@ def test_lags_behind_a_step_then_converges(batched):
 
 @pytest.mark.slow
 def test_sags_without_gravity_compensation(batched):
-    """The shipped servos (kp 500) hold the shoulder and elbow ~0.04 rad below a held target under gravity."""
+    """The shipped servos (kp 500) hold the shoulder and elbow ~0.04 rad off a held target under gravity."""
     _, tr, _ = batched
     err = tr.q[_row(0, 0), HOLD - 1] - (Q0 + STEP_A)
     assert 0.02 < err[1] < 0.08 and 0.02 < err[2] < 0.08, err

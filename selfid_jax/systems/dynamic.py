@@ -303,7 +303,8 @@ def dynamic_ur5e(*, gravcomp: float | None = None) -> DynamicArm:
     link masses, dt 0.002 s, ``implicitfast``. Without gravity compensation
     the arm sags under its weight: held at
     :data:`~selfid_jax.systems.ur5e.UR5E_HOME` (``ctrl = q``) it settles
-    0.044 rad (shoulder) and 0.040 rad (elbow) below it, 4.3 cm at the
-    flange. ``gravcomp=1.0`` removes the sag.
+    off it by +0.044 rad (shoulder), +0.040 rad (elbow) and +0.0035 rad
+    (wrist 1), 4.3 cm at the flange (``kp`` times the offset balances the
+    gravity torque). ``gravcomp=1.0`` removes the sag.
     """
     return dynamic_arm(UR5E_XML, "ee", gravcomp=gravcomp, name="dynamic_ur5e")
