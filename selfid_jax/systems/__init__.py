@@ -4,6 +4,7 @@ from functools import partial
 from collections.abc import Callable
 from typing import NamedTuple
 
+from selfid_jax.systems.dynamic import DynamicArm, dynamic_arm, dynamic_ur5e
 from selfid_jax.systems.ets import arm5, from_ets
 from selfid_jax.systems.hands import model_o, stewart_hand
 from selfid_jax.systems.mjcf import from_mjcf
@@ -13,8 +14,8 @@ from selfid_jax.systems import manipulability  # noqa: E402,F401
 from selfid_jax.systems.ur5e import ur5e
 from selfid_jax.systems.validation import Limits
 
-__all__ = ["BUILTIN", "REGISTRY", "Builtin", "Limits", "System", "arm5", "from_ets", "from_pose_fn", "from_mjcf",
-           "model_o", "stewart_hand", "two_link", "ur5e"]
+__all__ = ["BUILTIN", "REGISTRY", "Builtin", "DynamicArm", "Limits", "System", "arm5", "dynamic_arm", "dynamic_ur5e",
+           "from_ets", "from_pose_fn", "from_mjcf", "model_o", "stewart_hand", "two_link", "ur5e"]
 
 
 class Builtin(NamedTuple):
