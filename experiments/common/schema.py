@@ -1,4 +1,4 @@
-"""The domain config blocks the experiments share: the self-ID magnitude, error-scaling grids, the controller, the path.
+"""The domain config blocks the experiments share: self-ID magnitude, error-scaling grids, controller, path, realism.
 
 Each is a strict, frozen pydantic model (:data:`selfid_jax.runner.config.STRICT`);
 :class:`StudyConfig` is the base of every experiment config here, adding the
@@ -220,7 +220,9 @@ class RealismConfig(BaseModel):
     tracker's history is sized by the largest ``latency``. Left out, the
     experiment runs the ideal loop, exactly as without the section; all
     values 0 (``realism: {}``) reproduce it bit for bit. The results table
-    gets ``realism_level`` and one column per value.
+    gets ``realism_level`` and one column per value. Start configurations
+    are still those from which the ideal loop completes the path with the
+    true inverse Jacobian, so every level starts from the same ones.
     Each value is one number or a list of them (a sweep).
     """
 

@@ -4,7 +4,11 @@
 ``realism`` config section of ``valid_region``, ``tracking`` and
 ``peg_in_hole``, traced so that one compiled program serves a sweep over them)
 and by the virtual robot (:mod:`selfid_jax.robot.virtual`). :data:`IDEAL`
-(every field at its default) reproduces the ideal kinematic loop exactly.
+(every field at its default) reproduces the ideal kinematic loop: the follow
+loop and the self-ID samples bit for bit with the values traced (tests/test_realism.py); the
+refined self-ID estimate to rounding (XLA's CPU backend contracts
+multiply-adds into FMAs where it fuses them, and a program with traced
+realism values may fuse the refinement differently).
 
 Model, per control step of ``period`` seconds, actuator targets ``u``:
 
