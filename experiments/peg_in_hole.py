@@ -43,11 +43,14 @@ from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax import control
 
-from selfid_jax.identify import estimator, algorithm as selfid
+from selfid_jax.identify import estimator
 
 from selfid_jax.math import geometry
-from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
-                                                  check_noise_pairs, format_m_a, m_a_columns, m_a_summary)
+from selfid_jax.control import realism as realism_lib
+from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, SelfIdRealismConfig, StudyConfig,
+                                                  add_m_a_columns, check_noise_pairs, check_realism_noise, format_m_a,
+                                                  m_a_columns, m_a_summary, realism_columns)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
@@ -112,10 +115,13 @@ class PegConfig(StudyConfig):
     insert_rot_tol_deg: float = Field(1.0, gt=0, le=90, description="... and this orientation error [deg]")
     pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)] = [0.0]  # m
     rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)] = [0.0]  # rad
+    realism: SelfIdRealismConfig | None = Field(
+        None, description="the real loop's non-idealities, on both self-IDs and every phase (default: the ideal loop)")
 
     @model_validator(mode="after")
     def _consistent(self):
         check_noise_pairs(self.pose_noise, self.rot_noise)
+        check_realism_noise(self.realism, self.pose_noise, self.rot_noise)
         if not self.arm.controller.tol < self.insert_tol:
             raise ValueError(f"arm.controller.tol ({self.arm.controller.tol}) must be below insert_tol "
                              f"({self.insert_tol})")
@@ -131,6 +137,8 @@ class Static(NamedTuple):
     hand_steps: int
     insert_tol_mm: float
     insert_rot_tol_deg: float
+    max_latency: int | None = None  # with realism: the tracker's history length - 1 [steps]; None: the ideal loop
+    max_settle: int = 1  # with realism: the longest self-ID settle [steps]
 
 
 class Params(NamedTuple):
@@ -150,6 +158,8 @@ class Params(NamedTuple):
     hand_eps_rel: HostOrDevice
     arm_ctrl: control.ControllerParams
     hand_ctrl: control.ControllerParams
+    realism: realism_lib.Realism | None = None  # () each, with a realism section
+    settle: HostOrDevice | None = None  # () int32 self-ID settle steps, with a realism section
 
 
 class Outputs(NamedTuple):
@@ -166,27 +176,40 @@ class Outputs(NamedTuple):
     inserted: jax.Array  # (2,) bool: within insert_tol and insert_rot_tol_deg
     failed: jax.Array  # (2,) bool: a phase failed (non-finite pose, divergence)
     positions: jax.Array  # (2, 3, 3) POM position at the grasp waypoint, after the tilt, at the end [m]
+    arm_selfid_dropouts: jax.Array | None = None  # () int32 tracker dropouts during the arm's self-ID, with realism
+    hand_selfid_dropouts: jax.Array | None = None  # (2,) int32 ... during the hand's, with realism
+    dropouts: jax.Array | None = None  # (2,) int32 tracker dropouts over the three motion phases, with realism
 
 
 def compute(static: Static, p: Params) -> Outputs:
-    """The five phases from ``p.q_arm``, with the self-ID estimates and with the true inverse Jacobians."""
+    """The five phases from ``p.q_arm``, with the self-ID estimates and with the true inverse Jacobians (under
+    ``p.realism`` where given: both self-IDs and the three motions, :mod:`selfid_jax.control.realism`)."""
     system = static.system
     k_arm, k_est, k_true = jax.random.split(jax.random.wrap_key_data(jnp.asarray(p.key)), 3)
     arm0 = compose.arm_part(system, p.q_hand)
-    sid_arm = selfid.run(arm0, k_arm, p.q_arm, iters=static.arm_iters, eps=p.arm_eps, eps_rel=p.arm_eps_rel,
-                         m_a=p.arm_m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
+    real: dict[str, Any] = dict(realism=p.realism, settle=p.settle, max_latency=static.max_latency or 0,
+                                max_settle=static.max_settle)
+    sid_arm, arm_drop = realistic.self_identify(arm0, k_arm, p.q_arm, iters=static.arm_iters, eps=p.arm_eps,
+                                                eps_rel=p.arm_eps_rel, m_a=p.arm_m_a, pose_noise=p.pose_noise,
+                                                rot_noise=p.rot_noise, **real)
     zeros3 = jnp.zeros((3,), p.grasp.dtype)
 
+    def follow(part, src, path, q, ctrl, steps, key):
+        return control.follow(part, src, path, q, ctrl, steps=steps, realism=p.realism, key=key,
+                              max_latency=static.max_latency)
+
     def pipeline(estimated: bool, key):
+        k_grasp, k_tilt, k_insert = (jax.random.fold_in(key, i) for i in (1, 2, 3))
         arm_src = control.fixed(sid_arm.estimate) if estimated else control.true_inverse(arm0)
-        grasp = control.follow(arm0, arm_src, jnp.concatenate([p.grasp, zeros3])[None], sid_arm.env, p.arm_ctrl,
-                               steps=static.arm_steps)
+        grasp = follow(arm0, arm_src, jnp.concatenate([p.grasp, zeros3])[None], sid_arm.env, p.arm_ctrl,
+                       static.arm_steps, k_grasp)
         grasp_pose = arm0.pose(grasp.final_q)
         hand = compose.hand_part(system, grasp.final_q, task_axes=HAND_AXES)
-        sid_hand = selfid.run(hand, key, p.q_hand, iters=static.hand_iters, eps=p.hand_eps, eps_rel=p.hand_eps_rel,
-                              m_a=p.hand_m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
+        sid_hand, hand_drop = realistic.self_identify(hand, key, p.q_hand, iters=static.hand_iters, eps=p.hand_eps,
+                                                      eps_rel=p.hand_eps_rel, m_a=p.hand_m_a, pose_noise=p.pose_noise,
+                                                      rot_noise=p.rot_noise, **real)
         hand_src = control.fixed(sid_hand.estimate) if estimated else control.true_inverse(hand)
-        tilt = control.follow(hand, hand_src, static.rotation, sid_hand.env, p.hand_ctrl, steps=static.hand_steps)
+        tilt = follow(hand, hand_src, static.rotation, sid_hand.env, p.hand_ctrl, static.hand_steps, k_tilt)
         R_goal = control.waypoint_poses(static.rotation, hand.pose(sid_hand.env), hand.axes)[1][-1]
         R_now = hand.pose(tilt.final_q)[1]
         w = geometry.so3_log(R_goal @ R_now.T)[:2]  # the hand task's rotation components (rx, ry)
@@ -197,20 +220,25 @@ def compute(static: Static, p: Params) -> Outputs:
         up = jnp.stack([zeros3.at[2].set(p.lift), target - p1 + zeros3.at[2].set(p.lift), target - p1])
         insert_path = jnp.concatenate([up, jnp.zeros_like(up)], axis=1)
         arm_src1 = control.fixed(sid_arm.estimate) if estimated else control.true_inverse(arm1)
-        insert = control.follow(arm1, arm_src1, insert_path, grasp.final_q, p.arm_ctrl, steps=static.arm_steps)
+        insert = follow(arm1, arm_src1, insert_path, grasp.final_q, p.arm_ctrl, static.arm_steps, k_insert)
         p_end, R_end = arm1.pose(insert.final_q)
         pos_mm = 1e3 * jnp.sqrt(jnp.sum((p_end - target) ** 2))
         w_end = geometry.so3_log(R1 @ R_end.T)
         rot_deg = jnp.degrees(jnp.sqrt(jnp.sum(w_end * w_end)))
         failed = grasp.failed | tilt.failed | insert.failed
+        drops = None if p.realism is None else (hand_drop, grasp.dropouts + tilt.dropouts + insert.dropouts)
         return (sid_hand.converged_at, grasp.completion, tilt.completion, insert.completion, hand_rot, pos_mm, rot_deg,
-                failed, jnp.stack([grasp_pose[0], p1, p_end]))
+                failed, jnp.stack([grasp_pose[0], p1, p_end])), drops
 
-    est, true = pipeline(True, k_est), pipeline(False, k_true)
+    (est, est_drops), (true, true_drops) = pipeline(True, k_est), pipeline(False, k_true)
     (hand_conv, g, h, i, hr, pm, rd, failed, pos) = [jnp.stack([a, b]) for a, b in zip(est, true)]
     safe = lambda x: jnp.where(failed, 0.0, x)  # noqa: E731 - metrics of failed pipelines are not read
-    return Outputs(sid_arm.converged_at, hand_conv, g, h, i, safe(hr), safe(pm), safe(rd),
-                   ~failed & (i >= 1.0) & (pm <= static.insert_tol_mm) & (rd <= static.insert_rot_tol_deg), failed, pos)
+    out = Outputs(sid_arm.converged_at, hand_conv, g, h, i, safe(hr), safe(pm), safe(rd),
+                  ~failed & (i >= 1.0) & (pm <= static.insert_tol_mm) & (rd <= static.insert_rot_tol_deg), failed, pos)
+    if p.realism is None:
+        return out
+    return out._replace(arm_selfid_dropouts=arm_drop, hand_selfid_dropouts=jnp.stack([est_drops[0], true_drops[0]]),
+                        dropouts=jnp.stack([est_drops[1], true_drops[1]]))
 
 
 def build(cfg: PegConfig) -> Part:
@@ -226,10 +254,13 @@ def _build(cfg: PegConfig) -> Part:
     fractions = np.arange(1, cfg.rotation.steps + 1) / cfg.rotation.steps
     rotation = np.zeros((cfg.rotation.steps, 3))  # hand task [z, rx, ry]
     rotation[:, 1 + unit] = cfg.rotation.angle * fractions
-    meta = grid_table({"layout": range(len(cfg.layouts)), "noise_level": range(len(cfg.pose_noise)),
-                       "trial": range(cfg.n_trials)})
+    meta = grid_table(realistic.add_realism_axis({"layout": range(len(cfg.layouts)),
+                                                  "noise_level": range(len(cfg.pose_noise)),
+                                                  "trial": range(cfg.n_trials)}, cfg.realism, before="trial"))
     meta.insert(2, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
     meta.insert(3, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
+    if cfg.realism is not None:
+        cfg.realism.add_columns(meta)
     n = len(meta)
     lay = [cfg.layouts[i] for i in meta["layout"]]
     q_arm = np.asarray([np.asarray(cfg.arm_home) + np.array([lo.yaw, 0, 0, 0, 0, 0]) for lo in lay])
@@ -253,6 +284,10 @@ def _build(cfg: PegConfig) -> Part:
     )
     static = Static(system, jnp.asarray(rotation), cfg.arm.iters, cfg.hand.iters, cfg.arm.controller.steps,
                     cfg.hand.controller.steps, 1e3 * cfg.insert_tol, cfg.insert_rot_tol_deg)
+    if cfg.realism is not None:
+        rows = cfg.realism.rows(meta)
+        params = params._replace(realism=rows.realism, settle=rows.settle)
+        static = static._replace(max_latency=cfg.realism.max_latency(), max_settle=cfg.realism.max_settle())
     meta.insert(0, "system", system.name)
     return Part(system.name, static, params, meta)
 
@@ -261,12 +296,14 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: PegConfig) -> pd.DataFrame:
     """One row per (layout, trial, noise level, inverse Jacobian)."""
     base = ["system", "layout", "noise_level", "pose_noise", "rot_noise", "trial", "arm_converged_at", "arm_m_a",
             "arm_m_a_source", "hand_m_a", "hand_m_a_source"]
+    base += [c for c in (*realism_columns(), "arm_selfid_dropouts") if c in wide.columns]
+    per_inverse = [c for c in ("hand_selfid_dropouts", "dropouts") if c in wide.columns]
     frames = []
     for i, inverse in enumerate(INVERSES):
         df = wide[base].copy()
         df.insert(1, "inverse", inverse)
         for col in ("hand_converged_at", "grasp_completion", "hand_completion", "insert_completion", "hand_rot_deg",
-                    "arm_pos_mm", "arm_rot_deg", "inserted", "failed"):
+                    "arm_pos_mm", "arm_rot_deg", "inserted", "failed", *per_inverse):
             df[col] = np.stack(wide[col].to_numpy())[:, i]
         df["inserted"] = df["inserted"].astype(bool)
         df["failed"] = df["failed"].astype(bool)
@@ -284,10 +321,22 @@ def _ms(x) -> dict[str, float | None]:
 
 
 def summarize(table: pd.DataFrame, cfg: PegConfig) -> dict[str, Any]:
-    """Table III per layout, noise level and inverse Jacobian (mean +- sd over trials; failed rows left out)."""
+    """Table III per layout, noise level and inverse Jacobian (mean +- sd over trials; failed rows left out).
+
+    With a realism section, per realism level too: the noise level's key
+    becomes ``"<noise mm> (<values>)"`` (the values that differ between
+    levels), each level's values under ``realism_levels``, and the mean
+    tracker dropouts go into each ``all`` entry.
+    """
     out: dict[str, Any] = {}
-    for (noise, inverse), g in table.groupby(["pose_noise", "inverse"], sort=False):
-        level = out.setdefault(f"{1e3 * noise:g}", {}).setdefault(str(inverse), {"layouts": {}})
+    labels = realistic.level_labels(table)
+    levels: dict[str, Any] = {}
+    level_of = table["realism_level"] if labels else pd.Series(0, index=table.index, name="realism_level")
+    for (noise, lvl, inverse), g in table.groupby(["pose_noise", level_of, "inverse"], sort=False):
+        key = f"{1e3 * noise:g}" + (f" ({labels[int(lvl)]})" if labels else "")
+        if labels:
+            levels[key] = realistic.realism_summary(table, int(lvl))
+        level = out.setdefault(key, {}).setdefault(str(inverse), {"layouts": {}})
         for layout, h in g.groupby("layout", sort=True):
             ok = h[~h["failed"]]
             level["layouts"][str(int(layout))] = {m: _ms(ok[m]) for m in TABLE} | {
@@ -297,6 +346,10 @@ def summarize(table: pd.DataFrame, cfg: PegConfig) -> dict[str, Any]:
         level["all"] = {m: _ms(ok[m]) for m in TABLE} | {
             "inserted": float(g["inserted"].mean()), "failed_fraction": float(g["failed"].mean()),
             "arm_converged_at": _ms(conv_a[conv_a > 0]), "hand_converged_at": _ms(conv_h[conv_h > 0])}
+        for col in ("arm_selfid_dropouts", "hand_selfid_dropouts", "dropouts"):
+            if col in g.columns:
+                level["all"][col] = float(g[col].mean())
+    extra = {"realism_levels": levels} if labels else {}
     return {
         "layouts": [lo.model_dump() for lo in cfg.layouts],
         "protocol": {"arm": cfg.arm.model_dump() | m_a_summary(table, "arm_"),
@@ -304,6 +357,7 @@ def summarize(table: pd.DataFrame, cfg: PegConfig) -> dict[str, Any]:
                      "lift": cfg.lift, "insert_tol": cfg.insert_tol, "insert_rot_tol_deg": cfg.insert_rot_tol_deg,
                      "mount_offset": cfg.mount_offset},
         "pose_noise_mm": out,
+        **extra,
     }
 
 
@@ -326,10 +380,11 @@ def report(summary: dict) -> str:
 
 
 def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
-    """Table III as bars per layout (estimated vs analytical, noise-free rows), protocol in the title."""
+    """Table III as bars per layout (estimated vs analytical, noise-free rows; with a realism section those of its
+    first level), protocol in the title."""
     from matplotlib.figure import Figure
 
-    clean = table[table["noise_level"] == 0]
+    clean = table[(table["noise_level"] == 0) & (table["realism_level"] == 0 if "realism_level" in table else True)]
     fig = Figure(figsize=(11, 3.6), layout="constrained")
     labels = {"arm_pos_mm": "UR5e position error [mm]", "arm_rot_deg": "UR5e rotation error [deg]",
               "hand_rot_deg": "Model O rotation error [deg]"}
@@ -373,6 +428,10 @@ COLUMNS = {
     "inserted": "insertion completed within insert_tol and insert_rot_tol_deg, no phase failed [bool]",
     "failed": "a phase failed (non-finite pose, divergence) [bool]",
     "positions": "(9,) POM position at the grasp waypoint, after the tilt and at the end, row-major (3, 3) [m]",
+    **realism_columns(),
+    "arm_selfid_dropouts": "tracker readings that dropped out during the arm's self-ID (realism) [count]",
+    "hand_selfid_dropouts": "tracker readings that dropped out during the hand's self-ID (realism) [count]",
+    "dropouts": "tracker readings that dropped out during the grasp, tilt and insertion moves (realism) [count]",
 }
 """The results columns (``results.parquet``): one row per layout, noise level, trial and inverse Jacobian."""
 

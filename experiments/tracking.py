@@ -28,13 +28,16 @@ from pydantic import BaseModel, Field, model_validator
 
 from selfid_jax import control
 
-from selfid_jax.identify import estimator, algorithm as selfid
+from selfid_jax.identify import estimator
 
 from selfid_jax.math import geometry
 
 from selfid_jax.control import metrics, paths
-from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, StudyConfig, add_m_a_columns,
-                                                  check_noise_pairs, format_m_a, m_a_columns, m_a_summary)
+from selfid_jax.control import realism as realism_lib
+from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, SelfIdRealismConfig, StudyConfig,
+                                                  add_m_a_columns, check_noise_pairs, check_realism_noise, format_m_a,
+                                                  m_a_columns, m_a_summary, realism_columns)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
@@ -123,10 +126,13 @@ class TrackingConfig(StudyConfig, SelfIdConfig):
     eps_rel: float = Field(0.0, ge=0, le=10, description="relative Sec. IV-D threshold (times ||J_t||_F)")
     pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)] = [0.0]  # m
     rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)] = [0.0]  # rad
+    realism: SelfIdRealismConfig | None = Field(
+        None, description="the real loop's non-idealities, on self-ID and path following (default: the ideal loop)")
 
     @model_validator(mode="after")
     def _consistent(self):
         check_noise_pairs(self.pose_noise, self.rot_noise)
+        check_realism_noise(self.realism, self.pose_noise, self.rot_noise)
         estimator.check_thresholds(self.eps, self.eps_rel)
         if self.path.kind == "rotation" and (self.task_axes is None or
                                              not {f"r{a}" for a in self.path.about} <= set(self.task_axes)):
@@ -143,6 +149,8 @@ class Static(NamedTuple):
     path: jax.Array  # (L, W, task_dim) waypoint offsets, one path per letter (L = 1 unless kind 'letters')
     iters: int
     steps: int
+    max_latency: int | None = None  # with realism: the tracker's history length - 1 [steps]; None: the ideal loop
+    max_settle: int = 1  # with realism: the longest self-ID settle [steps]
 
 
 class Params(NamedTuple):
@@ -155,6 +163,8 @@ class Params(NamedTuple):
     eps: HostOrDevice  # () Sec. IV-D threshold
     eps_rel: HostOrDevice  # () relative Sec. IV-D threshold
     controller: control.ControllerParams
+    realism: realism_lib.Realism | None = None  # () each, with a realism section
+    settle: HostOrDevice | None = None  # () int32 self-ID settle steps, with a realism section
 
 
 class Outputs(NamedTuple):
@@ -171,14 +181,26 @@ class Outputs(NamedTuple):
     positions: jax.Array  # (2, steps + 1, 3) POM positions [m]
     error_trace_mm: jax.Array  # (2, steps + 1, 3) |distance to the path| along x, y, z at each step [mm]
     rot_trace_deg: jax.Array  # (2, steps + 1) orientation error to the pursued waypoint at each step [deg]
+    selfid_dropouts: jax.Array | None = None  # () int32 tracker dropouts during self-ID, with realism
+    selfid_rejected: jax.Array | None = None  # () int32 self-ID samples rejected (dropouts, non-finite), with realism
+    dropouts: jax.Array | None = None  # (2,) int32 tracker dropouts during each path, with realism
 
 
 def compute(static: Static, p: Params) -> Outputs:
-    """Self-ID from ``p.q0`` with tracker noise, then the path with the estimate and with the truth."""
+    """Self-ID from ``p.q0`` with tracker noise, then the path with the estimate and with the truth.
+
+    With a realism section (``p.realism``) both run the real loop
+    (:mod:`selfid_jax.control.realism`); the two paths see the same tracker
+    noise and dropout draws.
+    """
     system = static.system
-    sid = selfid.run(system, jax.random.wrap_key_data(jnp.asarray(p.key)), p.q0, iters=static.iters, eps=p.eps,
-                     eps_rel=p.eps_rel, m_a=p.m_a, pose_noise=p.pose_noise, rot_noise=p.rot_noise)
+    key = jax.random.wrap_key_data(jnp.asarray(p.key))
+    sid, sid_dropouts = realistic.self_identify(
+        system, key, p.q0, iters=static.iters, eps=p.eps, eps_rel=p.eps_rel, m_a=p.m_a, pose_noise=p.pose_noise,
+        rot_noise=p.rot_noise, realism=p.realism, settle=p.settle, max_latency=static.max_latency or 0,
+        max_settle=static.max_settle)
     q_start = sid.env
+    follow_key = jax.random.fold_in(key, 1)
     path = static.path[p.letter]
     pose0 = system.pose(q_start)
     pos, rot = list(system.position_axes), system.rotation_axes
@@ -192,7 +214,8 @@ def compute(static: Static, p: Params) -> Outputs:
 
     def track(jinv):
         res = control.follow(system, jinv, path, q_start, p.controller, steps=static.steps,
-                             return_trajectory=True)
+                             return_trajectory=True, realism=p.realism, key=follow_key,
+                             max_latency=static.max_latency)
         used = jnp.arange(res.positions.shape[0]) <= res.steps_used  # the steps taken, and where they ended
         dtype = res.positions.dtype
         err = jnp.zeros((res.positions.shape[0], 3), dtype)
@@ -206,11 +229,15 @@ def compute(static: Static, p: Params) -> Outputs:
         mean = jnp.sum(used).astype(dtype)
         return (res.completion, 1e3 * res.waypoint_error, 1e3 * jnp.sum(jnp.where(used[:, None], err, 0.0), 0) / mean,
                 final, jnp.sum(jnp.where(used, per_step, 0.0)) / mean, res.failed, res.steps_used, res.positions,
-                1e3 * err, per_step)
+                1e3 * err, per_step), res.dropouts
 
-    est, true = track(control.fixed(sid.estimate)), track(control.true_inverse(system))
+    (est, est_drop), (true, true_drop) = track(control.fixed(sid.estimate)), track(control.true_inverse(system))
     stacked = [jnp.stack([a, b]) for a, b in zip(est, true)]
-    return Outputs(sid.converged_at, *stacked)
+    out = Outputs(sid.converged_at, *stacked)
+    if p.realism is None:
+        return out
+    return out._replace(selfid_dropouts=sid_dropouts, selfid_rejected=sid.state.rejected,
+                        dropouts=jnp.stack([est_drop, true_drop]))
 
 
 def build(cfg: TrackingConfig) -> Part:
@@ -227,12 +254,15 @@ def _build(cfg: TrackingConfig) -> Part:
     cfg.path.check_axes(system.axes)
     path = cfg.path.waypoints(system.axes)
     labels = cfg.path.labels()
-    meta = grid_table({"letter_id": range(len(labels)), "noise_level": range(len(cfg.pose_noise)),
-                       "config_id": range(cfg.n_configs), "trial": range(cfg.n_trials)})
+    meta = grid_table(realistic.add_realism_axis(
+        {"letter_id": range(len(labels)), "noise_level": range(len(cfg.pose_noise)), "config_id": range(cfg.n_configs),
+         "trial": range(cfg.n_trials)}, cfg.realism, before="config_id"))
     meta.insert(1, "path", np.asarray(labels, dtype=object)[meta["letter_id"]])
     meta.insert(3, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
     meta.insert(4, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
     meta.insert(0, "system", system_name(cfg.system))
+    if cfg.realism is not None:
+        cfg.realism.add_columns(meta)
     m_a = cfg.magnitude(system)
     add_m_a_columns(meta, m_a)
     longest = int(np.argmax([paths.path_length(w) for w in np.asarray(path)]))
@@ -246,13 +276,20 @@ def _build(cfg: TrackingConfig) -> Part:
         m_a=np.repeat(m_a.value[None], n, axis=0), eps=np.full((n,), cfg.eps), eps_rel=np.full((n,), cfg.eps_rel),
         controller=controller_rows(cfg.controller, n),
     )
-    return Part(system_name(cfg.system), Static(system, path, cfg.iters, cfg.controller.steps), params, meta)
+    static = Static(system, path, cfg.iters, cfg.controller.steps)
+    if cfg.realism is not None:
+        rows = cfg.realism.rows(meta)
+        params = params._replace(realism=rows.realism, settle=rows.settle)
+        static = static._replace(max_latency=cfg.realism.max_latency(), max_settle=cfg.realism.max_settle())
+    return Part(system_name(cfg.system), static, params, meta)
 
 
 def tabulate(wide: pd.DataFrame, part: Part, cfg: TrackingConfig) -> pd.DataFrame:
     """One row per (rollout, inverse Jacobian) with scalar metric columns; trajectories stay as list columns."""
     base = ["system", "letter_id", "path", "noise_level", "pose_noise", "rot_noise", "config_id", "trial",
             "converged_at", "m_a", "m_a_source"]
+    realism = [c for c in (*realism_columns(), "selfid_dropouts", "selfid_rejected") if c in wide.columns]
+    base += realism
     frames = []
     for i, inverse in enumerate(INVERSES):
         df = wide[base].copy()
@@ -265,6 +302,8 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: TrackingConfig) -> pd.DataFram
         df["rot_step_deg"] = np.stack(wide["rot_step_deg"].to_numpy())[:, i]
         df["failed"] = np.stack(wide["failed"].to_numpy())[:, i].astype(bool)
         df["steps_used"] = np.stack(wide["steps_used"].to_numpy())[:, i]
+        if "dropouts" in wide.columns:
+            df["dropouts"] = np.stack(wide["dropouts"].to_numpy())[:, i]
         for col in ("positions", "error_trace_mm", "rot_trace_deg"):
             df[col] = list(np.stack(wide[col].to_numpy()).reshape(len(wide), 2, -1)[:, i])
         frames.append(df)
@@ -288,14 +327,34 @@ def _stats(g: pd.DataFrame) -> dict[str, Any]:
         level[str(inverse)]["converged_at"] = {"mean": float(conv[conv > 0].mean()) if (conv > 0).any() else None,
                                                "sd": float(conv[conv > 0].std()) if (conv > 0).any() else None}
         level[str(inverse)]["failed_fraction"] = float(h["failed"].mean())
+        for col in ("dropouts", "selfid_dropouts", "selfid_rejected"):
+            if col in h.columns:
+                level[str(inverse)][col] = float(h[col].mean())
     return level
 
 
+def _level(table: pd.DataFrame) -> pd.Series:
+    """Each row's realism level (0 everywhere without a realism section)."""
+    if "realism_level" in table.columns:
+        return table["realism_level"]
+    return pd.Series(np.zeros(len(table), int), index=table.index, name="realism_level")
+
+
 def summarize(table: pd.DataFrame, cfg: TrackingConfig) -> dict[str, Any]:
-    """Mean +- sd per system, tracker-noise level and inverse Jacobian (and per letter / rotation axis)."""
+    """Mean +- sd per system, tracker-noise level and inverse Jacobian (and per letter / rotation axis).
+
+    With a realism section, per realism level too: the system's key becomes
+    ``"<system> (<values>)"`` (the values that differ between levels) and
+    its entry states the level's values under ``realism``; the mean tracker
+    dropouts per path and during self-ID go into each inverse's entry.
+    """
     systems: dict[str, Any] = {}
-    for (system, noise), g in table.groupby(["system", "pose_noise"], sort=False):
-        entry = systems.setdefault(str(system), {"self_id": m_a_summary(g), "pose_noise_mm": {}})
+    labels = realistic.level_labels(table)
+    for (system, level, noise), g in table.groupby(["system", _level(table), "pose_noise"], sort=False):
+        name = str(system) if not labels else f"{system} ({labels[int(level)]})"
+        entry = systems.setdefault(name, {"self_id": m_a_summary(g), "pose_noise_mm": {}})
+        if labels:
+            entry.setdefault("realism", realistic.realism_summary(table, int(level)))
         entry["pose_noise_mm"][f"{1e3 * noise:g}"] = _stats(g)
         if cfg.path.kind in ("letters", "rotation"):  # per letter / per rotation axis, each from its own self-ID
             per = entry.setdefault("letters" if cfg.path.kind == "letters" else "rotations", {})
@@ -333,7 +392,9 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     """Executed paths and per-step error traces, estimated vs analytical (Fig. 6-9 style).
 
     One figure per system, ``tracking_<system>.png|pdf``, from the noise-free
-    rows of the first start configuration: top row the executed paths (3-D for
+    rows of the first start configuration (with a realism section one per
+    system and realism level, ``tracking_<system>_realism<level>``, the
+    level's values in the title): top row the executed paths (3-D for
     a cube; for a rotation the orientation error along each rotation), bottom
     row the per-step distance to the path along x, y, z [mm] and, where the
     task has rotation, the orientation error [deg], the paths (letters) one
@@ -345,7 +406,8 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     kind = summary["path"]["kind"]
     three_d = kind == "cube"
     rotates = "rot_trace_deg" in table and bool(np.any(np.concatenate(table["rot_trace_deg"].to_list()) != 0))
-    for system, g in table.groupby("system", sort=False):
+    labels = realistic.level_labels(table)
+    for (system, level), g in table.groupby(["system", _level(table)], sort=False):
         first = g[(g["noise_level"] == 0) & (g["config_id"] == 0) & (g["trial"] == 0)]
         fig = Figure(figsize=(10, 8), layout="constrained")
         for k, inverse in enumerate(INVERSES):
@@ -398,8 +460,9 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
         fig.suptitle(f"path {kind}{'' if axes is None else f', task {axes}'}; step {1e3 * c['max_step']:g} mm "
                      f"({c['max_rot_step']:g} rad), tol {1e3 * c['tol']:g} mm ({c['rot_tol']:g} rad), "
                      f"{c['steps']} steps, gain {c['gain']:g}; self-ID m_a {format_m_a(s['m_a'])}, eps {s['eps']:g}, "
-                     f"eps_rel {s['eps_rel']:g}; noise-free rows, first configuration", fontsize=8)
-        written += save_figure(fig, out_dir, f"tracking_{system}")
+                     f"eps_rel {s['eps_rel']:g}; noise-free rows, first configuration"
+                     + (f"\nrealism: {labels[int(level)]}" if labels else ""), fontsize=8)
+        written += save_figure(fig, out_dir, f"tracking_{system}" + (f"_realism{int(level)}" if labels else ""))
     return written
 
 
@@ -428,6 +491,10 @@ COLUMNS = {
     "error_trace_mm": "((steps + 1) * 3,) |distance to the path| along x, y, z at each step, row-major "
                       "(steps + 1, 3) [mm]",
     "rot_trace_deg": "(steps + 1,) orientation error to the pursued waypoint at each step [deg]",
+    **realism_columns(),
+    "selfid_dropouts": "tracker readings that dropped out during self-ID (realism) [count]",
+    "selfid_rejected": "self-ID samples the estimator rejected: dropouts, non-finite or zero (realism) [count]",
+    "dropouts": "tracker readings that dropped out while following the path (realism) [count]",
 }
 """The results columns (``results.parquet``): one row per rollout and inverse Jacobian."""
 

@@ -31,7 +31,10 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from selfid_jax import control
 
 from selfid_jax.control import paths
-from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, HostOrDevice, PathConfig, StudyConfig
+from selfid_jax.control import realism as realism_lib
+from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.common.schema import (ControllerConfig, EpsLimits, HostOrDevice, PathConfig, RealismConfig,
+                                                  StudyConfig, realism_columns)
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
@@ -82,6 +85,7 @@ class ValidRegionConfig(StudyConfig):
     controller: ControllerConfig = ControllerConfig()
     path: PathConfig
     completion_threshold: float = Field(0.95, gt=0, le=1)
+    realism: RealismConfig | None = Field(None, description="the real loop's non-idealities (default: the ideal loop)")
 
     _unique = field_validator("systems")(unique_system_names)
 
@@ -99,6 +103,7 @@ class Static(NamedTuple):
     system: System
     path: jax.Array  # (W, task_dim) star waypoint offsets [m]
     steps: int  # control-step budget
+    max_latency: int | None = None  # with realism: the tracker's history length - 1 [steps]; None: the ideal loop
 
 
 class Params(NamedTuple):
@@ -108,6 +113,7 @@ class Params(NamedTuple):
     key: HostOrDevice  # (2,) uint32 PRNG key data of the trial
     q0: HostOrDevice  # (n,) start configuration
     controller: control.ControllerParams  # () each: controller protocol
+    realism: realism_lib.Realism | None = None  # () each, with a realism section
 
 
 class Outputs(NamedTuple):
@@ -119,6 +125,7 @@ class Outputs(NamedTuple):
     waypoint_error: jax.Array
     steps_used: jax.Array
     failed: jax.Array
+    dropouts: jax.Array | None = None  # () int32 tracker readings that dropped out, with realism
 
 
 def scaling_matrix(key, eps_limit, shape):
@@ -128,11 +135,14 @@ def scaling_matrix(key, eps_limit, shape):
 
 
 def compute(static: Static, p: Params) -> Outputs:
-    """Follow the star from ``p.q0`` with ``m_eps * Jinv_true(q)`` for one trial's ``m_eps``."""
+    """Follow the star from ``p.q0`` with ``m_eps * Jinv_true(q)`` for one trial's ``m_eps`` (under ``p.realism``
+    where given: :mod:`selfid_jax.control.realism`, its noise drawn from the trial's key)."""
     system = static.system
-    m_eps = scaling_matrix(jax.random.wrap_key_data(jnp.asarray(p.key)), p.eps_limit, (system.n_act, system.task_dim))
+    key = jax.random.wrap_key_data(jnp.asarray(p.key))
+    m_eps = scaling_matrix(key, p.eps_limit, (system.n_act, system.task_dim))
     res = control.follow(system, control.scaled_true_inverse(system, m_eps), static.path, p.q0, p.controller,
-                         steps=static.steps)
+                         steps=static.steps, realism=p.realism, key=jax.random.fold_in(key, 1),
+                         max_latency=static.max_latency)
     return Outputs(*(getattr(res, f) for f in Outputs._fields))
 
 
@@ -160,7 +170,8 @@ def feasible_configs(static: Static, key, k: int, controller: ControllerConfig, 
     selection and message (:func:`selfid_jax.control.feasible_indices`: the
     first ``k`` that complete the path without failing), but each rollout
     is a row of the study (``eps_limit = 1``: ``m_eps = 1`` exactly, the true
-    inverse Jacobian) run by :func:`selfid_jax.runner.sweep.compute_rows` at the
+    inverse Jacobian; with a realism section at its ``IDEAL`` values, the
+    ideal loop) run by :func:`selfid_jax.runner.sweep.compute_rows` at the
     study's compiled ``batch``, so the sweep reuses this compilation instead of
     compiling a second rollout program (1.3-1.8 s for the UR5e), unless
     padding the candidates to ``batch`` would waste more than
@@ -176,6 +187,7 @@ def feasible_configs(static: Static, key, k: int, controller: ControllerConfig, 
         key=row_keys(0, total),  # unused at eps_limit = 1
         q0=np.asarray(cand),
         controller=controller_rows(controller, total),
+        realism=None if static.max_latency is None else _ideal_rows(total),
     )
     out = compute_rows(EXPERIMENT.batched(static), rows, batch=batch)
     return np.asarray(cand)[control.feasible_indices(system, valid, out["completion"], out["failed"], k)]
@@ -185,15 +197,16 @@ def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller:
     """One system's rollouts: the grid rows, feasible start configurations and the traced parameters."""
     name, system = system_name(spec), build_system(spec)
     path = paths.star(size=path_cfg.size, dim=system.task_dim)
-    meta = grid_table(
+    meta = grid_table(realistic.add_realism_axis(
         {
             "system": [name],
             "eps_limit": list(cfg.eps_limits.values()),
             "config_id": range(cfg.n_configs),
             "trial": range(cfg.n_trials),
-        }
+        }, cfg.realism, before="eps_limit")
     )
-    static = Static(system, path, controller.steps)
+    static = Static(system, path, controller.steps,
+                    None if cfg.realism is None else cfg.realism.max_latency())
     configs = feasible_configs(static, jax.random.key(cfg.seed), cfg.n_configs, controller,
                                batch=compiled_batch(len(meta), cfg.chunk_size))
     params = Params(
@@ -202,26 +215,57 @@ def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller:
         q0=configs[meta["config_id"].to_numpy()],
         controller=controller_rows(controller, len(meta)),
     )
+    if cfg.realism is not None:
+        cfg.realism.add_columns(meta)
+        params = params._replace(realism=cfg.realism.rows(meta).realism)
     return Part(name, static, params, meta, x64)
 
 
+def _ideal_rows(n: int) -> realism_lib.Realism:
+    """:data:`~selfid_jax.control.realism.IDEAL` for ``n`` rows: ``Realism`` of ``(n,)`` zeros (latency int32)."""
+    zeros = np.zeros((n,))
+    return realism_lib.Realism(period=zeros, latency=np.zeros((n,), np.int32), noise_pos=zeros, noise_rot=zeros,
+                               dropout=zeros, servo_tau=zeros, deadband=zeros)
+
+
+def series(table: pd.DataFrame) -> pd.DataFrame:
+    """``table`` with each system's realism levels as series of their own: ``system`` becomes ``"<system>
+    (<values>)"`` (the values that differ between levels); unchanged without a realism section."""
+    labels = realistic.level_labels(table)
+    if not labels:
+        return table
+    names = [f"{s} ({labels[int(k)]})" for s, k in zip(table["system"], table["realism_level"])]
+    return table.assign(system=names)
+
+
 def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:
-    """Bounds per system with the protocol beside them (per system where a ``systems`` entry sets its own)."""
+    """Bounds per system with the protocol beside them (per system where a ``systems`` entry sets its own).
+
+    With a realism section, per system and realism level: the key is
+    ``"<system> (<values>)"`` (:func:`series`), its entry holding the level's
+    values (``realism``) and the mean tracker dropouts per rollout.
+    """
     from selfid_jax.experiments.common import figures as plots  # matplotlib only when needed (0.3 s of import)
 
     summary = plots.valid_region_summary(
-        table,
+        series(table),
         cfg.completion_threshold,
         controller=cfg.controller.model_dump(),
         path=cfg.path.model_dump(),
         n_configs=cfg.n_configs,
         n_trials=cfg.n_trials,
     )
-    for entry in cfg.systems:
-        spec, path, controller = protocol(cfg, entry)
-        if isinstance(entry, SystemRun) and system_name(spec) in summary["systems"]:
-            summary["systems"][system_name(spec)]["protocol"] = {"path": path.model_dump(),
-                                                                 "controller": controller.model_dump()}
+    own = {system_name(spec): {"path": path.model_dump(), "controller": controller.model_dump()}
+           for entry in cfg.systems if isinstance(entry, SystemRun)
+           for spec, path, controller in [protocol(cfg, entry)]}
+    for name, g in series(table).groupby("system", sort=False):
+        entry = summary["systems"][str(name)]
+        system = str(table.loc[g.index[0], "system"])
+        if "realism_level" in g.columns:
+            entry["realism"] = realistic.realism_summary(g, int(g["realism_level"].iloc[0]))
+            entry["mean_dropouts"] = float(g["dropouts"].mean())
+        if system in own:
+            entry["protocol"] = own[system]
     return summary
 
 
@@ -241,7 +285,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir):
     """Fig. 2 from the saved table (:func:`selfid_jax.experiments.common.figures.valid_region_figure`)."""
     from selfid_jax.experiments.common import figures as plots
 
-    return plots.valid_region_figure(table, summary, out_dir)
+    return plots.valid_region_figure(series(table), summary, out_dir)
 
 
 COLUMNS = {
@@ -255,6 +299,8 @@ COLUMNS = {
     "waypoint_error": "mean over waypoints of the position error when reached (at the end if not) [m]",
     "steps_used": "control steps until the last waypoint was reached (or the budget) [steps]",
     "failed": "non-finite state or divergence from the path [bool]",
+    **realism_columns(self_id=False),
+    "dropouts": "tracker readings that dropped out while following the path (realism) [count]",
 }
 """The results columns (``results.parquet``): one row per system, eps_limit, start configuration and trial."""
 

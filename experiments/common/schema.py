@@ -1,4 +1,4 @@
-"""The domain config blocks the experiments share: the self-ID magnitude, error-scaling grids, the controller, the path.
+"""The domain config blocks the experiments share: self-ID magnitude, error-scaling grids, controller, path, realism.
 
 Each is a strict, frozen pydantic model (:data:`selfid_jax.runner.config.STRICT`);
 :class:`StudyConfig` is the base of every experiment config here, adding the
@@ -7,6 +7,8 @@ check that the controller's tolerance fits the path.
 
 from __future__ import annotations
 
+import itertools
+import math
 from typing import Annotated, Any, Literal, NamedTuple, TypeAlias, cast
 
 import jax
@@ -14,11 +16,13 @@ import numpy as np
 from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams
+from selfid_jax.control.realism import Realism
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
 __all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig",
-           "SelfIdConfig", "SelfIdMagnitude", "StudyConfig", "add_m_a_columns", "check_noise_pairs", "controller_rows",
-           "format_m_a", "m_a_columns", "m_a_summary", "resolve_m_a"]
+           "REALISM_FIELDS", "RealismConfig", "RealismRows", "SelfIdConfig", "SelfIdMagnitude", "SelfIdRealismConfig",
+           "StudyConfig", "add_m_a_columns", "check_noise_pairs", "check_realism_noise", "controller_rows",
+           "format_m_a", "m_a_columns", "m_a_summary", "realism_columns", "resolve_m_a"]
 
 
 HostOrDevice: TypeAlias = jax.Array | np.ndarray
@@ -180,6 +184,172 @@ def check_noise_pairs(pose_noise: list, rot_noise: list) -> None:
     if len(pose_noise) != len(rot_noise):
         raise ValueError(f"pose_noise and rot_noise pair up level by level: lengths {len(pose_noise)} "
                          f"and {len(rot_noise)} differ")
+
+
+# ------------------------------------------------------------------ realism
+
+MAX_REALISM_LEVELS = 10**4
+"""Most combinations a ``realism`` section may expand to (the product of its lists' lengths)."""
+
+_Sweep = Annotated[list[float], Field(min_length=1, max_length=1000)]
+
+
+def _listed(value: Any) -> Any:
+    """A scalar given for a sweepable realism value is a one-value list (the section's values are lists inside)."""
+    return value if isinstance(value, list) else [value]
+
+
+REALISM_FIELDS = Realism._fields
+"""The swept values of a ``realism`` section, in grid order (last fastest): the fields of
+:class:`selfid_jax.control.realism.Realism`, named the same from YAML to the kernel."""
+
+
+class RealismRows(NamedTuple):
+    """The traced realism values of ``N`` rows (:meth:`RealismConfig.rows`)."""
+
+    realism: Realism  # each field (N,): float64, latency int32
+    settle: np.ndarray | None  # (N,) int32 control steps a self-ID sample waits; None without self-ID
+
+
+class RealismConfig(BaseModel):
+    """The real loop's non-idealities (:mod:`selfid_jax.control.realism`): each value one number or a list to sweep.
+
+    The rows of the experiment's grid are multiplied by every combination of
+    the listed values (a ``realism_level`` axis, the last field fastest), and
+    one compiled program serves them all: every value is traced, the
+    tracker's history is sized by the largest ``latency``. Left out, the
+    experiment runs the ideal loop, exactly as without the section; all
+    values 0 (``realism: {}``) reproduce it bit for bit. The results table
+    gets ``realism_level`` and one column per value. Start configurations
+    are still those from which the ideal loop completes the path with the
+    true inverse Jacobian, so every level starts from the same ones.
+    Each value is one number or a list of them (a sweep).
+    """
+
+    model_config = STRICT
+
+    period: _Sweep = Field([0.0], description="control period [s]; > 0 wherever servo_tau > 0")
+    latency: Annotated[list[Annotated[int, Field(ge=0, le=1000)]], Field(min_length=1, max_length=1000)] = Field(
+        [0], description="whole control steps between a pose and its tracker reading")
+    noise_pos: _Sweep = Field([0.0], description="tracker position noise sd per axis [m]")
+    noise_rot: _Sweep = Field([0.0], description="tracker rotation noise sd per axis [rad]")
+    dropout: _Sweep = Field([0.0], description="probability that a tracker reading is missing, in [0, 0.99]")
+    servo_tau: _Sweep = Field([0.0], description="first-order servo time constant [s] (0: no lag)")
+    deadband: _Sweep = Field([0.0], description="actuator deadband: smaller commanded changes do not move "
+                             "[rad or m]")
+
+    _scalars_are_lists = field_validator(*REALISM_FIELDS, mode="before")(_listed)
+
+    @field_validator("period", "noise_pos", "noise_rot", "dropout", "servo_tau", "deadband")
+    @classmethod
+    def _in_range(cls, values: list[float], info) -> list[float]:
+        hi = {"period": 10.0, "noise_pos": 0.1, "noise_rot": 1.0, "dropout": 0.99, "servo_tau": 100.0,
+              "deadband": 1.0}[info.field_name]
+        bad = [v for v in values if not 0.0 <= v <= hi]
+        if bad:
+            raise ValueError(f"values must lie in [0, {hi:g}], got {bad}")
+        return values
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        for name in self.swept_fields():
+            values = getattr(self, name)
+            if len(set(values)) != len(values):
+                raise ValueError(f"realism.{name}: values must be unique, got {values}")
+        if self.n_levels() > MAX_REALISM_LEVELS:
+            raise ValueError(f"realism: {self.n_levels()} combinations of values; at most {MAX_REALISM_LEVELS}")
+        if any(t > 0 for t in self.servo_tau) and any(p <= 0 for p in self.period):
+            raise ValueError(f"realism.servo_tau {self.servo_tau} needs realism.period > 0 everywhere (the lag per "
+                             f"control step is 1 - exp(-period / servo_tau)), got period {self.period}")
+        return self
+
+    def swept_fields(self) -> tuple[str, ...]:
+        """The section's value names, in grid order."""
+        return REALISM_FIELDS
+
+    def n_levels(self) -> int:
+        """Number of combinations (rows of :meth:`levels`)."""
+        return math.prod(len(getattr(self, f)) for f in self.swept_fields())
+
+    def levels(self) -> list[dict[str, Any]]:
+        """Every combination of the values, ``{name: value}``, the last field fastest."""
+        names = self.swept_fields()
+        return [dict(zip(names, combo)) for combo in itertools.product(*(getattr(self, f) for f in names))]
+
+    def max_latency(self) -> int:
+        """The static history length of the tracker: the largest ``latency``."""
+        return max(self.latency)
+
+    def max_settle(self) -> int:
+        """The static settle-loop length of a self-ID sample: 1 (overridden with ``settle``)."""
+        return 1
+
+    def add_columns(self, meta) -> None:
+        """Write each row's values into ``meta`` (in place) from its ``realism_level`` column."""
+        table = self.levels()
+        idx = meta["realism_level"].to_numpy()
+        for name in self.swept_fields():
+            meta[name] = np.asarray([lvl[name] for lvl in table])[idx]
+
+    def rows(self, meta) -> RealismRows:
+        """The traced values of ``meta``'s rows (after :meth:`add_columns`): :class:`RealismRows` of ``(N,)``."""
+        values = {f: meta[f].to_numpy(np.int32 if f == "latency" else float) for f in REALISM_FIELDS}
+        return RealismRows(Realism(**values), None)
+
+
+class SelfIdRealismConfig(RealismConfig):
+    """:class:`RealismConfig` of an experiment that self-identifies: also how long each self-ID sample waits.
+
+    Each sample of Algorithm 1 reads the tracker, commands the actuation,
+    waits ``settle`` control steps (the actuators lag, the tracker lags) and
+    reads again (:func:`selfid_jax.control.realism.self_id_sampler`).
+    ``realism.noise_pos`` / ``noise_rot`` are the tracker's noise on every
+    reading, self-ID and path following; the experiment's ``pose_noise`` /
+    ``rot_noise`` (self-ID readings only) must then stay 0.
+    """
+
+    settle: Annotated[list[Annotated[int, Field(ge=1, le=1000)]], Field(min_length=1, max_length=1000)] = Field(
+        [1], description="control steps a self-ID sample waits between its command and its second reading")
+
+    _settle_is_a_list = field_validator("settle", mode="before")(_listed)
+
+    def swept_fields(self) -> tuple[str, ...]:
+        return REALISM_FIELDS + ("settle",)
+
+    def max_settle(self) -> int:
+        return max(self.settle)
+
+    def rows(self, meta) -> RealismRows:
+        return super().rows(meta)._replace(settle=meta["settle"].to_numpy(np.int32))
+
+
+def check_realism_noise(realism: RealismConfig | None, pose_noise: list, rot_noise: list, where: str = "") -> None:
+    """``ValueError`` if both the ``realism`` tracker noise and the self-ID-only noise lists are set (two sources of
+    one number)."""
+    if realism is None:
+        return
+    for own, other in (("noise_pos", pose_noise), ("noise_rot", rot_noise)):
+        if any(v > 0 for v in getattr(realism, own)) and any(v > 0 for v in other):
+            name = "pose_noise" if own == "noise_pos" else "rot_noise"
+            raise ValueError(f"{where}realism.{own} is the tracker noise of every reading (self-ID and path "
+                             f"following); leave {where}{name} (self-ID readings only) at [0.0] when it is set")
+
+
+def realism_columns(self_id: bool = True) -> dict[str, str]:
+    """The results-column documentation of a ``realism`` section's columns (present only with the section)."""
+    cols = {
+        "realism_level": "index of the combination of realism values (only with a realism section) [id]",
+        "period": "control period (realism) [s]",
+        "latency": "tracker latency, whole control steps (realism) [steps]",
+        "noise_pos": "tracker position noise sd per axis, every reading (realism) [m]",
+        "noise_rot": "tracker rotation noise sd per axis, every reading (realism) [rad]",
+        "dropout": "probability that a tracker reading is missing (realism) [-]",
+        "servo_tau": "first-order servo time constant, 0: no lag (realism) [s]",
+        "deadband": "actuator deadband (realism) [rad or m: the actuator's unit]",
+    }
+    if self_id:
+        cols["settle"] = "control steps a self-ID sample waits before its second reading (realism) [steps]"
+    return cols
 
 
 class StudyConfig(BaseConfig):

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from jax.typing import ArrayLike
 import numpy as np
 
+from selfid_jax.control import realism as realism_lib
 from selfid_jax.math import geometry
 from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, is_traced
 from selfid_jax.math.linalg import pseudo_inverse
@@ -66,6 +67,11 @@ class FollowResult(NamedTuple):
     positions: jax.Array | None  # (steps + 1, 3) POM positions if return_trajectory, else None
     orientations: jax.Array | None = None  # (steps + 1, 3, 3) POM orientations if return_trajectory, else None
     targets: jax.Array | None = None  # (steps + 1,) int32 waypoint pursued at each of those poses (W when done)
+    # with realism: () int32 tracker readings that dropped out over the active steps; None without
+    dropouts: jax.Array | None = None
+    # with realism and return_trajectory: (steps + 1, 3) tracker positions the controller used at each of those
+    # poses [m]; None otherwise
+    readings: jax.Array | None = None
 
 
 # ------------------------------------------------------------------ inverse-Jacobian sources
@@ -278,17 +284,25 @@ class _Carry(NamedTuple):
     err_max: jax.Array  # () largest path distance over active steps [m]
     used: jax.Array  # () int32 active steps
     wp_err: jax.Array  # (W,) position error when each waypoint was reached [m]; -1 before
+    tracker: realism_lib.Tracker | None = None  # with realism: the tracker's history and last good reading
+    dropouts: jax.Array | None = None  # with realism: () int32 readings that dropped out over the active steps
 
 
-def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams):
-    """Mark the current waypoint reached if ``pose`` is within tolerance; returns ``(carry, active)``."""
+def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams, true_pose=None):
+    """Mark the current waypoint reached if ``pose`` (what the controller sees) is within tolerance, recording the
+    position error of ``true_pose`` (default ``pose``) then; returns ``(carry, active)``."""
     W = task.targets.shape[0]
     active = (carry.waypoint < W) & ~carry.failed
     e_p, e_r = task.error(pose, carry.waypoint)
     reached = active & task.reached(e_p, e_r, ctrl)
     wc = jnp.minimum(carry.waypoint, W - 1)
+    if true_pose is None:
+        e_true = e_p
+    else:  # the seen error itself where the reading is the pose (no latency, no noise): the ideal loop's number
+        same = jnp.all(pose[0] == true_pose[0])
+        e_true = jnp.where(same, e_p, task.error(true_pose, carry.waypoint)[0])
     carry = carry._replace(
-        wp_err=jnp.where(reached, carry.wp_err.at[wc].set(safe_norm(e_p)), carry.wp_err),
+        wp_err=jnp.where(reached, carry.wp_err.at[wc].set(safe_norm(e_true)), carry.wp_err),
         waypoint=carry.waypoint + reached.astype(carry.waypoint.dtype),
     )
     return carry, active & (carry.waypoint < W)
@@ -324,6 +338,9 @@ def follow_law(
     *,
     steps: int = DEFAULT_STEPS,
     return_trajectory: bool = False,
+    realism: realism_lib.Realism | None = None,
+    key: jax.Array | None = None,
+    max_latency: int | None = None,
 ) -> tuple[FollowResult, Any]:
     """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)``, each actuator step from ``law``.
 
@@ -339,6 +356,25 @@ def follow_law(
     (default ``2 max|path| + 10 tol``) is frozen and flagged ``failed``;
     ``q`` and the law's state change only on steps that move.
 
+    With ``realism`` (a :class:`~selfid_jax.control.realism.Realism`, every
+    field traceable) the loop is the real one of
+    :mod:`selfid_jax.control.realism`: the controller sees the tracker's
+    reading instead of the pose (:func:`~selfid_jax.control.realism.read`: the
+    pose ``latency`` steps ago, noisy, the last good reading on a dropout,
+    counted in ``dropouts``) for the waypoint test, the twist and
+    ``law.step``; it commands the target ``u = system.apply(q, dq)`` from the
+    measured ``q`` (the law's Jacobian is taken there too); and the actuators
+    reach ``q' = servo(q, u)`` (lag, deadband). The metrics, the divergence
+    test and the trajectory are of the true pose; the waypoint error is the
+    true one when the controller declared the waypoint reached; the path is
+    anchored at the true start pose. ``key`` (required) draws the noise and
+    dropouts, one split per step; ``max_latency`` (static) sizes the
+    tracker's history (default: ``realism.latency``, which must then be
+    concrete; a traced latency is clipped to it). A law that reads poses
+    itself (the E-KM's online mode) sees them without these effects.
+    ``realism=None`` is the ideal loop (what :data:`~selfid_jax.control.realism.IDEAL`
+    reproduces bit for bit).
+
     Arguments, checks and metrics as :func:`follow`. Returns
     ``(FollowResult, final law state)``.
     """
@@ -353,15 +389,37 @@ def follow_law(
     if ctrl.diverge_dist is None:
         reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(task.pos_axes)] ** 2, axis=-1)))
         ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
+    real = realism is not None
+    r = realism_lib.IDEAL  # the values the realistic loop uses (only when real)
+    history = 0  # the tracker's history length - 1 (only when real)
+    keys = None
+    if realism is not None:
+        r = realism_lib.check_realism(realism)
+        history = realism_lib.latency_bound(r, max_latency)
+        realism_lib.check_max_latency(r, history)
+        if key is None:
+            raise ValueError("follow: a key is required with realism (it draws the tracker noise and dropouts)")
+        keys = jax.random.split(key, steps + 1)
 
-    def step(carry: _Carry, _):
+    def see(carry: _Carry, pose, k):
+        """What the controller sees of the true ``pose`` this step, and the carry with the tracker advanced."""
+        if carry.tracker is None:
+            return pose, carry, None
+        tr = realism_lib.push(carry.tracker, pose)
+        seen, dropped, tr = realism_lib.read(tr, k, r)
+        return seen, carry._replace(tracker=tr), dropped
+
+    def step(carry: _Carry, k):
         pose, aux = law.sense(carry.law, carry.q)
         dist = task.path_distance(pose[0])
-        carry, active = _advance(task, carry, pose, ctrl)
-        e_p, e_r = task.error(pose, carry.waypoint)
+        seen, carry, dropped = see(carry, pose, k)
+        carry, active = _advance(task, carry, seen, ctrl, pose if real else None)
+        e_p, e_r = task.error(seen, carry.waypoint)
         V = task.twist(e_p, e_r, ctrl)
-        dq, learned, ok = law.step(carry.law, carry.q, pose, aux, V)
+        dq, learned, ok = law.step(carry.law, carry.q, seen, aux, V)
         q_new = system.apply(carry.q, dq)
+        if real:
+            q_new = realism_lib.servo(carry.q, q_new, r)
         # a pose map returns NaN where its solve failed (closed-chain hands): that fails the rollout too
         finite = jnp.all(jnp.isfinite(q_new)) & ok & jnp.all(jnp.isfinite(pose[0]))
         failed = carry.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
@@ -375,7 +433,12 @@ def follow_law(
             err_max=jnp.maximum(carry.err_max, counted),
             used=carry.used + active.astype(carry.used.dtype),
         )
-        return carry, ((pose, carry.waypoint) if return_trajectory else None)
+        if real:
+            carry = carry._replace(dropouts=carry.dropouts + (active & dropped).astype(jnp.int32))
+        out = None
+        if return_trajectory:
+            out = (pose, carry.waypoint, seen[0]) if real else (pose, carry.waypoint)
+        return carry, out
 
     init = _Carry(
         q=q0,
@@ -387,10 +450,14 @@ def follow_law(
         err_max=jnp.zeros((), dtype),
         used=jnp.zeros((), jnp.int32),
         wp_err=jnp.full((W,), -1.0, dtype),
+        tracker=realism_lib.tracker(pose0, history) if real else None,
+        dropouts=jnp.zeros((), jnp.int32) if real else None,
     )
-    carry, traj = jax.lax.scan(step, init, None, length=steps)
+    carry, traj = jax.lax.scan(step, init, None if keys is None else keys[:-1], length=steps)
     pose_end = system.pose(carry.q)
-    carry, _ = _advance(task, carry, pose_end, ctrl)  # the last move may have reached a waypoint
+    # the last move may have reached a waypoint (as the controller sees it: one more reading)
+    seen_end, carry, _ = see(carry, pose_end, None if keys is None else keys[-1])
+    carry, _ = _advance(task, carry, seen_end, ctrl, pose_end if real else None)
     end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(pose_end[0])[None]) ** 2, axis=-1))
     wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
     result = FollowResult(
@@ -404,6 +471,8 @@ def follow_law(
         positions=jnp.concatenate([traj[0][0], pose_end[0][None, :]], axis=0) if return_trajectory else None,
         orientations=jnp.concatenate([traj[0][1], pose_end[1][None]], axis=0) if return_trajectory else None,
         targets=jnp.concatenate([traj[1], carry.waypoint[None]]) if return_trajectory else None,
+        dropouts=carry.dropouts,
+        readings=jnp.concatenate([traj[2], seen_end[0][None, :]], axis=0) if return_trajectory and real else None,
     )
     return result, carry.law
 
@@ -417,6 +486,9 @@ def follow(
     *,
     steps: int = DEFAULT_STEPS,
     return_trajectory: bool = False,
+    realism: realism_lib.Realism | None = None,
+    key: jax.Array | None = None,
+    max_latency: int | None = None,
 ) -> FollowResult:
     """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)`` with ``dtheta = Jinv @ V``.
 
@@ -444,7 +516,16 @@ def follow(
       steps: static step budget.
       return_trajectory: also return the ``(steps + 1, 3)`` POM positions,
         ``(steps + 1, 3, 3)`` orientations (at the start of each step, then at
-        the end) and the ``(steps + 1,)`` index of the waypoint pursued then.
+        the end) and the ``(steps + 1,)`` index of the waypoint pursued then
+        (with ``realism`` also the ``(steps + 1, 3)`` tracker positions the
+        controller used: ``readings``).
+      realism, key, max_latency: the real loop's non-idealities
+        (:mod:`selfid_jax.control.realism`; see :func:`follow_law`): with a
+        :class:`~selfid_jax.control.realism.Realism` the controller sees
+        delayed, noisy tracker readings with dropouts (counted in
+        ``dropouts``) and the actuators lag and have a deadband; ``key``
+        draws the noise; ``max_latency`` (static) bounds a traced latency.
+        None (default): the ideal loop.
 
     A rollout whose state or pose turns non-finite (a closed-chain hand's pose
     map returns NaN where its solve fails or leaves the equilibrium branch) or
@@ -456,7 +537,7 @@ def follow(
     settings and an inverse Jacobian of the wrong shape raise ``ValueError``.
     """
     return follow_law(system, inverse_jacobian_law(system, jinv), path, q0, controller, steps=steps,
-                      return_trajectory=return_trajectory)[0]
+                      return_trajectory=return_trajectory, realism=realism, key=key, max_latency=max_latency)[0]
 
 
 def feasible_indices(system: System, valid, completion, failed, k: int) -> np.ndarray:

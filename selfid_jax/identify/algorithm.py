@@ -17,6 +17,7 @@ from jax.typing import ArrayLike
 import numpy as np
 
 from selfid_jax.identify import estimator
+from selfid_jax.math.geometry import noisy_pose  # noqa: F401 - re-exported: algorithm.noisy_pose
 from selfid_jax.math.checks import check_positive_int, check_scalar, float_dtype
 from selfid_jax.identify.refine import needs_samples, refine
 
@@ -140,18 +141,6 @@ def self_identify(
         V=Vs,
         env=env,
     )
-
-
-def noisy_pose(key, pose, pose_noise, rot_noise):
-    """A tracker reading of ``pose = (p (3,), R (3, 3))``: ``p + N(0, pose_noise^2)`` (m), ``exp(N(0, rot_noise^2)) R``
-    (rad)."""
-    from selfid_jax.math import geometry
-
-    p, R = pose
-    kp, kr = jax.random.split(key)
-    p = p + pose_noise * jax.random.normal(kp, p.shape, p.dtype)
-    R = geometry.so3_exp(rot_noise * jax.random.normal(kr, (3,), R.dtype)) @ R
-    return p, R
 
 
 def run(

@@ -13,10 +13,11 @@ unit (metres for the shipped systems).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import jaxlie
 
-__all__ = ["hat", "so3_exp", "so3_log", "rotation_to_quaternion", "pose_difference"]
+__all__ = ["hat", "so3_exp", "so3_log", "rotation_to_quaternion", "pose_difference", "noisy_pose"]
 
 
 def _as_float(x):
@@ -117,3 +118,18 @@ def pose_difference(p_t, R_t, p_prev, R_prev):
     dtype = jnp.result_type(dp, dr)
     dp, dr = jnp.broadcast_arrays(dp.astype(dtype), dr.astype(dtype))
     return jnp.concatenate([dp, dr], axis=-1)
+
+
+def noisy_pose(key, pose, pose_noise, rot_noise):
+    """A tracker reading of ``pose = (p (3,), R (3, 3))``: ``p + N(0, pose_noise^2)`` per axis (m) and
+    ``exp(N(0, rot_noise^2 I)) R``, a random rotation vector of ``rot_noise`` rad per axis.
+
+    ``key`` is split once, position noise first. The one tracker-noise model of
+    the self-ID sampling (:func:`selfid_jax.identify.algorithm.run`) and of the
+    realism readings (:mod:`selfid_jax.control.realism`).
+    """
+    p, R = pose
+    kp, kr = jax.random.split(key)
+    p = p + pose_noise * jax.random.normal(kp, p.shape, p.dtype)
+    R = so3_exp(rot_noise * jax.random.normal(kr, (3,), R.dtype)) @ R
+    return p, R
