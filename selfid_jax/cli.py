@@ -32,11 +32,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if argv is None:
         signals.install()
     from selfid_jax.app import fit
-    from selfid_jax.app import online
+    from selfid_jax.app import online, robot_sim
     from selfid_jax.runner import cli
 
     return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None,
-                    commands={"fit": fit.command(), "online": online.command()}, config_dirs=_config_dirs())
+                    commands={"fit": fit.command(), "online": online.command(),
+                              "robot-sim": robot_sim.command()}, config_dirs=_config_dirs())
 
 
 if __name__ == "__main__":

@@ -195,13 +195,10 @@ def connect(section: RobotSection):
             raise ConfigError(f"{key}: cannot connect with {section.driver}: {err}") from None
     else:
         key = "robot.host"
+        from selfid_jax.robot.transport import RemoteRobot
+
         try:
-            RemoteRobot = importlib.import_module("selfid_jax.robot.transport").RemoteRobot  # noqa: N806
-        except (ImportError, AttributeError):
-            raise ConfigError(f"{key}: the TCP client (selfid_jax.robot.transport) is not in this installation; "
-                              "use robot.driver") from None
-        try:
-            robot = RemoteRobot(section.host, section.port, timeout=section.timeout_s)
+            robot = RemoteRobot(str(section.host), int(section.port or 0), timeout_s=section.timeout_s)
         except (RobotError, OSError) as err:
             raise ConfigError(f"{key}: cannot connect to {section.host}:{section.port}: {err}") from None
     if not isinstance(robot, Robot):

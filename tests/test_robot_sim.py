@@ -1,0 +1,228 @@
+"""The virtual robot over TCP on localhost (`selfid-jax robot-sim` in a process of its own) driven by the online
+runner end to end: self-ID, convergence, a star; and faults: tracker dropouts, a latency spike, a frozen tracker,
+the simulator killed mid-run (the runner stops, its log is intact, resume continues)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from selfid_jax.robot import online
+from selfid_jax.robot.journal import read_journal
+from selfid_jax.robot.protocol import RobotConnectionError, RobotError
+from selfid_jax.robot.transport import RemoteRobot, RobotServer
+
+pytestmark = pytest.mark.slow  # subprocesses with JAX and a real-time clock
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+UR5E_XML = Path(__file__).resolve().parents[1] / "selfid_jax" / "systems" / "assets" / "ur5e.xml"
+
+
+class Sim:
+    """``selfid-jax robot-sim CONFIG --port 0`` in a subprocess; ``port`` once it listens."""
+
+    def __init__(self, console, tmp_path: Path, text: str, name: str = "sim"):
+        self.cfg = tmp_path / f"{name}.yaml"
+        self.cfg.write_text(textwrap.dedent(text))
+        port_file = tmp_path / f"{name}.port"
+        self.proc = subprocess.Popen([*console, "robot-sim", str(self.cfg), "--port", "0", "--port-file",
+                                      str(port_file)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        deadline = time.monotonic() + 120
+        while not port_file.exists():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"robot-sim did not start: {self.proc.communicate(timeout=5)[0]}")
+            time.sleep(0.1)
+        self.port = int(port_file.read_text())
+
+    def stop(self) -> str:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        return self.proc.communicate(timeout=30)[0]
+
+
+@pytest.fixture
+def sims(console, tmp_path):
+    started: list[Sim] = []
+
+    def start(text, name="sim"):
+        started.append(Sim(console, tmp_path, text, name))
+        return started[-1]
+
+    yield start
+    for s in started:
+        if s.proc.poll() is None:
+            s.proc.kill()
+            s.proc.communicate(timeout=30)
+
+
+UR5E = """\
+    system: ur5e
+    max_step: 0.05
+    realism: {period: 0.01, latency: 2, noise_pos: 0.0, dropout: 0.0, servo_tau: 0.02}
+    seed: 0
+    """
+
+
+def _mujoco_site(q) -> np.ndarray:
+    """MuJoCo's own position of the UR5e's flange site at joint positions ``q``."""
+    model = mujoco.MjModel.from_xml_path(str(UR5E_XML))
+    data = mujoco.MjData(model)
+    data.qpos[:] = q
+    mujoco.mj_kinematics(model, data)
+    return data.site("ee").xpos.copy()
+
+
+def test_client_sees_the_model_pose_servo_lag_latency_and_refused_moves(sims):
+    sim = sims(UR5E)
+    robot = RemoteRobot("127.0.0.1", sim.port, timeout_s=10)
+    lim = robot.limits()
+    o = robot.read()
+    np.testing.assert_allclose(o.position, _mujoco_site(o.q), atol=1e-12)  # at rest: the pose of q itself
+    assert o.valid and abs((o.t - o.tracker_t) - 0.02) < 1e-9  # two periods of latency
+    target = o.q.copy()
+    target[1] += 0.04
+    robot.move(target)
+    seen = []
+    t_end = time.monotonic() + 0.6
+    while time.monotonic() < t_end:
+        seen.append(robot.read())
+        time.sleep(0.003)
+    gaps = np.array([abs(r.q[1] - target[1]) for r in seen])
+    assert gaps[0] > 1e-3 and gaps[-1] < 1e-8  # servo lag: not there at once, there within 0.6 s (30 tau)
+    k = np.array([r.t for r in seen])
+    moving = (gaps > 1e-6) & (gaps < 0.035) & np.r_[True, np.diff(k) > 0]  # one reading per tick
+    tau = -np.diff(k[moving]) / np.diff(np.log(gaps[moving]))  # first order: gap ~ exp(-t / tau)
+    np.testing.assert_allclose(np.median(tau), 0.02, rtol=0.05)
+    late = seen[len(seen) // 4]  # mid-motion: the tracker shows the pose of two ticks before
+    assert abs(late.t - late.tracker_t - 0.02) < 1e-9
+    with pytest.raises(RobotError, match="outside the limits"):
+        robot.move(np.where(np.arange(6) == 0, lim.upper + 0.1, seen[-1].q))
+    with pytest.raises(RobotError, match="more than max_step"):
+        robot.move(seen[-1].q + 0.2)
+    with pytest.raises(RobotError, match="7 entries"):
+        robot.move(np.zeros(7))
+    time.sleep(0.1)
+    np.testing.assert_allclose(robot.read().q, seen[-1].q, atol=1e-12)  # refused moves moved nothing
+    robot.close()
+    robot.close()  # idempotent
+    assert "robot-sim: serving ur5e" in sim.stop()
+
+
+def test_online_ur5e_and_model_o_self_identify_then_follow_a_star_with_no_random_move_after(sims, tmp_path,
+                                                                                             console):
+    """The shipped pair of configs, end to end through both commands (real processes, real sockets)."""
+    for name in ("ur5e", "model_o"):
+        sim = sims((CONFIGS / f"robot_sim_{name}.yaml").read_text(), name)
+        out = tmp_path / f"online_{name}"
+        done = subprocess.run([*console, "online", str(CONFIGS / f"online_{name}.yaml"), "--out", str(out),
+                               "--set", f"robot.port={sim.port}"], capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["status"] == "completed" and summary["converged_at"] >= 2, summary
+        records = read_journal(out / online.LOG_FILE).records
+        at = next(i for i, r in enumerate(records) if r["e"] == "converged")
+        assert all(r.get("phase") != "selfid" for r in records[at:] if r["e"] == "move")  # no random move after
+        moves = [r for r in records if r["e"] == "move" and r["phase"] == "selfid"]
+        rejected = sum(1 for r in records if r["e"] == "sample" and not r.get("accepted", True))
+        assert len(moves) == summary["converged_at"] + rejected
+        sim.stop()
+
+
+def test_dropouts_are_rejected_and_a_latency_spike_or_a_frozen_tracker_stops_safely(sims, tmp_path):
+    sim = sims("""\
+        system: ur5e
+        max_step: 0.05
+        realism: {period: 0.01, latency: 1, noise_pos: 1.0e-5, dropout: 0.3, servo_tau: 0.01}
+        seed: 1
+        """, "dropouts")
+    opts = online.OnlineOptions(m_a=0.03, eps_rel=0.05, max_samples=150, settle_s=0.08, stale_s=0.5)
+    res = online.run_online(RemoteRobot("127.0.0.1", sim.port, timeout_s=5), opts, tmp_path / "dropouts")
+    assert res.status == online.Stop.CONVERGED and res.rejected.get("dropout", 0) >= 1
+    assert res.moves == res.converged_at + sum(res.rejected.values())
+
+    spike = sims("""\
+        system: ur5e
+        max_step: 0.05
+        realism: {period: 0.01}
+        faults: {latency_spike: {at_s: 0.0, duration_s: 600.0, extra_s: 3.0}}
+        """, "spike")
+    with pytest.raises(RobotConnectionError, match="no reply"):
+        RemoteRobot("127.0.0.1", spike.port, timeout_s=1.0).read()
+
+    frozen = sims("""\
+        system: ur5e
+        max_step: 0.05
+        realism: {period: 0.01}
+        faults: {freeze_tracker_at_s: 0.0}
+        """, "frozen")
+    t0 = time.monotonic()
+    res = online.run_online(RemoteRobot("127.0.0.1", frozen.port, timeout_s=5),
+                            opts._replace(stale_s=0.3), tmp_path / "frozen")
+    assert res.status == online.Stop.STALE and time.monotonic() - t0 < 30
+    assert res.samples == 0
+
+
+def test_simulator_killed_mid_run_stops_cleanly_and_resume_continues(sims, tmp_path):
+    text = """\
+        system: ur5e
+        max_step: 0.05
+        realism: {period: 0.01, latency: 1, noise_pos: 1.0e-5, servo_tau: 0.01}
+        seed: 2
+        """
+    sim = sims(text, "first")
+    run_dir = tmp_path / "run"
+    opts = online.OnlineOptions(m_a=0.03, eps_rel=0.02, max_samples=200, settle_s=0.08)
+    box: dict = {}
+    thread = threading.Thread(target=lambda: box.update(
+        res=online.run_online(RemoteRobot("127.0.0.1", sim.port, timeout_s=2), opts, run_dir)))
+    thread.start()
+    log = run_dir / online.LOG_FILE
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (log.exists() and log.read_bytes().count(b'"e":"sample"') >= 4):
+        time.sleep(0.02)
+    os.kill(sim.proc.pid, signal.SIGKILL)
+    thread.join(timeout=60)
+    res = box["res"]
+    assert res.status == online.Stop.CONNECTION, res.detail
+    records = read_journal(log).records  # intact: every line parses (a cut last line would be counted)
+    assert records[-1]["e"] == "stop" and records[-1]["reason"] == "connection"
+    done = sum(1 for r in records if r["e"] == "sample")
+    assert done >= 4
+    again = sims(text, "second")
+    res2 = online.run_online(RemoteRobot("127.0.0.1", again.port, timeout_s=5), opts, run_dir, resume=True)
+    assert res2.replayed == res.samples and res2.status == online.Stop.CONVERGED
+    assert res2.samples > res.samples
+
+
+def test_server_answers_bad_requests_without_moving(tmp_path):
+    """The server's own checks, in process: malformed requests get an error reply, the robot does not move."""
+    moves = []
+
+    class Recorder:
+        def limits(self):
+            from selfid_jax.robot.protocol import RobotLimits
+
+            return RobotLimits(np.zeros(2), np.ones(2), np.full(2, 0.1))
+
+        def move(self, target):
+            moves.append(target)
+
+        def close(self):
+            pass
+
+    server = RobotServer(Recorder())
+    assert server.handle({"op": "move", "target": "x"})["ok"] is False
+    assert server.handle({"op": "launch"})["error"].startswith("unknown op 'launch'")
+    assert moves == []
+    assert server.handle({"op": "limits"})["upper"] == [1.0, 1.0]
+    server.shutdown()
