@@ -20,6 +20,13 @@ def _config_dirs() -> tuple[tuple[str, Path], ...]:
     return (("./configs", Path("configs")), ("installed", Path(str(resources.files("selfid_jax") / "configs"))))
 
 
+def commands() -> dict:
+    """The package's subcommands beside the runner's: ``fit``, ``online`` and ``robot-sim`` (:mod:`selfid_jax.app`)."""
+    from selfid_jax.app import fit, online, robot_sim
+
+    return {"fit": fit.command(), "online": online.command(), "robot-sim": robot_sim.command()}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.cli.main` with the built-in systems and ``fit``
     (:mod:`selfid_jax.app.fit`); the exit code.
@@ -31,13 +38,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     if argv is None:
         signals.install()
-    from selfid_jax.app import fit
-    from selfid_jax.app import online, robot_sim
     from selfid_jax.runner import cli
 
     return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None,
-                    commands={"fit": fit.command(), "online": online.command(),
-                              "robot-sim": robot_sim.command()}, config_dirs=_config_dirs())
+                    commands=commands(), config_dirs=_config_dirs())
 
 
 if __name__ == "__main__":
