@@ -42,6 +42,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, Magnitude, P
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
+from selfid_jax.experiments.common.schema import StartsConfig
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
@@ -65,7 +66,7 @@ class MethodSpec(BaseModel):
                                         "(experiments/ablation_ekm.py)")
 
 
-class AblationConfig(StudyConfig):
+class AblationConfig(StudyConfig, StartsConfig):
     """Estimation ablation on the UR5e (Sec. V-A)."""
 
     experiment: Literal["ablation"] = "ablation"
@@ -228,7 +229,7 @@ def _build(cfg: AblationConfig) -> Part:
     path = paths.star(size=cfg.path.size, dim=system.task_dim)
     configs = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed), cfg.n_configs,
                                                  control.ControllerParams(**cfg.controller.traced()),
-                                                 steps=cfg.controller.steps))
+                                                 steps=cfg.controller.steps, oversample=cfg.oversample))
     n = len(meta)
     params = Params(
         key=row_keys(cfg.seed, n),

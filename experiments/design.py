@@ -65,6 +65,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, 
 from selfid_jax.runner.config import STRICT, stop_after_start
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.experiments.common.schema import StartsConfig
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
@@ -136,7 +137,7 @@ class Protocol(NamedTuple):
     m_a: Any = None  # the reference design's m_a key (None: the system's own; common.schema.resolve_m_a)
 
 
-class DesignConfig(StudyConfig):
+class DesignConfig(StudyConfig, StartsConfig):
     """Self-ID magnitude design per system and tracker-noise level: grid, gradient refinement, held-out comparison."""
 
     experiment: Literal["design"] = "design"
@@ -280,7 +281,7 @@ def _system_part(cfg: DesignConfig, proto: Protocol, index: int) -> Part:
     path = paths.star(size=proto.path.size, dim=6)[:, list(system.axes)]
     ctrl = control.ControllerParams(**proto.controller.traced())
     q0s = np.asarray(control.feasible_starts(system, path, jax.random.key(cfg.seed + index), cfg.n_configs, ctrl,
-                                             steps=proto.controller.steps))
+                                             steps=proto.controller.steps, oversample=cfg.oversample))
     meta = grid_table({"system": [name], "noise_level": range(len(proto.pose_noise))})
     meta["pose_noise"] = np.asarray(proto.pose_noise, float)[meta["noise_level"]]
     meta["rot_noise"] = np.asarray(proto.rot_noise, float)[meta["noise_level"]]

@@ -41,6 +41,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
+from selfid_jax.experiments.common.schema import StartsConfig
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
@@ -109,7 +110,7 @@ class TrackingPath(BaseModel):
                 "rotation": float("inf")}[self.kind]
 
 
-class TrackingConfig(StudyConfig, SelfIdConfig):
+class TrackingConfig(StudyConfig, SelfIdConfig, StartsConfig):
     """Self-ID then path tracking with the estimate and the truth, over configs x trials x tracker noise."""
 
     experiment: Literal["tracking"] = "tracking"
@@ -268,7 +269,7 @@ def _build(cfg: TrackingConfig) -> Part:
     longest = int(np.argmax([paths.path_length(w) for w in np.asarray(path)]))
     q0 = np.asarray(control.feasible_starts(system, path[longest], jax.random.key(cfg.seed), cfg.n_configs,
                                             control.ControllerParams(**cfg.controller.traced()),
-                                            steps=cfg.controller.steps))
+                                            steps=cfg.controller.steps, oversample=cfg.oversample))
     n = len(meta)
     params = Params(
         letter=meta["letter_id"].to_numpy(np.int32), key=row_keys(cfg.seed, n), q0=q0[meta["config_id"].to_numpy()],

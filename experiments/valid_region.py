@@ -37,6 +37,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, EpsLimits, H
                                                   StudyConfig, realism_columns)
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
+from selfid_jax.experiments.common.schema import StartsConfig
 from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
@@ -67,7 +68,7 @@ def protocol(cfg: ValidRegionConfig, entry) -> tuple[object, PathConfig, Control
     return entry, cfg.path, cfg.controller
 
 
-class ValidRegionConfig(StudyConfig):
+class ValidRegionConfig(StudyConfig, StartsConfig):
     """Valid inverse-Jacobian region study (paper Sec. III-C, Fig. 2).
 
     Every rollout scales the true inverse Jacobian elementwise by ``m_eps`` with
@@ -208,7 +209,7 @@ def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller:
     static = Static(system, path, controller.steps,
                     None if cfg.realism is None else cfg.realism.max_latency())
     configs = feasible_configs(static, jax.random.key(cfg.seed), cfg.n_configs, controller,
-                               batch=compiled_batch(len(meta), cfg.chunk_size))
+                               batch=compiled_batch(len(meta), cfg.chunk_size), oversample=cfg.oversample)
     params = Params(
         eps_limit=meta["eps_limit"].to_numpy(float),
         key=row_keys(cfg.seed, len(meta)),

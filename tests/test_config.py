@@ -274,3 +274,16 @@ def test_set_reaches_list_entries_by_index(cfg_file):
     assert "index it by number" in msg and "'two_link'" not in msg  # the list is not printed
     msg = _error(cfg_file, [base, "systems.1.controller.steps=-4"])
     assert "key 'systems[1].controller.steps'" in msg and "(from --set systems.1.controller.steps=-4)" in msg
+
+
+def test_oversample_is_a_config_key_and_the_advice_names_it(cfg_file):
+    """The 'too few feasible starts' advice names ``oversample``, which configs now accept."""
+    assert load_config(cfg_file).oversample == 4
+    assert load_config(cfg_file, ["oversample=12"]).oversample == 12
+    assert "oversample" in _error(cfg_file, ["oversample=0"])
+    import numpy as np
+
+    from selfid_jax import control, systems
+
+    with pytest.raises(ValueError, match="raise oversample: the feasible_starts argument, or the config key"):
+        control.feasible_indices(systems.two_link(), np.zeros(4, bool), np.ones(4), np.zeros(4, bool), 2)

@@ -270,3 +270,14 @@ def test_feasible_indices_selects_the_first_k_and_names_the_shortfall():
         control.feasible_indices(ARM, valid, jnp.asarray(completion), jnp.asarray(failed), 4)
     np.testing.assert_array_equal(control.completed(jnp.asarray(completion), jnp.asarray(failed)),
                                   [True, False, True, False, True, True])
+
+
+def test_a_path_of_the_wrong_width_names_the_task_and_the_fix():
+    import jax
+
+    import selfid_jax as sj
+
+    arm = sj.two_link()
+    q0 = arm.sample_configs(jax.random.key(0), 1)[0]
+    with pytest.raises(ValueError, match=r"for the 2-D task of 'two_link', got \(10, 3\).*paths.star\(size, dim=2\)"):
+        sj.follow(arm, sj.control.true_inverse(arm), sj.paths.star(size=0.05, dim=3), q0)

@@ -21,8 +21,8 @@ from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
 __all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig",
            "REALISM_FIELDS", "RealismConfig", "RealismRows", "SelfIdConfig", "SelfIdMagnitude", "SelfIdRealismConfig",
-           "StudyConfig", "add_m_a_columns", "check_noise_pairs", "check_realism_noise", "controller_rows",
-           "format_m_a", "m_a_columns", "m_a_summary", "realism_columns", "resolve_m_a"]
+           "StartsConfig", "StudyConfig", "add_m_a_columns", "check_noise_pairs", "check_realism_noise",
+           "controller_rows", "format_m_a", "m_a_columns", "m_a_summary", "realism_columns", "resolve_m_a"]
 
 
 HostOrDevice: TypeAlias = jax.Array | np.ndarray
@@ -383,6 +383,15 @@ class StudyConfig(BaseConfig):
         if isinstance(path, PathConfig) and isinstance(controller, ControllerConfig):
             path.check_controller(controller)
         return self
+
+
+class StartsConfig(BaseModel):
+    """The start configurations' search: ``n_configs * oversample`` candidates, the first that the truth completes."""
+
+    model_config = STRICT
+
+    oversample: int = Field(4, ge=1, le=1000, description="candidate start configurations drawn per one kept "
+                            "(raise it when too few candidates complete the path with the true inverse Jacobian)")
 
 
 def controller_rows(controller: ControllerConfig, n_rows: int):

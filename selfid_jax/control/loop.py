@@ -312,6 +312,10 @@ def _check_inputs(system: System, path, q0, controller, steps):
     """Eager checks of the followers: shapes, concrete non-finite inputs, positive controller settings."""
     steps = check_positive_int("steps", steps)
     check_array("q0", q0, (system.n_act,))
+    if np.ndim(path) == 2 and np.shape(path)[1] != system.task_dim:
+        raise ValueError(f"path: expected shape ('*', {system.task_dim}) for the {system.task_dim}-D task of "
+                         f"{system.name!r}, got {tuple(np.shape(path))}: a path has one column per task axis; "
+                         f"build it with paths.star(size, dim={system.task_dim})")
     check_array("path", path, (None, system.task_dim))
     if not isinstance(controller, ControllerParams):
         raise TypeError(f"controller must be a ControllerParams, got {type(controller).__name__}")
@@ -553,7 +557,8 @@ def feasible_indices(system: System, valid, completion, failed, k: int) -> np.nd
     if idx.shape[0] < k:
         raise ValueError(
             f"only {int(idx.shape[0])} of {ok.shape[0]} sampled configurations of {system.name!r} complete "
-            f"the path with the true inverse Jacobian; need {k} (raise oversample, shrink the path or the box)"
+            f"the path with the true inverse Jacobian; need {k} (raise oversample: the feasible_starts argument, "
+            "or the config key of the same name; or shrink the path or the sampling box)"
         )
     return idx[:k]
 
