@@ -94,7 +94,7 @@ def test_output_path_is_checked_before_any_compute(tmp_path, capsys, monkeypatch
     monkeypatch.setattr(runner_cli, "_build", no_compute)
     a_file = tmp_path / "results.txt"
     a_file.write_text("user data\n")
-    for out, words in ((a_file, "so it cannot be the run directory"), (a_file / "run", f"a folder of {a_file}")):
+    for out, words in ((a_file, "exists and is a file, not a directory"), (a_file / "run", f"has a file, {a_file}")):
         assert cli.main(["demo", "--out", str(out)]) == 2
         err = capsys.readouterr().err
         assert str(a_file) in err and words in err

@@ -218,13 +218,10 @@ def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progre
     from selfid_jax.runner import signals
     from selfid_jax.runner.sweep import clear_stop, request_stop, stop_requested as sweep_stop_requested
 
-    from selfid_jax.runner.rundir import RunDirError, check_output_dir
+    from selfid_jax.runner.lock import check_run_dir
 
     signals.phase("setup")
-    try:
-        check_output_dir(run_dir)
-    except RunDirError as err:
-        raise _UsageError(str(err)) from None
+    check_run_dir(run_dir)  # before any compute: a file in the way, an unwritable folder (RunDirError, exit 2)
     parts = _build(exp, cfg, str(config_path) if config_path is not None else exp.name)
     received: list[int] = []
     t0 = time.perf_counter()

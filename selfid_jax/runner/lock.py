@@ -38,15 +38,27 @@ def is_held(run_dir: str | Path) -> bool:
         return Path(run_dir).resolve() in _HELD
 
 
-def make_run_dir(run_dir: str | Path) -> Path:
-    """Create ``run_dir`` (and its parents) or raise :class:`RunDirError` saying why it cannot be one."""
+def check_run_dir(run_dir: str | Path) -> Path:
+    """``Path(run_dir)`` if it is a directory or can be made one; else :class:`RunDirError` saying why (a file in
+    the way, a nearest existing folder that cannot be written). Creates nothing."""
     run_dir = Path(run_dir)
     for p in (run_dir, *run_dir.parents):
         if p.exists():
             if not p.is_dir():
                 what = "exists and is a file" if p == run_dir else f"has a file, {p}, as a parent"
                 raise RunDirError(f"{run_dir}: {what}, not a directory; choose another --out")
+            if not os.access(p, os.W_OK | os.X_OK):
+                raise RunDirError(f"{p}: not writable; make it writable, or choose another --out")
             break
+        if p.is_symlink():
+            raise RunDirError(f"{p}: a dangling symbolic link in the way of {run_dir}; remove it or choose another "
+                              "--out")
+    return run_dir
+
+
+def make_run_dir(run_dir: str | Path) -> Path:
+    """Create ``run_dir`` (and its parents) or raise :class:`RunDirError` saying why it cannot be one."""
+    run_dir = check_run_dir(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     return run_dir
 

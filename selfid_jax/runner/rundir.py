@@ -17,7 +17,6 @@ import json
 import platform
 import shlex
 import shutil
-import os
 import subprocess
 import sys
 from collections.abc import Mapping, Sequence
@@ -46,7 +45,6 @@ from selfid_jax.runner.lock import is_held
 from selfid_jax.runner.manifest import finished_tables
 
 __all__ = [
-    "check_output_dir",
     "RESULTS_FILE",
     "write_results",
     "SUMMARY_FILE",
@@ -232,30 +230,6 @@ def record_refused(run_dir: str | Path, reason: str, *, config_path=None, overri
         write_json(vfile, data)
     except (RunDirError, OSError):
         pass
-
-
-def check_output_dir(out: str | Path) -> Path:
-    """``Path(out)`` if a run directory can be made or reopened there, checked before any compute starts.
-
-    Raises:
-      RunDirError: ``out`` (or a folder on its way) exists and is not a directory, or the nearest
-        existing folder cannot be written; the message names the path.
-    """
-    run_dir = Path(out)
-    probe = run_dir
-    while not probe.exists():
-        if probe.is_symlink():
-            raise RunDirError(f"{probe}: a dangling symbolic link where the run directory should be; remove it "
-                              "or choose another --out")
-        if probe.parent == probe:
-            break
-        probe = probe.parent
-    if probe.exists() and not probe.is_dir():
-        what = "the run directory" if probe == run_dir else f"a folder of {run_dir}"
-        raise RunDirError(f"{probe}: exists and is not a directory, so it cannot be {what}; choose another --out")
-    if probe.exists() and not os.access(probe, os.W_OK | os.X_OK):
-        raise RunDirError(f"{probe}: not writable; make it writable, or choose another --out")
-    return run_dir
 
 
 def create_run_dir(
