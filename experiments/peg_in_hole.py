@@ -122,6 +122,9 @@ class PegConfig(StudyConfig):
     def _consistent(self):
         check_noise_pairs(self.pose_noise, self.rot_noise)
         check_realism_noise(self.realism, self.pose_noise, self.rot_noise)
+        if self.realism is not None and self.realism.plant != "servo":
+            raise ValueError("realism.plant: peg_in_hole runs the kinematic servo only (plant 'servo'); the "
+                             "dynamic plant serves tracking and valid_region, whose system is one arm")
         if not self.arm.controller.tol < self.insert_tol:
             raise ValueError(f"arm.controller.tol ({self.arm.controller.tol}) must be below insert_tol "
                              f"({self.insert_tol})")

@@ -152,6 +152,7 @@ class Static(NamedTuple):
     steps: int
     max_latency: int | None = None  # with realism: the tracker's history length - 1 [steps]; None: the ideal loop
     max_settle: int = 1  # with realism: the longest self-ID settle [steps]
+    plant: realism_lib.Plant | None = None  # with realism.plant 'dynamic': the arm's physics; None: kinematic
 
 
 class Params(NamedTuple):
@@ -199,7 +200,7 @@ def compute(static: Static, p: Params) -> Outputs:
     sid, sid_dropouts = realistic.self_identify(
         system, key, p.q0, iters=static.iters, eps=p.eps, eps_rel=p.eps_rel, m_a=p.m_a, pose_noise=p.pose_noise,
         rot_noise=p.rot_noise, realism=p.realism, settle=p.settle, max_latency=static.max_latency or 0,
-        max_settle=static.max_settle)
+        max_settle=static.max_settle, plant=static.plant)
     q_start = sid.env
     follow_key = jax.random.fold_in(key, 1)
     path = static.path[p.letter]
@@ -216,7 +217,7 @@ def compute(static: Static, p: Params) -> Outputs:
     def track(jinv):
         res = control.follow(system, jinv, path, q_start, p.controller, steps=static.steps,
                              return_trajectory=True, realism=p.realism, key=follow_key,
-                             max_latency=static.max_latency)
+                             max_latency=static.max_latency, plant=static.plant)
         used = jnp.arange(res.positions.shape[0]) <= res.steps_used  # the steps taken, and where they ended
         dtype = res.positions.dtype
         err = jnp.zeros((res.positions.shape[0], 3), dtype)
@@ -281,7 +282,8 @@ def _build(cfg: TrackingConfig) -> Part:
     if cfg.realism is not None:
         rows = cfg.realism.rows(meta)
         params = params._replace(realism=rows.realism, settle=rows.settle)
-        static = static._replace(max_latency=cfg.realism.max_latency(), max_settle=cfg.realism.max_settle())
+        static = static._replace(max_latency=cfg.realism.max_latency(), max_settle=cfg.realism.max_settle(),
+                                 plant=realistic.plant(cfg.realism, cfg.system, system))
     return Part(system_name(cfg.system), static, params, meta)
 
 

@@ -105,6 +105,7 @@ class Static(NamedTuple):
     path: jax.Array  # (W, task_dim) star waypoint offsets [m]
     steps: int  # control-step budget
     max_latency: int | None = None  # with realism: the tracker's history length - 1 [steps]; None: the ideal loop
+    plant: realism_lib.Plant | None = None  # with realism.plant 'dynamic': the arm's physics; None: kinematic
 
 
 class Params(NamedTuple):
@@ -143,7 +144,7 @@ def compute(static: Static, p: Params) -> Outputs:
     m_eps = scaling_matrix(key, p.eps_limit, (system.n_act, system.task_dim))
     res = control.follow(system, control.scaled_true_inverse(system, m_eps), static.path, p.q0, p.controller,
                          steps=static.steps, realism=p.realism, key=jax.random.fold_in(key, 1),
-                         max_latency=static.max_latency)
+                         max_latency=static.max_latency, plant=static.plant)
     return Outputs(*(getattr(res, f) for f in Outputs._fields))
 
 
@@ -176,9 +177,12 @@ def feasible_configs(static: Static, key, k: int, controller: ControllerConfig, 
     study's compiled ``batch``, so the sweep reuses this compilation instead of
     compiling a second rollout program (1.3-1.8 s for the UR5e), unless
     padding the candidates to ``batch`` would waste more than
-    :data:`PAD_LIMIT` rollouts. Eager; ``ValueError`` if fewer than ``k`` qualify.
+    :data:`PAD_LIMIT` rollouts. With a dynamic plant the test runs the
+    kinematic ideal loop (a program of its own), so the starts do not depend
+    on the servos. Eager; ``ValueError`` if fewer than ``k`` qualify.
     """
     system = static.system
+    static = static._replace(plant=None)
     total = k * oversample
     if batch - total > PAD_LIMIT:  # padding would cost more than compiling a program of its own
         batch = compiled_batch(total, total)
@@ -219,6 +223,7 @@ def _system_part(cfg: ValidRegionConfig, spec, path_cfg: PathConfig, controller:
     if cfg.realism is not None:
         cfg.realism.add_columns(meta)
         params = params._replace(realism=cfg.realism.rows(meta).realism)
+        static = static._replace(plant=realistic.plant(cfg.realism, spec, system))
     return Part(name, static, params, meta, x64)
 
 

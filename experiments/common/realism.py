@@ -17,14 +17,16 @@ import pandas as pd
 
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.experiments.common.schema import REALISM_FIELDS, RealismConfig
+from selfid_jax.experiments.common.specs import build_dynamic_arm
 from selfid_jax.identify import algorithm as selfid
 
-__all__ = ["add_realism_axis", "level_labels", "realism_summary", "self_identify"]
+__all__ = ["add_realism_axis", "level_labels", "plant", "realism_summary", "self_identify"]
 
 
 def self_identify(system, key, q0, *, iters: int, eps, eps_rel, m_a, pose_noise, rot_noise,
                   realism: realism_lib.Realism | None = None, settle=1, max_latency: int = 0,
-                  max_settle: int = 1) -> tuple[selfid.SelfIDResult, jax.Array | None]:
+                  max_settle: int = 1, plant: realism_lib.Plant | None = None
+                  ) -> tuple[selfid.SelfIDResult, jax.Array | None]:
     """Algorithm 1 on ``system`` from ``q0 (n,)``: ``(result, dropouts)``, ``result.env`` the final ``(n,)`` q.
 
     ``realism=None``: :func:`selfid_jax.identify.algorithm.run` (tracker noise
@@ -36,13 +38,16 @@ def self_identify(system, key, q0, *, iters: int, eps, eps_rel, m_a, pose_noise,
     ``max_latency``), ``dropouts`` the ``()`` int32 count of tracker readings
     that dropped out (each rejects its sample: ``result.state.rejected``).
     The same estimator settings as ``run``, so :data:`~selfid_jax.control.realism.IDEAL`
-    gives ``run``'s result bit for bit.
+    gives ``run``'s result bit for bit. ``plant``: the actuators' model
+    (:func:`selfid_jax.control.realism.dynamic_plant` for an arm's physics;
+    None, the kinematic servo), with ``realism`` only.
     """
     if realism is None:
         return selfid.run(system, key, q0, iters=iters, eps=eps, eps_rel=eps_rel, m_a=m_a, pose_noise=pose_noise,
                           rot_noise=rot_noise), None
     observe, env0 = realism_lib.self_id_sampler(system, realism, q0, pose_noise=pose_noise, rot_noise=rot_noise,
-                                                settle=settle, max_settle=max_settle, max_latency=max_latency)
+                                                settle=settle, max_settle=max_settle, max_latency=max_latency,
+                                                plant=plant)
     res = selfid.self_identify(observe, key, m_a, eps, n_act=system.n_act, task_dim=system.task_dim, iters=iters,
                                env=env0, eps_rel=eps_rel)
     return res._replace(env=res.env.q), res.env.dropouts
@@ -86,3 +91,26 @@ def realism_summary(table: pd.DataFrame, level: int) -> dict[str, Any]:
     """The realism values of ``level`` (for summary.json), ``{name: value}``."""
     row = table[table["realism_level"] == level].iloc[0]
     return {f: (int(row[f]) if f in ("latency", "settle") else float(row[f])) for f in _fields(table)}
+
+
+def plant(realism: RealismConfig | None, spec, system) -> realism_lib.Plant | None:
+    """The actuators' model a ``realism`` section names: None for ``plant: servo`` (the kinematic servo of
+    :func:`selfid_jax.control.realism.servo`) or no section; for ``plant: dynamic`` the arm of system ``spec``
+    stepped in MJX (:func:`selfid_jax.control.realism.dynamic_plant`), ``period / timestep`` physics steps per
+    control step. ``ValueError`` naming the problem (not an arm with position servos, a period that is not a
+    multiple of the model's timestep, another actuator count than ``system``'s)."""
+    if realism is None or realism.plant == "servo":
+        return None
+    from selfid_jax.systems.dynamic import substeps_for
+
+    arm = build_dynamic_arm(spec, gravcomp=realism.gravcomp).with_servo(kp=realism.kp, kv=realism.kv)
+    try:
+        substeps = substeps_for(arm, realism.period[0])
+    except ValueError as exc:
+        raise ValueError(f"realism.period: {exc}") from None
+    if abs(substeps * arm.timestep - realism.period[0]) > 1e-9 * max(realism.period[0], 1.0):
+        raise ValueError(f"realism.period {realism.period[0]} s is not a whole number of the model's physics steps "
+                         f"({arm.timestep} s); use e.g. {substeps * arm.timestep:g} s")
+    out = realism_lib.dynamic_plant(arm, substeps)
+    realism_lib.check_plant(out, system.n_act)
+    return out

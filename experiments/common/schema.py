@@ -237,6 +237,16 @@ class RealismConfig(BaseModel):
     servo_tau: _Sweep = Field([0.0], description="first-order servo time constant [s] (0: no lag)")
     deadband: _Sweep = Field([0.0], description="actuator deadband: smaller commanded changes do not move "
                              "[rad or m]")
+    plant: Literal["servo", "dynamic"] = Field(
+        "servo", description="the actuators between control steps: 'servo', the kinematic model (servo_tau, "
+        "deadband); 'dynamic', the arm's own position servos, inertia and gravity stepped in MJX (an arm whose "
+        "actuators are position servos: ur5e or an mjcf arm); one period, a multiple of the model's timestep")
+    gravcomp: float = Field(1.0, ge=0.0, le=1.0, description="with plant 'dynamic': the fraction of the links' "
+                            "weight compensated (1: none sags, 0: the servos alone hold the arm up)")
+    kp: float | None = Field(None, gt=0.0, le=1e8, description="with plant 'dynamic': every position servo's "
+                             "stiffness [N m/rad or N/m] (default: the model file's)")
+    kv: float | None = Field(None, ge=0.0, le=1e7, description="with plant 'dynamic': every servo's damping "
+                             "[N m s/rad or N s/m] (default: the model file's)")
 
     _scalars_are_lists = field_validator(*REALISM_FIELDS, mode="before")(_listed)
 
@@ -258,6 +268,18 @@ class RealismConfig(BaseModel):
                 raise ValueError(f"realism.{name}: values must be unique, got {values}")
         if self.n_levels() > MAX_REALISM_LEVELS:
             raise ValueError(f"realism: {self.n_levels()} combinations of values; at most {MAX_REALISM_LEVELS}")
+        if self.plant == "dynamic":
+            if len(self.period) != 1 or self.period[0] <= 0:
+                raise ValueError(f"realism.plant 'dynamic' needs one control period > 0 (it fixes the physics "
+                                 f"steps per control step), got period {self.period}")
+            for name in ("servo_tau", "deadband"):
+                if any(v != 0 for v in getattr(self, name)):
+                    raise ValueError(f"realism.{name} belongs to plant 'servo'; with plant 'dynamic' the arm's own "
+                                     f"servos lag, so leave {name} at [0.0], got {getattr(self, name)}")
+        else:
+            for name, default in (("gravcomp", 1.0), ("kp", None), ("kv", None)):
+                if getattr(self, name) != default:
+                    raise ValueError(f"realism.{name} applies to plant 'dynamic' only")
         if any(t > 0 for t in self.servo_tau) and any(p <= 0 for p in self.period):
             raise ValueError(f"realism.servo_tau {self.servo_tau} needs realism.period > 0 everywhere (the lag per "
                              f"control step is 1 - exp(-period / servo_tau)), got period {self.period}")

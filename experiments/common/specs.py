@@ -281,3 +281,21 @@ def build_system(spec) -> System:
     return from_pose_fn(_import(spec.pose_fn), spec.n_act, task_dim=spec.task_dim, q_low=spec.q_low,
                         q_high=spec.q_high, dq_max=spec.dq_max, m_a=spec.m_a, params=params,
                         min_sigma=spec.min_sigma, name=system_name(spec), **box)
+
+
+def build_dynamic_arm(spec, gravcomp: float | None = None):
+    """The :class:`~selfid_jax.systems.dynamic.DynamicArm` of a validated system spec (the ``realism.plant:
+    dynamic`` backend): ``ur5e`` or an ``mjcf`` arm whose actuators are position servos; ``ValueError`` naming the
+    problem otherwise."""
+    from selfid_jax.systems.dynamic import dynamic_arm, dynamic_ur5e
+
+    if spec in ("ur5e", "ur5e_6d"):  # the shipped UR5e's MJCF, whatever the task
+        return dynamic_ur5e(gravcomp=gravcomp)
+    if isinstance(spec, MjcfSystem):
+        if spec.site is None or spec.body is not None or spec.actuators is not None or spec.joints_fixed:
+            raise ValueError(f"realism.plant 'dynamic': system {system_name(spec)!r} sets body/actuators/"
+                             f"joints_fixed or no site, which the dynamic arm does not support; it steps the file's own "
+                             f"position servos with the POM at site {spec.site!r}")
+        return dynamic_arm(spec.mjcf, spec.site, gravcomp=gravcomp, name=f"dynamic_{system_name(spec)}")
+    raise ValueError(f"realism.plant 'dynamic' needs an arm whose actuators are position servos (the built-in "
+                     f"'ur5e', 'ur5e_6d' or an mjcf arm), got system {system_name(spec)!r}; use plant 'servo' for it")

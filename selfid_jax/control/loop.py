@@ -286,6 +286,7 @@ class _Carry(NamedTuple):
     wp_err: jax.Array  # (W,) position error when each waypoint was reached [m]; -1 before
     tracker: realism_lib.Tracker | None = None  # with realism: the tracker's history and last good reading
     dropouts: jax.Array | None = None  # with realism: () int32 readings that dropped out over the active steps
+    plant: Any = None  # with a plant: its state (e.g. an mjx.Data); q is its measured actuator positions
 
 
 def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams, true_pose=None):
@@ -345,6 +346,7 @@ def follow_law(
     realism: realism_lib.Realism | None = None,
     key: jax.Array | None = None,
     max_latency: int | None = None,
+    plant: realism_lib.Plant | None = None,
 ) -> tuple[FollowResult, Any]:
     """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)``, each actuator step from ``law``.
 
@@ -379,6 +381,15 @@ def follow_law(
     ``realism=None`` is the ideal loop (what :data:`~selfid_jax.control.realism.IDEAL`
     reproduces bit for bit).
 
+    ``plant`` (a :class:`~selfid_jax.control.realism.Plant`; default the
+    kinematic :func:`~selfid_jax.control.realism.servo_plant`) is what the
+    actuators do with each target: with
+    :func:`~selfid_jax.control.realism.dynamic_plant` the arm's own physics
+    (servo gains, inertia, gravity) steps between control steps and ``q`` is
+    its measured joint positions. A plant implies the real loop (with
+    :data:`~selfid_jax.control.realism.IDEAL` if ``realism`` is None, then
+    ``key`` defaults to ``PRNGKey(0)``, which draws nothing).
+
     Arguments, checks and metrics as :func:`follow`. Returns
     ``(FollowResult, final law state)``.
     """
@@ -393,6 +404,10 @@ def follow_law(
     if ctrl.diverge_dist is None:
         reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(task.pos_axes)] ** 2, axis=-1)))
         ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
+    realism_lib.check_plant(plant, system.n_act)
+    if plant is not None and realism is None:
+        realism = realism_lib.IDEAL
+        key = jax.random.PRNGKey(0) if key is None else key
     real = realism is not None
     r = realism_lib.IDEAL  # the values the realistic loop uses (only when real)
     history = 0  # the tracker's history length - 1 (only when real)
@@ -422,7 +437,11 @@ def follow_law(
         V = task.twist(e_p, e_r, ctrl)
         dq, learned, ok = law.step(carry.law, carry.q, seen, aux, V)
         q_new = system.apply(carry.q, dq)
-        if real:
+        x_new = None
+        if plant is not None:
+            x_new = plant.step(carry.plant, q_new, r)
+            q_new = plant.q(x_new).astype(dtype)
+        elif real:
             q_new = realism_lib.servo(carry.q, q_new, r)
         # a pose map returns NaN where its solve failed (closed-chain hands): that fails the rollout too
         finite = jnp.all(jnp.isfinite(q_new)) & ok & jnp.all(jnp.isfinite(pose[0]))
@@ -439,6 +458,8 @@ def follow_law(
         )
         if real:
             carry = carry._replace(dropouts=carry.dropouts + (active & dropped).astype(jnp.int32))
+        if plant is not None:
+            carry = carry._replace(plant=jax.tree.map(lambda a, b: jnp.where(move, a, b), x_new, carry.plant))
         out = None
         if return_trajectory:
             out = (pose, carry.waypoint, seen[0]) if real else (pose, carry.waypoint)
@@ -456,6 +477,7 @@ def follow_law(
         wp_err=jnp.full((W,), -1.0, dtype),
         tracker=realism_lib.tracker(pose0, history) if real else None,
         dropouts=jnp.zeros((), jnp.int32) if real else None,
+        plant=None if plant is None else plant.init(q0),
     )
     carry, traj = jax.lax.scan(step, init, None if keys is None else keys[:-1], length=steps)
     pose_end = system.pose(carry.q)
@@ -493,6 +515,7 @@ def follow(
     realism: realism_lib.Realism | None = None,
     key: jax.Array | None = None,
     max_latency: int | None = None,
+    plant: realism_lib.Plant | None = None,
 ) -> FollowResult:
     """Follow waypoint offsets ``path (W, task_dim)`` from ``q0 (n,)`` with ``dtheta = Jinv @ V``.
 
@@ -530,6 +553,9 @@ def follow(
         ``dropouts``) and the actuators lag and have a deadband; ``key``
         draws the noise; ``max_latency`` (static) bounds a traced latency.
         None (default): the ideal loop.
+      plant: the actuators' model (:func:`follow_law`): None, the kinematic
+        servo; :func:`~selfid_jax.control.realism.dynamic_plant` for an arm
+        whose own physics steps between control steps.
 
     A rollout whose state or pose turns non-finite (a closed-chain hand's pose
     map returns NaN where its solve fails or leaves the equilibrium branch) or
@@ -541,7 +567,8 @@ def follow(
     settings and an inverse Jacobian of the wrong shape raise ``ValueError``.
     """
     return follow_law(system, inverse_jacobian_law(system, jinv), path, q0, controller, steps=steps,
-                      return_trajectory=return_trajectory, realism=realism, key=key, max_latency=max_latency)[0]
+                      return_trajectory=return_trajectory, realism=realism, key=key, max_latency=max_latency,
+                      plant=plant)[0]
 
 
 def feasible_indices(system: System, valid, completion, failed, k: int) -> np.ndarray:

@@ -38,6 +38,12 @@ holds ``max_latency + 1`` poses (:func:`tracker`, a static size), and a traced
 therefore serves a sweep over every value, latency included, up to
 ``max_latency``.
 
+The actuators are a :class:`Plant`: :func:`servo_plant` (the default) is
+the kinematic model above (lag, deadband); :func:`dynamic_plant` steps an
+arm's own physics instead (:class:`selfid_jax.systems.dynamic.DynamicArm`:
+its position servos, inertia and gravity in MJX), so the joints lag and
+overshoot as the servo gains and masses make them.
+
 Functions (pure, jit- and vmap-able): :func:`servo` (one control step of the
 actuators), :func:`tracker` / :func:`push` / :func:`read` (the tracker's
 history and its readings), and :func:`self_id_sampler`, Algorithm 1's
@@ -57,8 +63,9 @@ import numpy as np
 
 from selfid_jax.math.geometry import noisy_pose
 
-__all__ = ["Realism", "IDEAL", "SelfIdEnv", "Tracker", "check_max_latency", "check_realism", "latency_bound", "push",
-           "read", "self_id_sampler", "servo", "servo_gain", "tracker"]
+__all__ = ["Realism", "IDEAL", "Plant", "SelfIdEnv", "Tracker", "check_max_latency", "check_plant", "check_realism",
+           "dynamic_plant", "latency_bound", "push", "read", "self_id_sampler", "servo", "servo_gain", "servo_plant",
+           "tracker"]
 
 
 class Realism(NamedTuple):
@@ -168,6 +175,62 @@ def servo(q: jax.Array, u: jax.Array, r: Realism) -> jax.Array:
     return jnp.where(jnp.abs(u - q) > r.deadband, moved, q)
 
 
+class Plant(NamedTuple):
+    """The actuators between two control steps, as three pure functions over the plant's own state (a pytree).
+
+    ``init(q0 (n,)) -> state``: at rest at ``q0`` [rad / m].
+    ``step(state, u (n,), r: Realism) -> state``: one control period under
+    the commanded targets ``u`` [rad / m].
+    ``q(state) -> (n,)``: the measured actuator positions [rad / m] (the encoders).
+    """
+
+    init: Callable[[jax.Array], Any]
+    step: Callable[[Any, jax.Array, Realism], Any]
+    q: Callable[[Any], jax.Array]
+
+
+def servo_plant() -> Plant:
+    """The kinematic actuators of the module docstring: the state is ``q (n,)`` itself and a step is :func:`servo`
+    (lag ``servo_tau``, ``deadband``); without lag and deadband the actuators reach ``u`` exactly."""
+    return Plant(init=lambda q0: q0, step=lambda q, u, r: servo(q, u, r), q=lambda q: q)
+
+
+def dynamic_plant(arm, substeps: int) -> Plant:
+    """An arm's own physics as the plant: each control step sets the position servos' targets to ``u`` and runs
+    ``substeps`` (static) physics steps of ``arm`` (a :class:`~selfid_jax.systems.dynamic.DynamicArm`, or any object
+    with its ``init(q0)``, ``control_step(state, u, substeps=k)`` and ``q(state)``).
+
+    The servo lag and overshoot are the arm's (gains, inertia, damping,
+    gravity not compensated); the :class:`Realism` ``servo_tau`` and
+    ``deadband`` do not apply (the step ignores ``r``), and the control
+    period is ``substeps`` times the arm's ``timestep`` (see
+    :func:`~selfid_jax.systems.dynamic.substeps_for`). The state is an
+    ``mjx.Data``; it starts at rest with ``ctrl = q0``.
+    """
+    if isinstance(substeps, bool) or not isinstance(substeps, (int, np.integer)) or substeps < 1:
+        raise ValueError(f"dynamic_plant: substeps must be a positive integer (static), got {substeps!r}")
+    k = int(substeps)
+    for attr in ("init", "control_step", "q"):
+        if not callable(getattr(arm, attr, None)):
+            raise TypeError(f"dynamic_plant: {type(arm).__name__} has no {attr}(); expected a DynamicArm")
+    return Plant(init=arm.init, step=lambda d, u, r: arm.control_step(d, u, substeps=k), q=arm.q)
+
+
+def check_plant(plant: Plant | None, n_act: int) -> None:
+    """Raise ``TypeError`` unless ``plant`` is None or a :class:`Plant`; ``ValueError`` if a dynamic arm's actuator
+    count differs from the system's ``n_act`` (checked where the arm states it)."""
+    if plant is None:
+        return
+    if not isinstance(plant, Plant):
+        raise TypeError(f"plant must be a realism.Plant (servo_plant() or dynamic_plant(arm, substeps)), "
+                        f"got {type(plant).__name__}")
+    arm = getattr(plant.q, "__self__", None)
+    n = getattr(arm, "n_act", None)
+    if n is not None and int(n) != int(n_act):
+        raise ValueError(f"plant: the dynamic arm {getattr(arm, 'name', '')!r} has {n} actuators, the system "
+                         f"{n_act}: build both from the same robot file")
+
+
 # ------------------------------------------------------------------ tracker
 
 class Tracker(NamedTuple):
@@ -237,11 +300,12 @@ class SelfIdEnv(NamedTuple):
     q: jax.Array  # (n,) actuator positions (rad or m)
     tracker: Tracker
     dropouts: jax.Array  # () int32 tracker readings that dropped out (each rejects its sample)
+    plant: Any = None  # with a Plant other than the kinematic servo: its state (e.g. an mjx.Data); q = plant.q(it)
 
 
 def self_id_sampler(system, r: Realism, q0, *, pose_noise=0.0, rot_noise=0.0, settle=1, max_settle: int = 1,
-                    max_latency: int | None = None) -> tuple[Callable[[SelfIdEnv, jax.Array, jax.Array],
-                                                                      tuple[SelfIdEnv, jax.Array]], SelfIdEnv]:
+                    max_latency: int | None = None, plant: Plant | None = None
+                    ) -> tuple[Callable[[SelfIdEnv, jax.Array, jax.Array], tuple[SelfIdEnv, jax.Array]], SelfIdEnv]:
     """Algorithm 1's sample (move, then observe) under ``r``: ``(observe, env0)`` for
     :func:`~selfid_jax.identify.algorithm.self_identify`.
 
@@ -266,7 +330,12 @@ def self_id_sampler(system, r: Realism, q0, *, pose_noise=0.0, rot_noise=0.0, se
     are taken (clipped to ``[1, max_settle]``); ``max_latency`` as for
     :func:`latency_bound`. ``env0`` starts at ``q0 (n,)`` at rest, its
     tracker history filled with the start pose.
+
+    ``plant`` (default :func:`servo_plant`): the actuators' model per control
+    step; with :func:`dynamic_plant` each step runs the arm's physics and the
+    measured ``q`` is its joint positions (``env.plant`` its state).
     """
+    check_plant(plant, system.n_act)
     max_latency = latency_bound(r, max_latency)
     check_max_latency(r, max_latency)
     if isinstance(max_settle, bool) or not isinstance(max_settle, (int, np.integer)) or max_settle < 1:
@@ -283,24 +352,37 @@ def self_id_sampler(system, r: Realism, q0, *, pose_noise=0.0, rot_noise=0.0, se
         tr = _replace_newest(env.tracker, system.pose(env.q))
         before, drop_b, tr = read(tr, k_before, sensed, always_noise=True)
         u = system.apply(env.q, dtheta)
+        # the actuators' state: q itself for the kinematic servo, the plant's own state otherwise
+        x0 = env.q if plant is None else env.plant
+
+        def advance(x):
+            if plant is None:
+                return servo(x, u, r)
+            return plant.step(x, u, r)
+
+        def q_of(x):
+            return x if plant is None else plant.q(x).astype(q0.dtype)
 
         def wait(carry, s):  # the control steps before the last one: s < settle - 1
-            q, tr = carry
+            x, tr = carry
             active = s < settle - 1
-            q_next = jnp.where(active, servo(q, u, r), q)
-            tr = jax.tree.map(lambda a, b: jnp.where(active, a, b), push(tr, system.pose(q_next)), tr)
-            return (q_next, tr), None
+            x_next = jax.tree.map(lambda a, b: jnp.where(active, a, b), advance(x), x)
+            tr = jax.tree.map(lambda a, b: jnp.where(active, a, b), push(tr, system.pose(q_of(x_next))), tr)
+            return (x_next, tr), None
 
-        q = env.q
+        x = x0
         if max_settle > 1:
-            (q, tr), _ = jax.lax.scan(wait, (q, tr), jnp.arange(max_settle - 1))
-        q = servo(q, u, r)  # the last control step, its pose computed at this level as run() does
+            (x, tr), _ = jax.lax.scan(wait, (x, tr), jnp.arange(max_settle - 1))
+        x = advance(x)  # the last control step, its pose computed at this level as run() does
+        q = q_of(x)
         tr = push(tr, system.pose(q))
         after, drop_a, tr = read(tr, k_after, sensed, always_noise=True)
         V = system.task_difference(after, before)
         V = jnp.where(drop_b | drop_a, jnp.nan, V)
         dropouts = env.dropouts + drop_b.astype(jnp.int32) + drop_a.astype(jnp.int32)
-        return SelfIdEnv(q, tr, dropouts), V
+        return SelfIdEnv(q, tr, dropouts, None if plant is None else x), V
 
-    env0 = SelfIdEnv(q0, tracker(system.pose(q0), max_latency), jnp.zeros((), jnp.int32))
+    x0 = None if plant is None else plant.init(q0)
+    env0 = SelfIdEnv(q0 if plant is None else plant.q(x0).astype(q0.dtype), tracker(system.pose(q0), max_latency),
+                     jnp.zeros((), jnp.int32), x0)
     return observe, env0
