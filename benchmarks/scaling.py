@@ -1,0 +1,215 @@
+"""How cost grows with the work: throughput and memory of the self-ID step and the UR5e rollout against batch size,
+and of the step against the problem size ``n`` x ``m``, in one run.
+
+Rows:
+
+* **estimator step vs batch** (n = 6, m = 3, float32): one full self-ID step per
+  estimator (``update``, ``initial_guess``, the closed-form refinement, the
+  Sec. IV-D ``record``: what Algorithm 1 does per sample), ``vmap`` over the
+  batch inside a ``lax.scan`` over ``--steps`` samples, at batch 1, 10, 100,
+  1k, 10k, 100k and 1M;
+* **UR5e rollout vs batch**: ``jit(vmap(control.follow))`` of the 5 cm star
+  with the true inverse Jacobian (435 steps) at batch 1 ... 100k;
+* **estimator step vs n x m** at batch 10k: n in {3, 6, 9, 16}, m in {3, 6}.
+
+Each row prints the run time per call (median of ``--reps`` after a warm-up;
+compile time separate), the throughput (estimator-steps or rollouts per
+second), the peak memory of the compiled program (XLA's own
+``memory_analysis``: arguments + outputs + temporaries, before aliasing) per
+batch element, and for the estimator the state's own size per estimator (the
+bytes of its pytree's leaves), the goal being a peak within 2x of it. "Stops
+paying": the first batch size after which multiplying the batch by 10 raises
+the throughput by less than 20 %.
+
+    python benchmarks/scaling.py [--quick] [--json out.json] [--figure scaling.png]
+
+``--quick`` stops at batch 10k (CI-sized); the full run takes a few minutes on
+2 cores, most of it compiling one program per shape.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import statistics
+import time
+
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
+import jax
+import jax.numpy as jnp
+import numpy as np
+from emit import emit
+
+from selfid_jax import control
+from selfid_jax.control import paths
+from selfid_jax.identify import estimator as E
+from selfid_jax.systems.ur5e import ur5e
+
+RF = importlib.import_module("selfid_jax.identify.refine")  # the module (the package exports a function of its name)
+F32 = jnp.float32
+PAYS = 1.2  # a 10x larger batch must raise the throughput by at least this factor to pay
+
+
+def _median_time(fn, *args, reps: int) -> tuple[float, float]:
+    """``(compile + first run, median of reps later runs)`` in seconds; results blocked on."""
+    t = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t)
+    return first, statistics.median(times)
+
+
+def _peak_bytes(jitted, *args) -> int | None:
+    """Arguments + outputs + temporaries of the compiled program [bytes] (None where XLA reports nothing)."""
+    try:
+        mem = jitted.lower(*args).compile().memory_analysis()
+    except Exception:  # noqa: BLE001  (a backend without the analysis)
+        return None
+    if mem is None:
+        return None
+    return int(mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes)
+
+
+def _step(state, dtheta, V):
+    state = E.update(state, dtheta, V)
+    J = RF.statistics_closed_form(state.S_vv, state.S_tv, E.initial_guess(state))
+    return E.record(state, J, 1e-3)
+
+
+def estimator_row(batch: int, n: int, m: int, steps: int, reps: int) -> dict:
+    """One estimator shape: ``steps`` full self-ID steps for ``batch`` vmapped estimators."""
+    rng = np.random.default_rng(batch + 100 * n + m)
+    A = jnp.asarray(rng.normal(size=(m, n)), F32)
+    d = jnp.asarray(rng.uniform(-0.03, 0.03, (steps, batch, n)), F32)
+    V = jnp.einsum("mn,tbn->tbm", A, d) + 1e-4 * jnp.asarray(rng.normal(size=(steps, batch, m)), F32)
+    one = E.init(n, m, dtype=F32)
+    state0 = jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + jnp.shape(x)), one)
+    state_bytes = sum(np.dtype(x.dtype).itemsize * int(np.prod(np.shape(x))) for x in jax.tree.leaves(one))
+
+    def run(state, d, V):
+        def body(s, x):
+            return jax.vmap(_step)(s, *x), None
+
+        return jax.lax.scan(body, state, (d, V))[0]
+
+    jitted = jax.jit(run)
+    first, t = _median_time(jitted, state0, d, V, reps=reps)
+    peak = _peak_bytes(jitted, state0, d, V)
+    data_bytes = 4 * steps * (n + m)  # per estimator: its samples, an argument of the benchmark, not of the step
+    return dict(what="estimator", batch=batch, n=n, m=m, steps=steps, compile_s=first - t, run_s=t,
+                per_s=batch * steps / t, state_bytes=state_bytes,
+                peak_bytes_per=None if peak is None else peak / batch,
+                peak_bytes_per_less_data=None if peak is None else peak / batch - data_bytes)
+
+
+def rollout_row(batch: int, reps: int) -> dict:
+    """``batch`` UR5e star rollouts with the true inverse Jacobian in one compiled call."""
+    system = ur5e()
+    path = paths.star(size=0.05)
+    q0 = system.sample_configs(jax.random.key(batch), batch)
+
+    def run(q0):
+        return jax.vmap(lambda q: control.follow(system, control.true_inverse(system), path, q, steps=435))(q0)
+
+    jitted = jax.jit(run)
+    first, t = _median_time(jitted, q0, reps=reps)
+    peak = _peak_bytes(jitted, q0)
+    return dict(what="rollout", batch=batch, compile_s=first - t, run_s=t, per_s=batch / t,
+                peak_bytes_per=None if peak is None else peak / batch)
+
+
+def stops_paying(rows: list[dict]) -> int | None:
+    """The first batch after which a 10x larger batch raises the throughput by less than :data:`PAYS`."""
+    for a, b in zip(rows, rows[1:]):
+        if b["per_s"] < PAYS * a["per_s"]:
+            return a["batch"]
+    return None
+
+
+def _ratio(r: dict) -> str:
+    """The peak per estimator (less its samples) over the state's own size, formatted."""
+    peak = r["peak_bytes_per_less_data"]
+    return "-" if peak is None else f"{peak / r['state_bytes']:.2f}"
+
+
+def _fmt_bytes(v) -> str:
+    if v is None:
+        return "-"
+    for unit, scale in (("MB", 1e6), ("kB", 1e3)):
+        if abs(v) >= scale:
+            return f"{v / scale:.1f} {unit}"
+    return f"{v:.0f} B"
+
+
+def figure(est: list[dict], roll: list[dict], path: str) -> None:
+    """Log-log throughput against batch for both programs, the batch where each stops paying marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), layout="constrained")
+    for ax, rows, label, unit in ((axes[0], est, "self-ID step (n = 6, m = 3)", "estimator-steps / s"),
+                                  (axes[1], roll, "UR5e star rollout (435 steps)", "rollouts / s")):
+        b = [r["batch"] for r in rows]
+        ax.loglog(b, [r["per_s"] for r in rows], "o-", label="measured")
+        ax.loglog(b, [rows[0]["per_s"] * x / b[0] for x in b], ":", color="0.6", label="linear in batch")
+        knee = stops_paying(rows)
+        if knee is not None:
+            ax.axvline(knee, color="C3", ls="--", label=f"stops paying: {knee:,}")
+        ax.set(xlabel="batch", ylabel=unit, title=label)
+        ax.legend(fontsize=8)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="batches up to 10k only")
+    ap.add_argument("--steps", type=int, default=20, help="samples per estimator timing")
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--figure", default=None, help="write the log-log figure here (PNG)")
+    args = ap.parse_args()
+    top = 10_000 if args.quick else 1_000_000
+    est = [estimator_row(b, 6, 3, args.steps, args.reps) for b in (1, 10, 100, 1000, 10_000, 100_000, 1_000_000)
+           if b <= top]
+    roll = [rollout_row(b, args.reps) for b in (1, 10, 100, 1000, 10_000, 100_000) if b <= min(top, 100_000)]
+    shapes = [estimator_row(10_000, n, m, args.steps, args.reps) for n in (3, 6, 9, 16) for m in (3, 6)]
+    lines = [f"devices: {jax.devices()}", "",
+             "estimator step vs batch (n = 6, m = 3, float32)",
+             f"{'batch':>9} {'compile s':>10} {'run s':>9} {'steps/s':>12} {'state/est':>10} {'peak/est':>10} "
+             f"{'peak/state':>10}"]
+    for r in est:
+        ratio = _ratio(r)
+        lines.append(f"{r['batch']:>9,} {r['compile_s']:>10.2f} {r['run_s']:>9.4f} {r['per_s']:>12,.0f} "
+                     f"{_fmt_bytes(r['state_bytes']):>10} {_fmt_bytes(r['peak_bytes_per_less_data']):>10} {ratio:>10}")
+    lines.append(f"stops paying after batch {stops_paying(est)}")
+    lines += ["", "UR5e rollout vs batch (star 5 cm, true inverse, 435 steps)",
+              f"{'batch':>9} {'compile s':>10} {'run s':>9} {'rollouts/s':>12} {'ms/rollout':>11} {'peak/rollout':>12}"]
+    for r in roll:
+        lines.append(f"{r['batch']:>9,} {r['compile_s']:>10.2f} {r['run_s']:>9.4f} {r['per_s']:>12,.0f} "
+                     f"{1e3 / r['per_s']:>11.4f} {_fmt_bytes(r['peak_bytes_per']):>12}")
+    lines.append(f"stops paying after batch {stops_paying(roll)}")
+    lines += ["", "estimator step vs n x m (batch 10,000, float32)",
+              f"{'n':>3} {'m':>3} {'steps/s':>12} {'state/est':>10} {'peak/est':>10} {'peak/state':>10}"]
+    for r in shapes:
+        ratio = _ratio(r)
+        lines.append(f"{r['n']:>3} {r['m']:>3} {r['per_s']:>12,.0f} {_fmt_bytes(r['state_bytes']):>10} "
+                     f"{_fmt_bytes(r['peak_bytes_per_less_data']):>10} {ratio:>10}")
+    lines.append("peak/est: the compiled program's peak per estimator, less its own samples (an argument of the "
+                 "benchmark); goal <= 2x the state")
+    if args.figure:
+        figure(est, roll, args.figure)
+        lines.append(f"figure: {args.figure}")
+    emit(dict(estimator=est, rollout=roll, shapes=shapes, stops_paying=dict(estimator=stops_paying(est),
+                                                                            rollout=stops_paying(roll))),
+         "\n".join(lines), args.json)
+
+
+if __name__ == "__main__":
+    main()
