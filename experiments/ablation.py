@@ -17,7 +17,7 @@ iteration at which the method's estimate met the Sec. IV-D test
 Model-based rows (``method: ekm`` with a ``nominal:`` model; issue 16) learn
 from the same stream and follow the star with their own Eq. 10-11 QP
 controller, one vmapped rollout per group of E-KM rows
-(``experiments/ablation_ekm.py``); with any of them the part runs in float64.
+(``experiments/common/ekm.py``); with any of them the part runs in float64.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ class MethodSpec(BaseModel):
     )
     nominal: NominalSpec | None = Field(None, description="model-based methods (ekm) only, and required there: "
                                         "the nominal model's length scale and joint offsets "
-                                        "(experiments/ablation_ekm.py)")
+                                        "(experiments/common/ekm.py)")
 
 
 class AblationConfig(StudyConfig, StartsConfig):

@@ -7,7 +7,7 @@ Eq. 6-14 and Sec. IV-D), self-ID from a recorded log (``sj.fit``), Algorithm 1
 ``sj.from_pose_fn``, ``sj.from_mjcf``, ``sj.from_ets``), kinematic metrics (``sj.manipulability``),
 damped least-squares IK (``sj.dls``), the controller (``sj.follow`` with ``sj.ControllerParams``), the estimation
 baselines (``sj.baselines``) and the experiment runner (``sj.experiment``, loaded
-on first use). README.md has runnable examples.
+on first use). docs/api_guide.md has runnable examples.
 
 Layers, bottom to top (import-linter contracts in ``pyproject.toml``):
 ``math`` < ``systems`` < ``identify`` | ``control`` < ``baselines`` <

@@ -1,6 +1,12 @@
-"""README.md tells the truth: its Python blocks print what their comments say, its Layout is the tree, its names exist.
+"""README.md and the docs pages tell the truth: Python blocks print what their comments say, the Layout page is the
+tree, the names, paths and commands they mention exist.
 
-Stated outputs. Every ``print(...)`` line of a README Python block ends in a
+The README's content moved into the documentation site (``docs/``, issue 26);
+every check here reads the README and the docs pages it moved to. The
+README's own Python block runs here; the blocks of the docs pages run in
+``tests/test_docs.py`` with the same rule.
+
+Stated outputs. Every ``print(...)`` line of a README or docs Python block ends in a
 comment that is exactly the line it prints (an explanation goes on a comment
 line of its own). The block runs in a fresh interpreter, as a reader pasting
 it would (default float32, no test config), and its k-th stdout line is
@@ -19,9 +25,10 @@ compared with the k-th print's comment:
     unit of the last digit written (``1.1`` accepts 0.94-1.26, ``0.0`` only
     values that print as 0.0 to 0.05).
 
-The two blocks take about 30 s and 45 s on the 2 shared CPU cores (most of it
-compiling and dispatching), so running them is marked slow; parsing the
-blocks, the Layout check and the name checks are in the fast tier.
+The README's block takes about 6 s, the functional API page's two about 30 s
+and 45 s on the 2 shared CPU cores (most of it compiling and dispatching), so
+running them is marked slow; parsing the blocks, the Layout check and the name
+checks are in the fast tier.
 """
 
 import importlib
@@ -37,8 +44,23 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-TEXT = README.read_text()
-BLOCKS = re.findall(r"```python\n(.*?)```", TEXT, re.DOTALL)
+DOCS = ROOT / "docs"
+
+
+def doc_pages() -> list[Path]:
+    """The Markdown pages of the docs site written by hand or committed (not the build, not the API pages
+    ``docs/conf.py`` generates at build time)."""
+    return sorted(p for p in DOCS.rglob("*.md") if p.relative_to(DOCS).parts[0] not in {"_build", "api"})
+
+
+def python_blocks(text: str) -> list[str]:
+    return re.findall(r"```python\n(.*?)```", text, re.DOTALL)
+
+
+README_TEXT = README.read_text(encoding="utf-8")
+# The README and every docs page, which hold what the README used to.
+TEXT = "\n".join([README_TEXT] + [p.read_text(encoding="utf-8") for p in doc_pages()])
+BLOCKS = python_blocks(README_TEXT)
 
 # A number not glued to a word or another number: 8, -3, 1.00, .5, 1.8e-07 (not the 32 of float32, the 3 of 3rd).
 NUMBER = re.compile(r"(?<![\w.])[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?(?![\w.])")
@@ -54,7 +76,7 @@ def stated_outputs(block: str) -> list[str]:
     stated = []
     for lineno, line in enumerate(block.splitlines(), start=1):
         if line.lstrip().startswith("print("):
-            assert lineno in comments, f"README print without its stated output: {line.strip()!r}"
+            assert lineno in comments, f"print without its stated output: {line.strip()!r}"
             stated.append(comments[lineno])
     return stated
 
@@ -88,7 +110,8 @@ def compare_line(stated: str, printed: str) -> list[str]:
 
 
 def test_readme_has_python_blocks():
-    assert len(BLOCKS) >= 2
+    assert len(BLOCKS) >= 1
+    assert len(BLOCKS[0].strip().splitlines()) <= 12, "the README's API example is about ten lines"
 
 
 @pytest.mark.parametrize("index", range(len(BLOCKS)))
@@ -108,19 +131,24 @@ def test_tolerance_rule():
     assert compare_line("True 1e-07", "False 1e-07") and compare_line("(3, 3)", "(3, 4)")
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("index", range(len(BLOCKS)))
-def test_readme_python_block_prints_what_it_says(index, tmp_path):
-    """Run in a fresh interpreter, as a reader pasting it would (default float32, no test config)."""
-    script = tmp_path / f"block_{index}.py"
-    script.write_text(BLOCKS[index])
+def check_block_prints_what_it_says(block: str, tmp_path: Path) -> None:
+    """Run ``block`` in a fresh interpreter, as a reader pasting it would (default float32, no test config), and
+    compare each printed line with its print's stated output."""
+    script = tmp_path / "block.py"
+    script.write_text(block)
     res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     printed = res.stdout.splitlines()
-    stated = stated_outputs(BLOCKS[index])
+    stated = stated_outputs(block)
     assert len(printed) == len(stated), (stated, printed)
     problems = [problem for s, p in zip(stated, printed, strict=True) for problem in compare_line(s, p)]
     assert not problems, "\n".join(problems)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("index", range(len(BLOCKS)))
+def test_readme_python_block_prints_what_it_says(index, tmp_path):
+    check_block_prints_what_it_says(BLOCKS[index], tmp_path)
 
 
 def test_readme_cli_subcommands_exist():
@@ -133,14 +161,15 @@ def test_readme_cli_subcommands_exist():
 
 
 def test_readme_layout_is_the_tree():
-    """The Layout section equals what scripts/readme_layout.py generates from the tree (every module, no stale path)."""
+    """docs/layout.md equals what scripts/readme_layout.py generates from the tree (every module, no stale path)."""
     sys.path.insert(0, str(ROOT / "scripts"))
     try:
         import readme_layout
     finally:
         sys.path.remove(str(ROOT / "scripts"))
-    assert readme_layout.section(TEXT) == readme_layout.render(), (
-        "README.md's Layout section is out of date: run python scripts/readme_layout.py --write"
+    page = (DOCS / "layout.md").read_text(encoding="utf-8")
+    assert readme_layout.section(page) == readme_layout.render() and page == readme_layout.page(), (
+        "docs/layout.md is out of date: run python scripts/readme_layout.py --write"
     )
 
 
@@ -158,7 +187,7 @@ def _resolve(dotted: str):
 
 
 def test_readme_names_exist():
-    """Every ``selfid_jax.x.y`` and ``sj.x`` the README names resolves (no old module path survives a move)."""
+    """Every ``selfid_jax.x.y`` and ``sj.x`` the README and docs name resolves (no old module path survives a move)."""
     names = set(re.findall(r"\bselfid_jax(?:\.[A-Za-z_]\w*)+", TEXT))
     names |= {"selfid_jax" + name[2:] for name in re.findall(r"\bsj(?:\.[A-Za-z_]\w*)+", TEXT)}
     missing = []
@@ -170,12 +199,12 @@ def test_readme_names_exist():
     assert not missing, missing
 
 
-# Paths the README names as things a command writes, not files of the repository.
-WRITTEN = {"benchmarks/results.json"}
+# Paths the README and docs name as things a command writes, not files of the repository.
+WRITTEN = {"benchmarks/results.json", "docs/_build/html", "docs/_build/html/index.html", "docs/api/*.md"}
 
 
 def test_readme_paths_exist():
-    """Every repository path the README names exists: ``(_full)`` names both configs, ``<name>`` any name."""
+    """Every repository path the README and docs name exists: ``(_full)`` names both configs, ``<name>`` any name."""
     tops = "|".join(["selfid_jax", "experiments", "scripts", "configs", "benchmarks", "docs", "tests", r"\.ci"])
     paths = set(re.findall(rf"(?<![\w/.])((?:{tops})/(?:[\w./*-]|\(_full\)|<\w+>)*[\w*>])", TEXT)) - WRITTEN
     assert len(paths) > 10, paths
@@ -189,9 +218,23 @@ def test_readme_paths_exist():
 
 
 def test_ci_runs_exactly_the_readme_commands():
-    """The README's two Quick-start commands: the first installs and runs the demo; ``.ci/run`` runs the second."""
-    quick = README.read_text().split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    """The README's two Quick-start commands: the first installs and runs the demo; ``.ci/run`` runs the second,
+    which builds the docs with warnings as errors; the getting-started page gives the same two."""
+    quick = README_TEXT.split("## Quick start", 1)[1].split("\n## ", 1)[0]
     commands = re.findall(r"```bash\n(.+?)\n```", quick)
     assert len(commands) == 2 and commands[0] == "pip install . && selfid-jax demo", commands
+    assert "sphinx-build -W --keep-going -q -b html docs docs/_build/html" in commands[1]
+    assert '".[test,docs]"' in commands[1]
     ci_lines = [s.strip() for s in (ROOT / ".ci" / "run").read_text().splitlines()]
     assert commands[1] in ci_lines, commands[1]
+    started = re.findall(r"```bash\n(.+?)\n```", (DOCS / "getting_started.md").read_text(encoding="utf-8"))
+    assert started[:2] == commands, started
+
+
+def test_readme_is_short_and_links_the_docs():
+    """The README is an entry point: under 100 lines, linking every hand-written docs page."""
+    assert len(README_TEXT.splitlines()) < 100
+    linked = {ROOT / target for target in re.findall(r"\]\((docs/[^)#\s]+)", README_TEXT)}
+    pages = {p for p in doc_pages()}
+    unlinked = sorted(str(p.relative_to(ROOT)) for p in pages - linked - {DOCS / "index.md"})
+    assert not unlinked, f"the README's Documentation list does not link {unlinked}: add them there"

@@ -65,10 +65,9 @@ def valid_region_bounds(df: pd.DataFrame, threshold: float = 0.95) -> dict[str, 
       threshold: completion fraction in (0, 1], e.g. 0.95.
 
     Returns:
-      ``{system: {"lower": float | None, "upper": float | None,
-      "contains_one": bool}}``; bounds are grid values of ``eps_limit``, both
-      ``None`` when the grid point nearest 1.0 fails. ``contains_one`` says
-      whether ``lower <= 1 <= upper``.
+      ``{system: {"lower": float | None, "upper": float | None, "contains_one": bool}}``;
+      bounds are grid values of ``eps_limit``, both ``None`` when the grid
+      point nearest 1.0 fails. ``contains_one`` says whether ``lower <= 1 <= upper``.
     """
     _require(df, ("system", "eps_limit", "completion"))
     out: dict[str, dict[str, Any]] = {}

@@ -1,5 +1,7 @@
 """``selfid-jax fit LOG``: self-ID from a recorded log into a run directory (estimates, inverse Jacobian, figure).
 
+Usage::
+
     selfid-jax fit LOG [--task x,y,z | --task-dim 3] [--eps E] [--eps-rel R] [--refine METHOD]
                        [--start S] [--stop S] [--max-gap S] [--out DIR]
     selfid-jax fit --example

@@ -638,12 +638,15 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
     A start position outside the limits or the box, or a path that would
     leave the box, ends the session before any motion with that status.
 
-    Raises (before any motion; the robot is closed):
+    Every error below is raised before any motion, and the robot is closed first.
+
+    Raises:
       ValueError: an option out of range (the message names it), or ``m_a``
-        above the envelope's ``max_step``. ``ResumeError``: the log disagrees
-        with the options (names the field), or ``resume`` without a log / a
-        log without ``resume``. ``JournalError``: the log is corrupt.
-      OSError: the log cannot be written (the robot is closed first).
+        above the envelope's ``max_step``.
+      ResumeError: the log disagrees with the options (names the field), or
+        ``resume`` without a log / a log without ``resume``.
+      JournalError: the log is corrupt.
+      OSError: the log cannot be written.
     """
     run_dir = Path(run_dir)
     log_path = run_dir / LOG_FILE

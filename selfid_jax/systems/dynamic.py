@@ -71,11 +71,11 @@ class Trace(NamedTuple):
 class DynamicArm:
     """An MJCF arm whose position servos are stepped in MJX; see the module docstring.
 
-    Attributes (traced):
+    Traced attributes:
       model: ``mjx.Model`` (float64 if x64 was on at build). Sweep gains or
         gravity compensation through :meth:`with_servo`.
 
-    Attributes (static):
+    Static attributes:
       site_id: index of the POM site.
       qpos_adr: ``(n,)`` ``qpos`` address of each actuator's joint.
       dof_adr: ``(n,)`` ``qvel`` address of each actuator's joint.

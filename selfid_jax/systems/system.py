@@ -57,14 +57,14 @@ class System:
     vector). Units: actuator positions in rad (hinge) or m (slide); positions
     in the system's length unit (m for the shipped systems); rotations in rad.
 
-    Attributes (traced):
+    Traced attributes:
       params: pytree passed to ``pose_fn`` (link lengths, an ``mjx.Model``...).
       q_low, q_high: ``(n,)`` joint limits (may be +-inf).
       dq_max: ``(n,)`` largest actuator change per step (``apply`` clips to it).
       m_a: ``(n,)`` safe self-ID magnitude per actuator (random step size; a scalar is broadcast at build).
       sample_low, sample_high: ``(n,)`` box that ``sample_configs`` draws from.
 
-    Attributes (static):
+    Static attributes:
       name: label.
       n_act: number of actuators ``n``.
       task_dim: ``m``: 2, 3 or 6, or the number of ``task_axes``.
