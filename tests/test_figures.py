@@ -25,6 +25,7 @@ from matplotlib.colors import to_rgba
 from selfid_jax.control import paths
 from selfid_jax.experiments import ablation, demo, tracking, valid_region
 from selfid_jax.experiments.common import figures
+from selfid_jax.experiments.common.specs import system_name
 from selfid_jax.runner import registry
 
 CONFIGS = Path(__file__).resolve().parents[1] / "selfid_jax" / "configs"
@@ -215,11 +216,18 @@ def test_valid_region_suptitle_names_only_controllers_the_systems_ran(monkeypatc
     valid_region.plot(table, summary, tmp_path)
     fig = drawn["valid_region"]
     _assert_no_overlap(fig)
-    ran = {valid_region.protocol(cfg, entry)[2].max_step for entry in cfg.systems}
-    named = {float(v) for v in re.findall(r"max_step=([0-9.e-]+)", fig._suptitle.get_text())}
-    assert named <= ran
-    if all(not isinstance(e, str) for e in cfg.systems) and cfg.controller.max_step not in ran:
-        assert cfg.controller.max_step not in named
+    # each controller the suptitle names ("controller (a, b): k=v, ..." or, for all systems, "controller: ...")
+    # is the one every system it speaks for ran
+    runs = {system_name(valid_region.protocol(cfg, e)[0]): valid_region.protocol(cfg, e)[2].model_dump()
+            for e in cfg.systems}
+    title = fig._suptitle.get_text()
+    named = re.findall(r"controller(?: \(([^)]*)\))?: ((?:\w+=[^,;]+(?:, )?)+)", title)
+    for who, pairs in named:
+        said = dict(kv.split("=", 1) for kv in pairs.split(", "))
+        for system in (who.split(", ") if who else runs):
+            assert {k: str(v) for k, v in runs[system].items()} == said, (system, title)
+    if len({str(c) for c in runs.values()}) > 1 and all(not isinstance(e, str) for e in cfg.systems):
+        assert not named, title  # every system has its own: no controller for all in the suptitle
     # every completion panel has its threshold line
     threshold = 100.0 * cfg.completion_threshold
     completion_axes = [ax for ax in fig.axes if ax.get_ylim()[1] == 102]
