@@ -324,3 +324,35 @@ def test_cube_figure_draws_the_commanded_path(monkeypatch, tmp_path):
         assert len(found) == 1
         executed = _lines(ax, "executed:")["0"]
         assert np.allclose(np.asarray(executed.get_data_3d(), float).T[[0, -1]], want[[0, -1]])
+
+
+def _ekm_study_module():
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "ekm_study.py"
+    spec = importlib.util.spec_from_file_location("ekm_study_script", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_ekm_study_figure_shows_completion_and_path_error(monkeypatch, tmp_path):
+    study = _ekm_study_module()
+    methods = ["true", "ours", "nominal"] + [f"ekm {m} ({f})" for m in ("fixed", "online")
+                                              for f in ("incremental", "absolute", "incremental, plain")]
+    rng = np.random.default_rng(4)
+    its = list(study.ITERATIONS)
+    completion = pd.DataFrame(rng.uniform(0, 1, (len(methods), len(its))), index=methods, columns=its)
+    error = pd.DataFrame(rng.uniform(0.1, 30.0, (len(methods), len(its))), index=methods, columns=its)
+    drawn = _capture(monkeypatch, figures)
+    study.study_figure(completion, error, tmp_path, "ekm_study_hard", "2-link star")
+    fig = drawn["ekm_study_hard"]
+    _assert_no_overlap(fig)
+    comp, err = _lines(fig.axes[0], "completion:"), _lines(fig.axes[1], "path_error:")
+    assert fig.axes[1].get_ylabel() == "mean distance to the path [mm]"
+    for m in methods:
+        assert np.array_equal(np.asarray(err[m].get_ydata(), float), error.loc[m].to_numpy(float))
+        assert np.allclose(np.asarray(comp[m].get_ydata(), float), 100.0 * completion.loc[m].to_numpy(float))
+    assert len({(to_rgba(ln.get_color()), ln.get_linestyle(), ln.get_marker()) for ln in comp.values()}) == 9
+    with pytest.raises(ValueError, match="same methods"):
+        study.study_figure(completion, error.iloc[:-1], tmp_path, "x")
