@@ -280,12 +280,18 @@ def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
     ax = axes[3]
     s = r["self_id"]
-    for b, thr in enumerate(convergence_thresholds(g, r)):
+    thresholds = convergence_thresholds(g, r)
+    for b in range(len(g)):
         d = np.asarray(g["deltas"].iloc[b])
         ax.semilogy(np.arange(1, len(d) + 1)[d > 0], d[d > 0], marker=".", color=f"C{b % 10}", label=f"config {b}")
-        ax.axhline(thr, color=f"C{b % 10}", ls=":", lw=1, gid=f"threshold:{b}")
-    rule = f"eps {s['eps']:g}" + (f" + {s['eps_rel']:g} ||J_est||_F" if s.get("eps_rel", 0) > 0 else "")
-    ax.plot([], [], color="k", ls=":", lw=1, label=f"threshold: {rule}")
+    rule = f"threshold {s['eps']:g}" if s.get("eps_rel", 0) == 0 else (
+        "threshold " + (f"{s['eps']:g} + " if s["eps"] > 0 else "") + f"{s['eps_rel']:g}" + r"$\,\|J_{est}\|_F$")
+    if np.allclose(thresholds, thresholds[0], rtol=1e-12, atol=0):  # an absolute test: one line for all
+        ax.axhline(thresholds[0], color="k", ls=":", lw=1, gid="threshold:all", label=rule)
+    else:  # relative: each configuration's own, in its colour
+        for b, thr in enumerate(thresholds):
+            ax.axhline(thr, color=f"C{b % 10}", ls=":", lw=1, gid=f"threshold:{b}")
+        ax.plot([], [], color="k", ls=":", lw=1, label=rule + " (per config)")
     ax.set_xlabel("self-ID iteration")
     ax.set_ylabel(r"$\|J_t - J_{t-1}\|_F$")
     ax.set_title(f"{name}: convergence (Sec. IV-D)", fontsize=10)
