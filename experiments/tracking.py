@@ -426,14 +426,14 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     system and realism level, ``tracking_<system>_realism<level>``, the
     level's values in the title). Top row: the executed paths [mm] relative to
     where each path started, in the path's plane (3-D for a cube), over the
-    commanded path (grey, dashed); letters are placed side by side, each
-    shifted along the plane's horizontal axis by the same amount as its
-    commanded path (each letter starts from where its own self-ID ended). For
+    commanded path (grey, dashed); letters are placed side by side on a
+    baseline, each shifted by the same amount as its commanded path (each
+    letter starts from where its own self-ID ended; :func:`_letter_shifts`). For
     a rotation path: the orientation error along each rotation [deg]. Bottom
     row: the per-step distance to the path [mm] along the position components
     the task controls (:func:`tracked_position_axes`; untracked ones are not
     drawn) and, where the task has rotation, the orientation error [deg], the
-    paths (letters) one after another. The protocol is in the title.
+    paths (letters) one after another, each labelled where it begins. The protocol is in the title.
     """
     from matplotlib.figure import Figure
 
@@ -442,7 +442,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     three_d = kind == "cube"
     h_ax, v_ax = PLANE_AXES[summary["path"].get("plane", "xy")]
     commanded = commanded_paths(summary["path"])
-    shifts = _letter_shifts(commanded, h_ax, summary["path"])
+    shifts = _letter_shifts(summary["path"], len(commanded))
     rotates = "rot_trace_deg" in table and bool(np.any(np.concatenate(table["rot_trace_deg"].to_list()) != 0))
     labels = realistic.level_labels(table)
     for (system, level), g in table.groupby(["system", _level(table)], sort=False):
@@ -464,7 +464,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
             else:
                 for i, cmd in enumerate(commanded):
                     c = cmd.copy()
-                    c[:, h_ax] += shifts[i]
+                    c[:, [h_ax, v_ax]] += shifts[i]
                     _draw(ax, c, three_d, h_ax, v_ax, color="0.55", ls="--", lw=1.0, gid=f"commanded:{i}",
                           label="commanded" if i == 0 else None)
                 for _, row in rows.iterrows():
@@ -472,7 +472,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
                     pts = 1e3 * np.asarray(row["positions"]).reshape(-1, 3)[:used]
                     pts = pts - pts[0]
                     i = int(row["letter_id"])
-                    pts[:, h_ax] += shifts[i] if i < len(shifts) else 0.0
+                    pts[:, [h_ax, v_ax]] += shifts[i] if i < len(shifts) else 0.0
                     _draw(ax, pts, three_d, h_ax, v_ax, color=color, lw=1.2, gid=f"executed:{i}",
                           label="executed" if i == 0 else None)
                 ax.legend(fontsize=7, loc="best")
@@ -494,6 +494,13 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
             err = np.concatenate(traces) if traces else np.zeros((0, 3))
             for j in tracked:
                 tr.plot(err[:, j], lw=0.8, color=f"C{j}", label=f"|e_{'xyz'[j]}|", gid=f"error:{'xyz'[j]}")
+            if len(traces) > 1:  # where each path (letter, rotation) begins, labelled at the top
+                starts = np.cumsum([0] + [len(t) for t in traces[:-1]])
+                for x0 in starts:
+                    tr.axvline(x0, color="0.7", lw=0.6, ls=":")
+                top = tr.secondary_xaxis("top")
+                top.set_xticks(starts, [f"{r['path']}" for _, r in rows.iterrows()], fontsize=7, ha="left")
+                top.tick_params(length=0, pad=1)
             tr.set_xlabel("control step" + (" (paths one after another)" if len(traces) > 1 else ""))
             tr.set_ylabel("distance to the path [mm]")
             if rotates:
@@ -519,13 +526,24 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     return written
 
 
-def _letter_shifts(commanded: list[np.ndarray], h_ax: int, path: dict) -> list[float]:
-    """Shift [mm] along the plane's horizontal axis of each path so that letters sit side by side, a gap apart."""
-    shifts, right = [0.0], float(commanded[0][:, h_ax].max())
-    gap = 0.4 * 1e3 * float(path.get("height", 0.012))
-    for cmd in commanded[1:]:
-        shifts.append(right + gap - float(cmd[:, h_ax].min()))
-        right = shifts[-1] + float(cmd[:, h_ax].max())
+def _letter_shifts(path: dict, n: int) -> np.ndarray:
+    """``(n, 2)`` shift [mm] along the plane's (horizontal, vertical) axes of each of the ``n`` paths.
+
+    For letters (kind ``letters``): each letter's box (:func:`paths.text_box`)
+    is moved so that its lower-left corner sits on the baseline, right of the
+    letter before with a gap of 0.4 letter heights, so the letters read as a
+    word; each path starts at its own first stroke point, so without the shift
+    they would all be drawn on top of each other. Other kinds: zeros.
+    """
+    shifts = np.zeros((n, 2))
+    if path["kind"] != "letters":
+        return shifts
+    height = float(path["height"])
+    left = 0.0
+    for i, char in enumerate(path["text"]):
+        box = paths.text_box(char, height=height)
+        shifts[i] = 1e3 * (np.array([left, 0.0]) - np.asarray(box.origin, float))
+        left += box.width + 0.4 * height
     return shifts
 
 
