@@ -284,9 +284,13 @@ def test_grablab_letters_are_drawn_side_by_side(monkeypatch, tmp_path):
         for prefix in ("executed:", "commanded:"):
             lines = _lines(ax, prefix)
             assert len(lines) == len(letters)
-            boxes = [(float(np.min(ln.get_xdata())), float(np.max(ln.get_xdata()))) for _, ln in sorted(lines.items())]
-            for (a0, a1), (b0, b1) in zip(boxes[:-1], boxes[1:]):
-                assert a1 < b0, (prefix, boxes)  # each letter entirely right of the one before
+            xs = [np.asarray(lines[str(i)].get_xdata(), float) for i in range(len(letters))]
+            for left, right in zip(xs[:-1], xs[1:]):
+                assert left.max() < right.min(), prefix  # each letter entirely right of the one before
+        height = 1e3 * cfg.path.height  # and the commanded letters stand on one baseline, 2 mm tall
+        for ln in _lines(ax, "commanded:").values():
+            y = np.asarray(ln.get_ydata(), float)
+            assert y.min() == pytest.approx(0.0, abs=1e-9) and y.max() <= height + 1e-9
 
 
 def test_rotation_tracking_draws_no_zeros_for_untracked_axes(monkeypatch, tmp_path):
