@@ -146,7 +146,8 @@ def _protocol_text(summary: Mapping[str, Any], systems: list[str] | None = None)
     path and controller state them in their panel titles instead.
     """
     ctrl = summary.get("controller")
-    saved = summary.get("systems") if isinstance(summary.get("systems"), Mapping) else {}
+    saved = summary.get("systems")
+    saved = saved if isinstance(saved, Mapping) else {}
     own = [s for s in (systems or []) if isinstance(saved.get(s, {}).get("protocol"), Mapping)]
     parts = [f"valid: mean completion >= {summary.get('completion_threshold', 0.95):g}"]
     if systems and len(own) == len(systems):
@@ -291,7 +292,7 @@ def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str 
 
     with_error = "mean_error" in df.columns
     fig = Figure(figsize=(12.0 if with_error else 8.4, 4.4), layout="constrained")
-    axes = np.atleast_1d(fig.subplots(1, 2 if with_error else 1))
+    axes = fig.subplots(1, 2 if with_error else 1, squeeze=False)[0]
     ax = axes[0]
     for method in methods:
         g = clean[clean["method"] == method]
