@@ -425,8 +425,8 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     rows of the first start configuration (with a realism section one per
     system and realism level, ``tracking_<system>_realism<level>``, the
     level's values in the title). Top row: the executed paths [mm] relative to
-    where each path started, in the path's plane (3-D for a cube), over the
-    commanded path (grey, dashed); letters are placed side by side on a
+    where each path started, in the path's plane (3-D for a cube), under the
+    commanded path (black, dashed); letters are placed side by side on a
     baseline, each shifted by the same amount as its commanded path (each
     letter starts from where its own self-ID ended; :func:`_letter_shifts`). For
     a rotation path: the orientation error along each rotation [deg]. Bottom
@@ -462,11 +462,6 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
                 ax.set_ylabel("orientation error to the pursued waypoint [deg]")
                 ax.legend(fontsize=7)
             else:
-                for i, cmd in enumerate(commanded):
-                    c = cmd.copy()
-                    c[:, [h_ax, v_ax]] += shifts[i]
-                    _draw(ax, c, three_d, h_ax, v_ax, color="0.55", ls="--", lw=1.0, gid=f"commanded:{i}",
-                          label="commanded" if i == 0 else None)
                 for _, row in rows.iterrows():
                     used = int(row["steps_used"]) + 1
                     pts = 1e3 * np.asarray(row["positions"]).reshape(-1, 3)[:used]
@@ -475,11 +470,17 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
                     pts[:, [h_ax, v_ax]] += shifts[i] if i < len(shifts) else 0.0
                     _draw(ax, pts, three_d, h_ax, v_ax, color=color, lw=1.2, gid=f"executed:{i}",
                           label="executed" if i == 0 else None)
+                for i, cmd in enumerate(commanded):  # on top, thin and dashed: visible where tracking is exact
+                    c = cmd.copy()
+                    c[:, [h_ax, v_ax]] += shifts[i]
+                    _draw(ax, c, three_d, h_ax, v_ax, color="k", alpha=0.7, ls="--", lw=0.8, gid=f"commanded:{i}",
+                          label="commanded" if i == 0 else None)
                 ax.legend(fontsize=7, loc="best")
                 if three_d:
                     ax.set_xlabel("x [mm]")
                     ax.set_ylabel("y [mm]")
                     cast(Any, ax).set_zlabel("z [mm]")  # a 3-D Axes; mpl_toolkits.mplot3d ships no types
+                    ax.set_aspect("equal")
                 else:
                     ax.set_aspect("equal", adjustable="datalim")
                     ax.set_xlabel(f"{'xyz'[h_ax]} [mm]" + (" (letters side by side)" if len(commanded) > 1 else ""))
