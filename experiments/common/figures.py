@@ -352,8 +352,9 @@ def _per_method_panels(df, methods, by, label, legend_title, out_dir, name) -> l
         ax.set_title(method, fontsize=9)
         ax.set_xscale("log")
         ax.grid(alpha=0.3)
-    for ax in axes[len(methods):]:
+    for k, ax in enumerate(axes[len(methods):], start=len(methods)):
         ax.set_visible(False)
+        axes[k - ncol].xaxis.set_tick_params(labelbottom=True)  # the panel above is its column's lowest
     axes[0].legend(title=legend_title, fontsize=7, title_fontsize=7)
     fig.supxlabel("self-ID iterations")
     fig.supylabel("mean path completion [%]")
