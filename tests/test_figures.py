@@ -235,6 +235,11 @@ def test_valid_region_suptitle_names_only_controllers_the_systems_ran(monkeypatc
     for ax in completion_axes:
         flat = [ln for ln in ax.get_lines() if np.allclose(np.asarray(ln.get_ydata(), float), threshold)]
         assert flat, ax.get_title()
+    for system, g in table.groupby("system"):  # the error panel in mm: the mean of mean_error per eps_limit
+        (ax,) = [ax for ax in fig.axes if system in _lines(ax, "mean_error:")]
+        line = _lines(ax, "mean_error:")[system]
+        want = [1e3 * np.mean(g[g["eps_limit"] == e]["mean_error"]) for e in sorted(g["eps_limit"].unique())]
+        assert np.allclose(np.asarray(line.get_ydata(), float), want, rtol=1e-12)
 
 
 # --------------------------------------------------------------------------- tracking

@@ -166,7 +166,7 @@ def valid_region_figure(
 
     Top row: mean path completion [%] over all rollouts, band = min..max of
     the per-configuration means, dotted line at the threshold. Bottom row:
-    mean tracking error [m] (log axis when it spans > 2 decades), same band.
+    mean tracking error [mm] (log axis when it spans > 2 decades), same band.
     Dashed vertical lines mark the valid-region bounds, taken from
     ``summary["systems"][system]`` when present, else computed with
     :func:`valid_region_bounds` at ``summary["completion_threshold"]`` (0.95).
@@ -187,7 +187,7 @@ def valid_region_figure(
         b = saved.get(system, {}) if "lower" in saved.get(system, {}) else bounds[system]
         ax_c, ax_e = axes[0, c], axes[1, c]
         comp = _curves(g, "completion") * 100.0
-        err = _curves(g, "mean_error")
+        err = _curves(g, "mean_error") * 1e3
         x = comp.index.to_numpy(float)
         ax_c.fill_between(x, comp["lo"], comp["hi"], color="C0", alpha=0.25, lw=0, label="range over configs")
         ax_c.plot(x, comp["mean"], "o-", color="C0", ms=3, label="mean")
@@ -195,7 +195,7 @@ def valid_region_figure(
         ax_c.set_ylim(-2, 102)
         xe = err.index.to_numpy(float)
         ax_e.fill_between(xe, err["lo"], err["hi"], color="C1", alpha=0.25, lw=0)
-        ax_e.plot(xe, err["mean"], "o-", color="C1", ms=3)
+        ax_e.plot(xe, err["mean"], "o-", color="C1", ms=3, gid=f"mean_error:{system}")
         vals = err[["lo", "mean", "hi"]].to_numpy(float)
         vals = vals[np.isfinite(vals)]
         if vals.size and (vals > 0).all() and vals.max() / vals.min() > 100:
@@ -217,7 +217,7 @@ def valid_region_figure(
         ax_e.set_xlabel(r"$\epsilon_{limit}$")
         if c == 0:
             ax_c.set_ylabel("mean path completion [%]")
-            ax_e.set_ylabel("mean tracking error [m]")
+            ax_e.set_ylabel("mean tracking error [mm]")
             ax_c.legend(loc="lower left", fontsize=8)
     fig.suptitle(_protocol_text(summary, systems), fontsize=8)
     return save_figure(fig, out_dir, name)
