@@ -254,6 +254,8 @@ def convergence_thresholds(g: pd.DataFrame, r: dict) -> np.ndarray:
 
 
 def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
+    from matplotlib.ticker import MaxNLocator
+
     n_act, m = r["n_act"], r["task_dim"]
     est0 = np.asarray(g["estimate"].iloc[0]).reshape(n_act, m)
     true0 = np.asarray(g["truth"].iloc[0]).reshape(n_act, m)
@@ -263,8 +265,9 @@ def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
         ax.set_title(f"{name}: {title} $J^+$, config 0", fontsize=10)
         ax.set_xticks(range(m), ["x", "y", "z", "rx", "ry", "rz"][:m])
         ax.set_yticks(range(n_act), [f"q{i + 1}" for i in range(n_act)])
-        for (i, j), v in np.ndenumerate(mat):
-            ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7)
+        for (i, j), v in np.ndenumerate(mat):  # white on the dark ends of the colour map
+            ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7,
+                    color="w" if abs(v) > 0.6 * vmax else "k")
     fig.colorbar(im, ax=list(axes[:2]), shrink=0.8, label="actuator unit per task unit")
     ax = axes[2]
     for b in range(len(g)):
@@ -292,6 +295,7 @@ def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
         for b, thr in enumerate(thresholds):
             ax.axhline(thr, color=f"C{b % 10}", ls=":", lw=1, gid=f"threshold:{b}")
         ax.plot([], [], color="k", ls=":", lw=1, label=rule + " (per config)")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("self-ID iteration")
     ax.set_ylabel(r"$\|J_t - J_{t-1}\|_F$")
     ax.set_title(f"{name}: convergence (Sec. IV-D)", fontsize=10)
