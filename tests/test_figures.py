@@ -365,3 +365,20 @@ def test_ekm_study_figure_shows_completion_and_path_error(monkeypatch, tmp_path)
     assert len({(to_rgba(ln.get_color()), ln.get_linestyle(), ln.get_marker()) for ln in comp.values()}) == 9
     with pytest.raises(ValueError, match="same methods"):
         study.study_figure(completion, error.iloc[:-1], tmp_path, "x")
+
+
+def test_peg_in_hole_bars_have_one_tick_per_layout(monkeypatch, tmp_path):
+    from selfid_jax.experiments import peg_in_hole
+
+    rows = [dict(noise_level=0, inverse=inv, failed=False, layout=layout, arm_pos_mm=0.1 + layout,
+                 arm_rot_deg=0.01, hand_rot_deg=0.02) for inv in peg_in_hole.INVERSES for layout in (0, 1, 2)]
+    ctrl = {"max_step": 0.0025, "tol": 0.0005}
+    summary = {"protocol": {"arm": {"m_a": 0.03, "eps": 0.5, "controller": ctrl},
+                            "hand": {"m_a": 0.0003, "eps_rel": 0.05}, "rotation": {"angle": 0.1, "about": "y"}}}
+    drawn = _capture(monkeypatch, peg_in_hole)
+    peg_in_hole.plot(pd.DataFrame(rows), summary, tmp_path)
+    fig = drawn["peg_in_hole"]
+    _assert_no_overlap(fig)
+    for ax in fig.axes:
+        assert list(ax.get_xticks()) == [0, 1, 2]
+        assert [t.get_text() for t in ax.get_xticklabels()] == ["0", "1", "2"]
