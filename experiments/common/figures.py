@@ -227,6 +227,16 @@ _MARKERS = ("o", "s", "^", "D", "v", "P", "X")
 _LINESTYLES = ("-", "--", "-.", ":")
 
 
+def _iteration_ticks(ax, iterations) -> None:
+    """Log x axis with one plain tick per checkpoint (``1, 2, 5, 10``), not ``2 x 10^0``."""
+    from matplotlib.ticker import NullLocator
+
+    its = np.sort(np.unique(np.asarray(iterations, float)))
+    ax.set_xscale("log")
+    ax.set_xticks(its, [f"{v:g}" for v in its])
+    ax.xaxis.set_minor_locator(NullLocator())
+
+
 def method_styles(methods: list[str]) -> dict[str, tuple[str, str, str]]:
     """A distinct ``(colour, linestyle, marker)`` per method, in the order given.
 
@@ -302,7 +312,7 @@ def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str 
         color, style, marker = styles[method]
         ax.fill_between(x, (mean - sd).clip(0, 100), (mean + sd).clip(0, 100), color=color, alpha=0.10, lw=0)
         ax.plot(x, mean, marker=marker, ls=style, color=color, ms=4, label=method, gid=f"completion:{method}")
-    ax.set_xscale("log")
+    _iteration_ticks(ax, clean["iterations"])
     ax.set_xlabel("self-ID iterations")
     ax.set_ylabel("mean path completion [%]")
     ax.set_ylim(-2, 102)
@@ -319,7 +329,7 @@ def ablation_figures(df: pd.DataFrame, summary: Mapping[str, Any], out_dir: str 
         vals = vals[np.isfinite(vals)]
         if vals.size and (vals > 0).all() and vals.max() / vals.min() > 100:
             ax_e.set_yscale("log")
-        ax_e.set_xscale("log")
+        _iteration_ticks(ax_e, clean["iterations"])
         ax_e.set_xlabel("self-ID iterations")
         ax_e.set_ylabel("mean distance to the path [mm]")
         ax_e.grid(alpha=0.3)
@@ -350,7 +360,7 @@ def _per_method_panels(df, methods, by, label, legend_title, out_dir, name) -> l
             curve = g[g[by] == v].groupby("iterations")["completion"].mean() * 100.0
             ax.plot(curve.index, curve.to_numpy(), "o-", ms=2, color=f"C{j % 10}", label=label(v))
         ax.set_title(method, fontsize=9)
-        ax.set_xscale("log")
+        _iteration_ticks(ax, df["iterations"])
         ax.grid(alpha=0.3)
     for k, ax in enumerate(axes[len(methods):], start=len(methods)):
         ax.set_visible(False)
