@@ -382,3 +382,30 @@ def test_peg_in_hole_bars_have_one_tick_per_layout(monkeypatch, tmp_path):
     for ax in fig.axes:
         assert list(ax.get_xticks()) == [0, 1, 2]
         assert [t.get_text() for t in ax.get_xticklabels()] == ["0", "1", "2"]
+
+
+def test_valid_region_workspace_cells_are_centred_and_the_threshold_outlined(monkeypatch, tmp_path):
+    from selfid_jax.experiments import valid_region_workspace as vrw
+
+    eps = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
+    comp = np.array([[0.2, 1.0, 1.0, 0.5, 0.1], [1.0, 1.0, 1.0, 1.0, 0.3], [0.9, 1.0, 0.97, 0.2, 0.0]])  # (bins, eps)
+    rows = [dict(manipulability_bin=b, eps_limit=e, completion=comp[b, j], predicted_stable=0.5)
+            for b in range(3) for j, e in enumerate(eps)]
+    configs = [dict(manipulability=1e-3 * (k + 1), condition=2.0 + k, upper=2.0, lower=0.5, predicted_upper=1.5)
+               for k in range(3)]
+    summary = dict(configs=configs, system="arm5", fail_with_exact_inverse=0, n_configs=3, completion_threshold=0.95,
+                   controller=dict(max_step=0.0025, tol=0.0005, gain=1.0, steps=435), path=dict(size=0.05))
+    drawn = _capture(monkeypatch, vrw)
+    vrw.plot(pd.DataFrame(rows), summary, tmp_path)
+    fig = drawn["valid_region_workspace"]
+    _assert_no_overlap(fig)
+    heat = [ax for ax in fig.axes if ax.get_images()]
+    assert len(heat) == 2
+    for ax in heat:  # each cell centred on its eps_limit: the image spans half a step beyond the first and last
+        assert ax.get_images()[0].get_extent()[:2] == pytest.approx([-0.25, 2.25])
+    (outline,) = [c for c in heat[0].collections if c.get_gid() == "threshold"]
+    ok = np.pad(comp >= 0.95, 1)
+    edges = int(np.sum(ok[1:, :] != ok[:-1, :]) + np.sum(ok[:, 1:] != ok[:, :-1]))  # passing next to failing
+    assert len(outline.get_segments()) == edges
+    xs = np.concatenate([np.asarray(s)[:, 0] for s in outline.get_segments()])
+    assert np.allclose(np.sort(np.unique(np.round(xs, 9))), [-0.25, 0.25, 0.75, 1.25, 1.75])
