@@ -428,7 +428,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     where each path started, in the path's plane (3-D for a cube), under the
     commanded path (black, dashed); letters are placed side by side on a
     baseline, each shifted by the same amount as its commanded path (each
-    letter starts from where its own self-ID ended; :func:`_letter_shifts`). For
+    letter starts from where its own self-ID ended). For
     a rotation path: the orientation error along each rotation [deg]. Bottom
     row: the per-step distance to the path [mm] along the position components
     the task controls (:func:`tracked_position_axes`; untracked ones are not
@@ -530,7 +530,7 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
 def _letter_shifts(path: dict, n: int) -> np.ndarray:
     """``(n, 2)`` shift [mm] along the plane's (horizontal, vertical) axes of each of the ``n`` paths.
 
-    For letters (kind ``letters``): each letter's box (:func:`paths.text_box`)
+    For letters (kind ``letters``): each letter's box (``paths.text_box``)
     is moved so that its lower-left corner sits on the baseline, right of the
     letter before with a gap of 0.4 letter heights, so the letters read as a
     word; each path starts at its own first stroke point, so without the shift
