@@ -398,6 +398,8 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
             mean, sd = g.mean(), g.std(ddof=0).fillna(0.0)
             ax.bar(mean.index + (j - 0.5) * 0.38, mean.to_numpy(), 0.38, yerr=sd.to_numpy(), label=inverse,
                    color="C0" if inverse == "estimated" else "C2")
+        layouts = np.sort(clean["layout"].unique())
+        ax.set_xticks(layouts, [f"{int(v)}" for v in layouts])  # one tick per layout, not a continuous axis
         ax.set_xlabel("layout")
         ax.set_ylabel(labels[col])
         ax.legend(fontsize=7)

@@ -22,13 +22,18 @@ joint offsets +0.6 / -0.6 rad (the issue's probe); ``easy`` = links 1.2 / 0.8 m
 (+-20 %), offsets +0.1 / -0.1 rad. Protocol (the 2-link valid-region one):
 0.2 m star, 10 mm steps, 2 mm tolerance, 435 steps, ``m_a = 0.05`` rad.
 
-    python -m selfid_jax.experiments.ekm_study [--configs 10] [--trials 2] [--case hard|easy|both]
+    python scripts/ekm_study.py [--configs 10] [--trials 2] [--case hard|easy|both] [--figures DIR]
+
+With ``--figures DIR`` each case's two tables are also drawn
+(:func:`study_figure`): ``DIR/ekm_study_<case>.png|pdf``, completion and path
+error per method.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -118,11 +123,60 @@ def study(case: str = "hard", *, n_configs: int = 10, n_trials: int = 2, iterati
     return tuple(tables)
 
 
+def study_figure(completion: pd.DataFrame, error_mm: pd.DataFrame, out_dir: str | Path, name: str,
+                 title: str = "") -> list[Path]:
+    """Draw the two tables of :func:`study`: mean completion [%] and mean path error [mm] vs self-ID iterations.
+
+    Args:
+      completion: ``(method x iterations)`` mean completion in [0, 1].
+      error_mm: ``(method x iterations)`` mean distance to the path [mm], same index and columns.
+      out_dir: folder of ``<name>.png`` and ``<name>.pdf``.
+      name: file stem.
+      title: the protocol, as the suptitle.
+
+    Returns:
+      the PNG and PDF paths. Each method has its own (colour, linestyle, marker)
+      (:func:`selfid_jax.experiments.common.figures.method_styles`); the error
+      axis is logarithmic when the errors span more than 2 decades.
+    """
+    from matplotlib.figure import Figure
+
+    from selfid_jax.experiments.common.figures import method_styles, save_figure
+
+    if list(completion.index) != list(error_mm.index) or list(completion.columns) != list(error_mm.columns):
+        raise ValueError("completion and error_mm must have the same methods (index) and iteration counts (columns)")
+    methods = [str(m) for m in completion.index]
+    styles = method_styles(methods)
+    fig = Figure(figsize=(12.0, 4.4), layout="constrained")
+    ax_c, ax_e = fig.subplots(1, 2)
+    x = np.asarray(completion.columns, float)
+    for m, (_, c), (_, e) in zip(methods, completion.iterrows(), error_mm.iterrows()):
+        color, ls, marker = styles[m]
+        ax_c.plot(x, 100.0 * c.to_numpy(float), color=color, ls=ls, marker=marker, ms=4, label=m,
+                  gid=f"completion:{m}")
+        ax_e.plot(x, e.to_numpy(float), color=color, ls=ls, marker=marker, ms=4, gid=f"path_error:{m}")
+    vals = error_mm.to_numpy(float)
+    vals = vals[np.isfinite(vals)]
+    if vals.size and (vals > 0).all() and vals.max() / vals.min() > 100:
+        ax_e.set_yscale("log")
+    for ax, label in ((ax_c, "mean path completion [%]"), (ax_e, "mean distance to the path [mm]")):
+        ax.set_xscale("log")
+        ax.set_xlabel("self-ID iterations")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    ax_c.set_ylim(-2, 102)
+    fig.legend(*ax_c.get_legend_handles_labels(), fontsize=7, loc="outside right center")
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return save_figure(fig, out_dir, name)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--configs", type=int, default=10)
     ap.add_argument("--trials", type=int, default=2)
     ap.add_argument("--case", choices=["hard", "easy", "both"], default="both")
+    ap.add_argument("--figures", type=Path, default=None, help="also draw each case into this folder")
     args = ap.parse_args(argv)
     for case in (["hard", "easy"] if args.case == "both" else [args.case]):
         t0 = time.perf_counter()
@@ -132,6 +186,12 @@ def main(argv=None):
         print(completion.to_string(float_format=lambda x: f"{x:.2f}"))
         print("mean distance to the path [mm]:")
         print(error.to_string(float_format=lambda x: f"{x:.2f}"))
+        if args.figures is not None:
+            args.figures.mkdir(parents=True, exist_ok=True)
+            title = (f"2-link star 0.2 m, {case} nominal {CASES[case]}; {args.configs} configurations x "
+                     f"{args.trials} trials")
+            for path in study_figure(completion, error, args.figures, f"ekm_study_{case}", title):
+                print(f"figure: {path}")
 
 
 if __name__ == "__main__":
