@@ -6,7 +6,10 @@ package, loads the config (with ``--set`` overrides), runs the experiment into
 a temporary directory with JAX's persistent compilation cache in
 ``--cache-dir`` (empty: a cold start; reused: warm), and prints one JSON line:
 rows computed, the seconds spent in import / build / run inside the process,
-and the process's peak resident memory. :func:`measure` adds the wall time
+the seconds of each compile stage (JAX's own duration events: ``trace`` to a
+jaxpr, ``lower`` to MLIR, ``xla`` backend compile; total, longest single one
+and count; a program read back from the cache has no ``xla`` entry), and the
+process's peak resident memory. :func:`measure` adds the wall time
 seen by the parent, which is the whole-process time (interpreter start to exit).
 
     python benchmarks/whole_process.py CONFIG --cache-dir DIR [--set key=value ...]
@@ -54,6 +57,25 @@ def main():
 
     import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
     import jax
+    import jax.monitoring
+
+    # seconds per compile stage, from JAX's own events: tracing to a jaxpr, lowering to MLIR, XLA's backend compile
+    stages = {"/jax/core/compile/jaxpr_trace_duration": "trace", "/jax/core/compile/jaxpr_to_mlir_module_duration":
+              "lower", "/jax/core/compile/backend_compile_duration": "xla"}
+    compile_s = {name: [] for name in stages.values()}
+
+    def on_duration(event, seconds, **_):
+        if event in stages:
+            compile_s[stages[event]].append(float(seconds))
+
+    hits = []
+
+    def on_event(event, **_):
+        if event == "/jax/compilation_cache/cache_hits":
+            hits.append(1)
+
+    jax.monitoring.register_event_duration_secs_listener(on_duration)
+    jax.monitoring.register_event_listener(on_event)
 
     jax.config.update("jax_compilation_cache_dir", args.cache_dir)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
@@ -73,6 +95,9 @@ def main():
         "config": Path(args.config).name, "overrides": args.set, "rows": len(df),
         "import_s": t_import - t0, "build_s": t_build - t_import, "run_s": t_run - t_build,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "compile": {stage: {"total_s": sum(v), "max_s": max(v, default=0.0), "count": len(v)}
+                    for stage, v in compile_s.items()},
+        "cache_hits": len(hits),  # programs read back from the persistent cache (their "xla" entry is the read)
         "devices": f"{jax.device_count()} {jax.devices()[0].platform}",
         "summary": summary if cfg.experiment == "valid_region" else None,
     }, default=str))
