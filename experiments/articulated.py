@@ -150,6 +150,27 @@ class Grasp(BaseModel):
 LIGHTEST_KG = 0.6  # the lightest moving object (Bezier train 0.5 kg + handle 0.1 kg): the spring's stability bound
 
 
+def spring_stable(grasp: Grasp, k: float, h: float, mass: float = LIGHTEST_KG) -> bool:
+    """Whether MuJoCo's semi-implicit Euler keeps the spring grasp ``k`` [N/m] (damping from ``grasp``) stable on
+    ``mass`` [kg] at timestep ``h`` [s], accurately: ``omega h <= 1`` and the one-step map's spectral radius < 1.
+
+    The map of ``(x, h v)`` under ``v' = v - h (omega^2 x + 2 zeta omega v)``, ``x' = x + h v'`` is
+    ``[[1 - a^2, 1 - b], [-a^2, 1 - b]]`` with ``a = omega h``, ``b = c h / mass``.
+    """
+    c = grasp.gains(k)[1]
+    a, b = np.sqrt(k / mass) * h, c * h / mass
+    M = np.array([[1 - a * a, 1 - b], [-a * a, 1 - b]])
+    return bool(a <= 1.0 and np.max(np.abs(np.linalg.eigvals(M))) < 1.0)
+
+
+def max_spring_timestep(grasp: Grasp, k: float, mass: float = LIGHTEST_KG) -> float:
+    """The largest timestep [s] (to 1 %) at which :func:`spring_stable` holds."""
+    h = 1.0 / np.sqrt(k / mass)
+    while not spring_stable(grasp, k, h, mass):
+        h *= 0.99
+    return float(h)
+
+
 class TurboLeadCfg(BaseModel):
     """``turbo_lead`` (:func:`selfid_jax.articulated.tacman.lead_step`): integral lead and twist smoothing.
 
@@ -210,11 +231,11 @@ class ArticulatedConfig(StudyConfig, SelfIdConfig):
             if self.backend != "native":
                 raise ValueError("grasp.model 'spring' runs on the native backend only; set backend: native")
             k = max(self.grasp.k)
-            h_max = 1.0 / np.sqrt(k / LIGHTEST_KG)
-            if h > h_max:
-                raise ValueError(f"grasp.k up to {k:g} N/m needs a physics timestep <= {h_max:.2e} s for the explicit "
-                                 f"spring (1 / sqrt(k / {LIGHTEST_KG} kg)); control_dt / substeps = {h:.2e} s: raise "
-                                 f"substeps to >= {int(np.ceil(self.control_dt / h_max))}")
+            if not spring_stable(self.grasp, k, h):
+                h_ok = max_spring_timestep(self.grasp, k)
+                raise ValueError(f"grasp.k up to {k:g} N/m needs a physics timestep <= {h_ok:.2e} s for the explicit "
+                                 f"spring on the lightest object ({LIGHTEST_KG} kg); control_dt / substeps = {h:.2e} s:"
+                                 f" raise substeps to >= {int(np.ceil(self.control_dt / h_ok))}")
         return self
 
 

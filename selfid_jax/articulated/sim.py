@@ -161,22 +161,29 @@ def make_static(backend, layout, mj_model, pads, arm, q0, *, steps, substeps, st
 # ----------------------------------------------------------------------------- physics backends
 
 
-def spring_wrench(p_t, R_t, v_t, w_t, p_h, R_h, v_h, w_h, grasp):
+def spring_wrench(p_t, q_t, v_t, w_t, p_h, q_h, v_h, w_h, grasp, out=None):
     """Spring-damper wrench ``(6,) = [force N, torque N m]`` (world frame) on the handle from the gripper.
 
     ``F = -k (p_h - p_t) - c (v_h - v_t)``, ``tau = -kr R_t log(R_t^T R_h) -
-    cr (w_h - w_t)``: positions ``p (3,)`` [m], rotations ``R (3, 3)``, linear
-    ``v (3,)`` [m/s] and angular ``w (3,)`` [rad/s] velocities of the gripper
-    (``_t``) and the handle (``_h``), world frame; ``grasp (4,) = [k, c, kr,
-    cr]``. numpy (float64), one call per physics step on the host.
+    cr (w_h - w_t)``: positions ``p (3,)`` [m], unit quaternions ``q (4,)``
+    (w, x, y, z), linear ``v (3,)`` [m/s] and angular ``w (3,)`` [rad/s]
+    velocities of the gripper (``_t``) and the handle (``_h``), world frame;
+    ``grasp (4,) = [k, c, kr, cr]``. numpy float64 (MuJoCo's quaternion
+    helpers), one call per physics step on the host; written into ``out``
+    when given.
     """
-    from scipy.spatial.transform import Rotation
+    import mujoco
 
-    k, c, kr, cr = (float(g) for g in grasp)
-    rot = R_t @ Rotation.from_matrix(R_t.T @ R_h).as_rotvec()
-    force = -k * (p_h - p_t) - c * (v_h - v_t)
-    torque = -kr * rot - cr * (w_h - w_t)
-    return np.concatenate([force, torque])
+    k, c, kr, cr = grasp
+    qi, qr, rv, rot = np.empty(4), np.empty(4), np.empty(3), np.empty(3)
+    mujoco.mju_negQuat(qi, np.asarray(q_t, np.float64))
+    mujoco.mju_mulQuat(qr, qi, np.asarray(q_h, np.float64))  # R_t^T R_h
+    mujoco.mju_quat2Vel(rv, qr, 1.0)  # its rotation vector (gripper frame)
+    mujoco.mju_rotVecQuat(rot, rv, np.asarray(q_t, np.float64))  # in the world frame
+    out = np.empty(6) if out is None else out
+    out[:3] = -k * (np.subtract(p_h, p_t)) - c * np.subtract(v_h, v_t)
+    out[3:] = -kr * rot - cr * np.subtract(w_h, w_t)
+    return out
 
 
 def _target_velocity(mpos, mquat, h):
@@ -235,9 +242,8 @@ def _native_host(static: Static):
                     d.mocap_pos[0], d.mocap_quat[0] = mpos[b, k], mquat[b, k]
                     mujoco.mj_step1(m, d)
                     mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, lay.handle, vel, 0)
-                    d.xfrc_applied[lay.handle] = spring_wrench(
-                        d.xpos[lay.gripper], d.xmat[lay.gripper].reshape(3, 3), v_t[k], w_t[k], d.xpos[lay.handle],
-                        d.xmat[lay.handle].reshape(3, 3), vel[3:], vel[:3], grasp[b])
+                    spring_wrench(d.xpos[lay.gripper], d.xquat[lay.gripper], v_t[k], w_t[k], d.xpos[lay.handle],
+                                  d.xquat[lay.handle], vel[3:], vel[:3], grasp[b], out=d.xfrc_applied[lay.handle])
                     mujoco.mj_step2(m, d)
             elif active[b]:
                 for k in range(K):
