@@ -503,8 +503,8 @@ def plane_figure(summary: dict):
         for i, (grid, name, cmap, lim) in enumerate(((succ, "success [%]", "RdYlGn", (0, 100)),
                                                       (time, "mean time [s]", "viridis", None))):
             ax = fig.add_subplot(2, len(ctrls), i * len(ctrls) + j + 1)
-            im = ax.imshow(grid, origin="lower", cmap=cmap, aspect="auto",
-                           **({"vmin": lim[0], "vmax": lim[1]} if lim else {}))
+            im = ax.imshow(grid, origin="lower", cmap=cmap, aspect="auto", vmin=lim[0] if lim else None,
+                           vmax=lim[1] if lim else None)
             for a in range(len(rs)):
                 for b in range(len(ks)):
                     v = grid[a, b]
