@@ -120,15 +120,17 @@ class Grasp(BaseModel):
     Under ``spring``: ``k`` is a grid axis [N/m]; damping ``c = 2 damping_ratio
     sqrt(k mass)`` [N s/m]; torsion ``kr = k lever^2`` [N m/rad] with ``cr = 2
     damping_ratio sqrt(kr inertia)``. The explicit wrench needs the physics
-    timestep ``control_dt / substeps <= 1 / sqrt(max(k) / 0.6 kg)`` (0.6 kg:
-    the lightest moving object, a Bezier train with its handle).
+    timestep of :func:`max_spring_timestep` on 0.3 kg, the lightest effective
+    mass at a handle (a 0.45 m door or a 0.2 m crank: ``I / r^2`` plus the
+    0.1 kg handle, 0.35 kg): 0.55 ms at ``k = 1e6`` N/m.
     """
 
     model_config = STRICT
     model: Literal["weld", "spring"] = "weld"
     k: Annotated[list[Annotated[float, Field(gt=0, le=1e8)]], Field(min_length=1)] = [20000.0]
     damping_ratio: float = Field(0.7, ge=0, le=10, description="spring: damping ratio on the reference mass")
-    mass: float = Field(1.0, gt=0, le=100, description="spring: reference moving mass for the damping [kg]")
+    mass: float = Field(0.3, gt=0, le=100, description="spring: reference moving mass for the damping [kg] (the "
+                        "lightest effective mass at a handle)")
     lever: float = Field(0.0158, gt=0, le=0.2, description="spring: kr = k lever^2 [m] (0.0158: the weld's gel "
                          "5 N m/rad at 20 kN/m)")
     inertia: float = Field(0.01, gt=0, le=10, description="spring: reference inertia for the torsional damping "
@@ -147,7 +149,7 @@ class Grasp(BaseModel):
                          2 * self.damping_ratio * np.sqrt(kr * self.inertia)])
 
 
-LIGHTEST_KG = 0.6  # the lightest moving object (Bezier train 0.5 kg + handle 0.1 kg): the spring's stability bound
+LIGHTEST_KG = 0.3  # the lightest effective mass at a handle (a 0.45 m door, a 0.2 m crank: I / r^2 + 0.1 kg = 0.35)
 
 
 def spring_stable(grasp: Grasp, k: float, h: float, mass: float = LIGHTEST_KG) -> bool:
