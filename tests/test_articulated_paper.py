@@ -211,7 +211,7 @@ def test_grid_axes_scale_resistance_and_set_the_grasp_and_tacman_thresholds_per_
     from selfid_jax.experiments.articulated import ArticulatedConfig, _build
 
     cfg = ArticulatedConfig(objects={"prismatic": 1}, controllers=["tacman", "tacman_reaim"], arms=["true"],
-                            grasp={"model": "spring", "k": [1e4, 1e5]}, resistance=[0.0, 2.0],
+                            grasp={"model": "spring", "k": [1e4, 1e5]}, resistance=[0.0, 2.0], substeps=20,
                             population={"damping": [4, 4], "frictionloss": [1, 1]})
     (part,) = _build(cfg)
     r, meta = part.params.rollout, part.meta
