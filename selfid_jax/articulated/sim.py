@@ -46,7 +46,7 @@ class Controller(enum.IntEnum):
     name, e.g. ``"turbo_u0"``); :meth:`parse` maps a label back.
     """
 
-    TACMAN = 0  # reactive exploration-compensation (tacman.tacman_step)
+    TACMAN = 0  # Tac-Man stop-and-go as its papers describe it: fixed direction, no re-aim (tacman.tacman_step)
     TURBO = 1  # literal TacMan-Turbo, Eq. 14-18 (tacman.turbo_step)
     TURBO_U0 = 2  # TacMan-Turbo keeping the base speed u0 in the prediction (tacman.keep_speed)
     TURBO_LEAD = 3  # TacMan-Turbo with an integral lead on a smoothed screw (tacman.lead_step)
