@@ -346,7 +346,8 @@ def _stats(g: pd.DataFrame) -> dict[str, Any]:
     out: dict[str, Any] = {"n": int(len(g)), "success_rate": float(g["success"].mean()),
                            "slips": int(g["slipped"].sum()), "nonfinite": int(g["nonfinite"].sum()),
                            "invalid_contact_steps": int(g["invalid_steps"].sum()),
-                           "alpha_min": float(g["alpha_min"].min())}
+                           "alpha_min": float(g["alpha_min"].min()),
+                           "recovery_share": float((g["recovery_steps"] / g["steps_used"].clip(lower=1)).mean())}
     for m in METRICS:  # over successful rollouts (the paper's convention for time); efficiency etc. likewise
         out[m] = {"mean": float(ok[m].mean()) if len(ok) else None, "sd": float(ok[m].std(ddof=0)) if len(ok) else None}
     return out
@@ -550,6 +551,8 @@ COLUMNS = {
                "(sim.time_weighted_jerk) [s^-3]",
     "invalid_steps": "steps whose contact set failed Eq. 11-12 [steps]",
     "alpha_min": "smallest velocity scaling alpha applied (Eq. 25) [-]",
+    "recovery_steps": "Tac-Man control steps spent in recovery, the object not driven (0 for Turbo) [steps]",
+    "recovery_trace": "(S,) the step was a Tac-Man recovery, every stride-th step [bool]",
     "handle_trace": "(3 S,) handle positions in the G1 frame every stride-th step, row-major (S, 3) [m]",
     "gripper_trace": "(3 S,) gripper positions in the G1 frame every stride-th step, row-major (S, 3) [m]",
     "progress_trace": "(S,) normalised progress every stride-th step [-]",

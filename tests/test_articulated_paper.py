@@ -282,3 +282,44 @@ def test_plane_figure_shows_every_cell():
     texts = [t.get_text() for t in heat[0].texts]
     assert len(texts) == 6 and texts.count("100") == 2 and texts.count("0") == 4
     assert [t.get_text() for t in heat[1].texts].count("-") == 4  # no time where nothing succeeded
+
+
+# ----------------------------------------------------------------------------- closed loop (slow)
+
+
+@pytest.mark.slow  # one native rollout batch (compiles the UR5e loop)
+def test_stop_and_go_tacman_in_the_loop_halts_the_object_while_it_recovers():
+    """Soft spring grasp (7.3 kN/m), a drawer with 1 N friction and 4 N s/m damping: Tac-Man alternates single
+    exploration steps and recoveries. While it recovers the gripper does not drive the drawer: it stays behind
+    the handle along the drawer's motion (no pulling shear), and after the first recovery step (the spring's
+    stored shear released) the drawer, held by its friction, moves far less than in an exploration step. The
+    literal Turbo beside it never recovers."""
+    from selfid_jax.experiments.articulated import ArticulatedConfig, _build
+    from selfid_jax.runner.execute import precision
+
+    with precision(True):
+        cfg = ArticulatedConfig(objects={"prismatic": 1}, controllers=["tacman", "turbo"], arms=["true"],
+                                grasp={"model": "spring", "k": [7300.0]}, max_time=3.0, trace_points=150,
+                                population={"damping": [4, 4], "frictionloss": [1, 1]}, selfid_iters=4)
+        (part,) = _build(cfg)
+        st = part.static.sim
+        assert st.stride == 1
+        r = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))(jax.tree.map(np.asarray, part.params.rollout))
+    rec = np.asarray(r.recovery_trace[0])
+    used = int(r.steps_used[0])
+    assert not bool(r.failed[0]) and used == 150
+    assert int(r.recovery_steps[0]) == int(rec.sum()) and 0 < rec.sum() < used
+    assert int(r.recovery_steps[1]) == 0 and not np.any(np.asarray(r.recovery_trace[1]))
+    h, g = np.asarray(r.handle_trace[0]), np.asarray(r.gripper_trace[0])  # G1 frame, after each step
+    u = (h[-1] - h[0]) / np.linalg.norm(h[-1] - h[0])  # the drawer's direction of motion
+    dg = np.diff(np.concatenate([[np.zeros(3)], g]), axis=0) @ u  # the gripper's step along it [m]
+    explore = dg[~rec]
+    np.testing.assert_allclose(np.median(explore), 0.03 * 0.02 * np.cos(np.radians(15)), rtol=0.05)  # u0 dt
+    lead = (g - h) @ u  # how far the gripper is ahead of the handle along the motion: the pulling shear
+    assert np.all(lead[~rec] > 1e-4)  # exploring: the gripper pulls the drawer (0.3 mm ahead)
+    assert np.all(lead[rec] < 0)  # recovering: it is never ahead of the handle, the drawer is not driven
+    # the drawer (MuJoCo's slide joint) per step, recovery steps after the first of each recovery
+    dp = 0.25 * np.diff(np.concatenate([[0.0], np.asarray(r.progress_trace[0])]))
+    later = rec & np.concatenate([[False], rec[:-1]])
+    assert later.sum() > 10 and float(r.progress[0]) > 0.02  # several cycles; it did open the drawer
+    assert np.mean(np.abs(dp[later])) < 0.1 * np.median(dp[~rec])

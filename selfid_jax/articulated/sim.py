@@ -128,10 +128,12 @@ class RolloutResult(NamedTuple):
     dev_max: jax.Array  # () max contact deviation [m]
     invalid_steps: jax.Array  # () int32 steps whose contact set failed Eq. 11-12
     alpha_min: jax.Array  # () smallest alpha applied
+    recovery_steps: jax.Array  # () int32 Tac-Man steps spent in recovery (0 for the Turbo controllers)
     handle_trace: jax.Array  # (S, 3) handle positions in G1 frame [m], every stride-th step
     gripper_trace: jax.Array  # (S, 3) gripper positions in G1 frame [m]
     progress_trace: jax.Array  # (S,) progress
     dev_trace: jax.Array  # (S,) contact deviation [m]
+    recovery_trace: jax.Array  # (S,) bool: the step's command was a Tac-Man recovery
     scene_id: jax.Array  # () int32 constant identifying the scene template: the host callback is invisible in the
     # lowered program text, and selfid_jax.runner.sweep shares compiled programs by that text, so without it two kinds
     # with equal shapes (prismatic, revolute) would share one callback
@@ -436,11 +438,12 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
         G1i = G1.inverse()
         T_g2 = tacman.se3(pm[-1], Rm[-1])
         gap = jnp.linalg.norm(T_h2.translation() - T_g2.translation())
-        rec = (G1i @ T_h2).translation(), (G1i @ T_g2).translation(), prog, dev, live, q, gap
+        recovering = live & is_tac & tac.recovering
+        rec = (G1i @ T_h2).translation(), (G1i @ T_g2).translation(), prog, dev, live, q, gap, recovering
         return _Carry(phys, sens, q, turbo, tac, c.X1, done, success, slipped, nonfinite, steps_used, invalid,
                       alpha_min, key, hold_k, qdot_u, alpha), rec
 
-    c, (h_tr, g_tr, prog, dev, live, qs, gap) = jax.lax.scan(body, carry, None, length=static.steps)
+    c, (h_tr, g_tr, prog, dev, live, qs, gap, rec_tr) = jax.lax.scan(body, carry, None, length=static.steps)
     n_used = jnp.maximum(c.steps_used, 1)
     w = live.astype(f)
     prog_end = prog[jnp.clip(c.steps_used - 1, 0, static.steps - 1)]
@@ -458,7 +461,8 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     sl = slice(0, None, static.stride)
     return RolloutResult(c.success, c.slipped | c.nonfinite, c.slipped, c.nonfinite, c.steps_used, prog_end,
                          efficiency, efficiency_60hz, jerk, jerk_tw, path_dev, dev_mean, dev_max, c.invalid,
-                         c.alpha_min, h_tr[sl], g_tr[sl], prog[sl], dev[sl], jnp.asarray(static.scene_id, jnp.int32))
+                         c.alpha_min, jnp.sum(rec_tr.astype(jnp.int32)), h_tr[sl], g_tr[sl], prog[sl], dev[sl],
+                         rec_tr[sl], jnp.asarray(static.scene_id, jnp.int32))
 
 
 def time_weighted_jerk(q, dt, n_used):
