@@ -7,9 +7,16 @@ the handle, and runs one closed-loop rollout (:mod:`selfid_jax.articulated.sim`)
 with the true inverse Jacobian or the fixed self-identified estimate.
 Metrics (seed Sec. 4.3): success (revolute/helical > 60 deg, prismatic >
 250 mm, Bezier: 98 % of the track), time to success [s], action efficiency
-[% of the path per control step], jerk [rad/s^3], mean and max contact
+[% of the path per control step, and per 1/60 s step as the paper's 60 Hz
+simulation counts it], jerk [rad/s^3] and the paper's time-weighted base-joint
+jerk [s^-3], path deviation (gripper to handle) [mm], mean and max contact
 deviation [mm], steps with an invalid contact set (Eq. 11-12), slips and
 non-finite states (counted, never NaN).
+
+Grid axes besides object x controller x arm: ``grasp.k`` (the spring grasp's
+stiffness, N/m) and ``resistance`` (a scale on every object's damping and
+friction loss): the two quantities the paper leaves open
+(``configs/articulated_plane.yaml`` sweeps them).
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.articulated import scenes, sim, tactile
@@ -31,7 +38,8 @@ from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 
-METRICS = ("time_s", "efficiency", "jerk", "dev_mean_mm", "dev_max_mm")
+METRICS = ("time_s", "efficiency", "efficiency_60hz", "jerk", "jerk_tw", "path_dev_mm", "dev_mean_mm", "dev_max_mm")
+RANGES = ("damping", "frictionloss", "radius", "crank", "pitch", "track")  # Population's (lo, hi) fields
 
 
 class Objects(BaseModel):
@@ -57,6 +65,21 @@ class Population(BaseModel):
     track: tuple[float, float] = (0.25, 0.35)  # Bezier track length [m]
     amplitude: float = Field(0.06, ge=0, le=0.5, description="Bezier control-point lateral range [m]")
 
+    @field_validator(*RANGES, mode="before")
+    @classmethod
+    def _range(cls, v, info):
+        """A ``[lo, hi]`` list (YAML, ``--set population.damping=[0,0]``) is ``(lo, hi)``; ``0 <= lo <= hi``."""
+        if isinstance(v, (list, tuple)):
+            if len(v) != 2:
+                raise ValueError(f"population.{info.field_name} needs two numbers [lo, hi], got {len(v)}")
+            if all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+                v = (float(v[0]), float(v[1]))
+                if not 0.0 <= v[0] <= v[1]:
+                    raise ValueError(f"population.{info.field_name} = {list(v)}: needs 0 <= lo <= hi")
+            else:
+                v = tuple(v)
+        return v
+
 
 class Pads(BaseModel):
     model_config = STRICT
@@ -68,9 +91,18 @@ class Pads(BaseModel):
 
 
 class TacManCfg(BaseModel):
+    """Tac-Man's stage thresholds (``tacman``: the stop-and-go of its papers; ``tacman_reaim``: our departure).
+
+    ``tacman`` defaults: ``dev_high`` 0.1 mm, below the 0.6 mm of one
+    exploration step at 30 mm/s and 50 Hz, so every step ends an exploration
+    (the papers' "step-by-step" cycles); ``dev_low`` 0.02 mm, 4x the marker
+    noise sd. Neither TacMan-Turbo nor the material available here prints
+    Tac-Man's own values; these are ours.
+    """
+
     model_config = STRICT
-    dev_high: float = Field(1e-3, gt=0, le=0.01, description="deviation ending an exploration stage [m]")
-    dev_low: float = Field(2e-4, gt=0, le=0.01, description="deviation ending a recovery stage [m]")
+    dev_high: float = Field(1e-4, gt=0, le=0.01, description="deviation ending an exploration stage [m]")
+    dev_low: float = Field(2e-5, gt=0, le=0.01, description="deviation ending a recovery stage [m]")
     recovery_gain: float = Field(0.5, gt=0, le=1, description="fraction of the in-hand pose removed per recovery "
                                  "step")
 
@@ -81,11 +113,71 @@ class TacManCfg(BaseModel):
         return self
 
 
+class Grasp(BaseModel):
+    """The grasp model (:mod:`selfid_jax.articulated.scenes`): ``weld`` (gel joints and welds, about 7.3 kN/m
+    effective at ``gel_k`` 20 kN/m) or ``spring`` (an explicit spring-damper of stiffness ``k``).
+
+    Under ``spring``: ``k`` is a grid axis [N/m]; damping ``c = 2 damping_ratio
+    sqrt(k mass)`` [N s/m]; torsion ``kr = k lever^2`` [N m/rad] with ``cr = 2
+    damping_ratio sqrt(kr inertia)``. The explicit wrench needs the physics
+    timestep of :func:`max_spring_timestep` on 0.3 kg, the lightest effective
+    mass at a handle (a 0.45 m door or a 0.2 m crank: ``I / r^2`` plus the
+    0.1 kg handle, 0.35 kg): 0.55 ms at ``k = 1e6`` N/m.
+    """
+
+    model_config = STRICT
+    model: Literal["weld", "spring"] = "weld"
+    k: Annotated[list[Annotated[float, Field(gt=0, le=1e8)]], Field(min_length=1)] = [20000.0]
+    damping_ratio: float = Field(0.7, ge=0, le=10, description="spring: damping ratio on the reference mass")
+    mass: float = Field(0.3, gt=0, le=100, description="spring: reference moving mass for the damping [kg] (the "
+                        "lightest effective mass at a handle)")
+    lever: float = Field(0.0158, gt=0, le=0.2, description="spring: kr = k lever^2 [m] (0.0158: the weld's gel "
+                         "5 N m/rad at 20 kN/m)")
+    inertia: float = Field(0.01, gt=0, le=10, description="spring: reference inertia for the torsional damping "
+                           "[kg m^2]")
+
+    @field_validator("k", mode="before")
+    @classmethod
+    def _floats(cls, v):
+        return [float(x) if isinstance(x, int) and not isinstance(x, bool) else x for x in v] if isinstance(v, list) \
+            else v
+
+    def gains(self, k: float) -> np.ndarray:
+        """``(4,) [k, c, kr, cr]`` of the spring grasp at stiffness ``k`` [N/m]."""
+        kr = k * self.lever**2
+        return np.array([k, 2 * self.damping_ratio * np.sqrt(k * self.mass), kr,
+                         2 * self.damping_ratio * np.sqrt(kr * self.inertia)])
+
+
+LIGHTEST_KG = 0.3  # the lightest effective mass at a handle (a 0.45 m door, a 0.2 m crank: I / r^2 + 0.1 kg = 0.35)
+
+
+def spring_stable(grasp: Grasp, k: float, h: float, mass: float = LIGHTEST_KG) -> bool:
+    """Whether MuJoCo's semi-implicit Euler keeps the spring grasp ``k`` [N/m] (damping from ``grasp``) stable on
+    ``mass`` [kg] at timestep ``h`` [s], accurately: ``omega h <= 1`` and the one-step map's spectral radius < 1.
+
+    The map of ``(x, h v)`` under ``v' = v - h (omega^2 x + 2 zeta omega v)``, ``x' = x + h v'`` is
+    ``[[1 - a^2, 1 - b], [-a^2, 1 - b]]`` with ``a = omega h``, ``b = c h / mass``.
+    """
+    c = grasp.gains(k)[1]
+    a, b = np.sqrt(k / mass) * h, c * h / mass
+    M = np.array([[1 - a * a, 1 - b], [-a * a, 1 - b]])
+    return bool(a <= 1.0 and np.max(np.abs(np.linalg.eigvals(M))) < 1.0)
+
+
+def max_spring_timestep(grasp: Grasp, k: float, mass: float = LIGHTEST_KG) -> float:
+    """The largest timestep [s] (to 1 %) at which :func:`spring_stable` holds."""
+    h = 1.0 / np.sqrt(k / mass)
+    while not spring_stable(grasp, k, h, mass):
+        h *= 0.99
+    return float(h)
+
+
 class TurboLeadCfg(BaseModel):
     """``turbo_lead`` (:func:`selfid_jax.articulated.tacman.lead_step`): integral lead and twist smoothing.
 
-    ``lead_max`` 1 mm: Tac-Man's ``dev_high`` (the deviation it still calls
-    safe), 5x below the 5 mm slip, and at ``gel_k`` 20 kN/m a 20 N pull, 5x
+    ``lead_max`` 1 mm: ``tacman_reaim``'s ``dev_high`` (the deviation it still calls
+    safe), 5x below the 5 mm slip, and at the weld grasp's 7.3 kN/m a 7 N pull, 2x
     the population's largest resistance; with a 15 deg misalignment its
     normal component (0.26 mm) stays below the 0.7 mm that lifts a pad off
     (squeeze 1 mm, ``contact_eps`` 0.3 mm). ``twist_tau`` 0.06 s: 3 control steps.
@@ -116,8 +208,13 @@ class ArticulatedConfig(StudyConfig, SelfIdConfig):
     slip_rot: float = Field(0.3, gt=0, le=3, description="in-hand rotation declared a slip [rad]")
     pads: Pads = Pads()
     tacman: TacManCfg = TacManCfg()
+    tacman_reaim: TacManCfg = TacManCfg(dev_high=1e-3, dev_low=2e-4)
+    grasp: Grasp = Grasp()
+    resistance: Annotated[list[Annotated[float, Field(ge=0, le=100)]], Field(min_length=1)] = Field(
+        [1.0], description="grid axis: scale on every object's damping and friction loss")
     turbo_lead: TurboLeadCfg = TurboLeadCfg()
-    gel_k: float = Field(20000.0, gt=0, le=1e7, description="gel shear/normal stiffness [N/m]")
+    gel_k: float = Field(20000.0, gt=0, le=1e7, description="weld grasp: gel shear/normal joint stiffness [N/m] (in "
+                         "series with the weld: about 7.3 kN/m effective at 20 kN/m)")
     gel_kr: float = Field(5.0, gt=0, le=1e4, description="gel torsional stiffness [N m/rad]")
     selfid_iters: int = Field(30, ge=2, le=10**4)
     eps: float = Field(0.5, ge=0, le=1e6, description="self-ID Sec. IV-D threshold")
@@ -126,9 +223,21 @@ class ArticulatedConfig(StudyConfig, SelfIdConfig):
     def _some_objects(self):
         if sum(self.objects.model_dump().values()) == 0:
             raise ValueError("objects: at least one kind needs a count > 0")
-        if not self.control_dt / self.substeps >= 2e-4:
-            raise ValueError(f"control_dt / substeps = {self.control_dt / self.substeps} s: the physics timestep "
-                             "must be >= 2e-4 s")
+        h = self.control_dt / self.substeps
+        if not h >= 2e-4:
+            raise ValueError(f"control_dt / substeps = {h} s: the physics timestep must be >= 2e-4 s")
+        if self.grasp.model == "weld" and len(self.grasp.k) > 1:
+            raise ValueError("grasp.k lists several stiffnesses but grasp.model is 'weld' (its stiffness is gel_k); "
+                             "set grasp.model: spring")
+        if self.grasp.model == "spring":
+            if self.backend != "native":
+                raise ValueError("grasp.model 'spring' runs on the native backend only; set backend: native")
+            k = max(self.grasp.k)
+            if not spring_stable(self.grasp, k, h):
+                h_ok = max_spring_timestep(self.grasp, k)
+                raise ValueError(f"grasp.k up to {k:g} N/m needs a physics timestep <= {h_ok:.2e} s for the explicit "
+                                 f"spring on the lightest object ({LIGHTEST_KG} kg); control_dt / substeps = {h:.2e} s:"
+                                 f" raise substeps to >= {int(np.ceil(self.control_dt / h_ok))}")
         return self
 
 
@@ -170,7 +279,8 @@ def build(cfg: ArticulatedConfig) -> list[Part]:
 def _build(cfg: ArticulatedConfig) -> list[Part]:
     arm, q0, p1, R1 = _arm()
     m_a = cfg.magnitude(arm)
-    settings = scenes.SceneSettings(timestep=cfg.control_dt / cfg.substeps, gel_k=cfg.gel_k, gel_kr=cfg.gel_kr)
+    settings = scenes.SceneSettings(timestep=cfg.control_dt / cfg.substeps, gel_k=cfg.gel_k, gel_kr=cfg.gel_kr,
+                                    grasp=cfg.grasp.model)
     pads = tactile.pads(rows=cfg.pads.rows, cols=cfg.pads.cols, pitch=cfg.pads.pitch)
     if int(np.sum(pads.delta0 >= cfg.pads.contact_eps)) < 3:
         raise ValueError(f"pads.contact_eps ({cfg.pads.contact_eps}) leaves fewer than 3 markers in contact "
@@ -187,24 +297,32 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
         static = Static(sim.make_static(cfg.backend, layout, mj, pads, arm, q0, steps=steps, substeps=cfg.substeps,
                                         stride=stride), cfg.selfid_iters)
         pop = scenes.population(kind, n_obj, cfg.seed, **pop_kw)
-        meta = grid_table({"object": range(n_obj), "controller": cfg.controllers, "arm": cfg.arms})
+        meta = grid_table({"object": range(n_obj), "controller": cfg.controllers, "arm": cfg.arms,
+                           "grasp_k": cfg.grasp.k, "resistance": cfg.resistance})
         meta.insert(0, "kind", kind)
+        meta["grasp"] = cfg.grasp.model
         o = meta["object"].to_numpy()
         meta["order"] = pop.order[o]
         meta["fit_error_mm"] = 1e3 * pop.fit_error[o]
         add_m_a_columns(meta, m_a)
         n = len(meta)
         full = lambda v, n=n: np.full((n,), float(v))  # noqa: E731
+        res = meta["resistance"].to_numpy(float)
+        obj = scenes.ObjectParams(*(np.asarray(a)[o] for a in pop))
+        obj = obj._replace(damping=obj.damping * res, frictionloss=obj.frictionloss * res)
+        reaim = (meta["controller"] == "tacman_reaim").to_numpy()
+        tac = lambda name, r=reaim: np.where(r, getattr(cfg.tacman_reaim, name), getattr(cfg.tacman, name))  # noqa: E731
         rollout = sim.RolloutParams(
-            obj=scenes.ObjectParams(*(np.asarray(a)[o] for a in pop)),
+            obj=obj,
             controller=np.asarray([sim.Controller.parse(c) for c in meta["controller"]], np.int32),
             use_estimate=(meta["arm"] == "selfid").to_numpy(),
             jinv_est=np.zeros((n, 6, 6)),
             key=row_keys(cfg.seed + 1000 * k_i, n), speed=full(cfg.speed), marker_noise=full(cfg.pads.marker_noise),
             contact_eps=full(cfg.pads.contact_eps), qdot_max=np.full((n, 6), cfg.qdot_max), beta=full(cfg.beta),
-            dev_high=full(cfg.tacman.dev_high), dev_low=full(cfg.tacman.dev_low),
-            recovery_gain=full(cfg.tacman.recovery_gain), slip=full(cfg.slip), slip_rot=full(cfg.slip_rot),
-            lead_max=full(cfg.turbo_lead.lead_max), twist_tau=full(cfg.turbo_lead.twist_tau))
+            dev_high=tac("dev_high"), dev_low=tac("dev_low"),
+            recovery_gain=tac("recovery_gain"), slip=full(cfg.slip), slip_rot=full(cfg.slip_rot),
+            lead_max=full(cfg.turbo_lead.lead_max), twist_tau=full(cfg.turbo_lead.twist_tau),
+            grasp=np.stack([cfg.grasp.gains(k) for k in meta["grasp_k"].to_numpy(float)]))
         # one self-ID per object (the same estimate for every controller on it)
         params = Params(rollout, row_keys(cfg.seed + 7, o), np.repeat(m_a.value[None], n, axis=0), full(cfg.eps))
         parts.append(Part(kind, static, params, meta))
@@ -219,7 +337,8 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: ArticulatedConfig) -> pd.DataF
     df["time_s"] = np.where(df["success"], df["steps_used"] * dt, np.nan)
     df["dev_mean_mm"] = 1e3 * df["dev_mean"]
     df["dev_max_mm"] = 1e3 * df["dev_max"]
-    return df.drop(columns=["dev_mean", "dev_max"])
+    df["path_dev_mm"] = 1e3 * df["path_dev"]
+    return df.drop(columns=["dev_mean", "dev_max", "path_dev"])
 
 
 def _stats(g: pd.DataFrame) -> dict[str, Any]:
@@ -227,7 +346,8 @@ def _stats(g: pd.DataFrame) -> dict[str, Any]:
     out: dict[str, Any] = {"n": int(len(g)), "success_rate": float(g["success"].mean()),
                            "slips": int(g["slipped"].sum()), "nonfinite": int(g["nonfinite"].sum()),
                            "invalid_contact_steps": int(g["invalid_steps"].sum()),
-                           "alpha_min": float(g["alpha_min"].min())}
+                           "alpha_min": float(g["alpha_min"].min()),
+                           "recovery_share": float((g["recovery_steps"] / g["steps_used"].clip(lower=1)).mean())}
     for m in METRICS:  # over successful rollouts (the paper's convention for time); efficiency etc. likewise
         out[m] = {"mean": float(ok[m].mean()) if len(ok) else None, "sd": float(ok[m].std(ddof=0)) if len(ok) else None}
     return out
@@ -241,18 +361,33 @@ def summarize(table: pd.DataFrame, cfg: ArticulatedConfig) -> dict[str, Any]:
     overall: dict[str, Any] = {}
     for (arm, ctrl), g in table.groupby(["arm", "controller"], sort=False):
         overall.setdefault(str(arm), {})[str(ctrl)] = _stats(g)
+    plane: list[dict[str, Any]] = []  # grasp stiffness x resistance x controller, over all kinds and arms
+    for (k, res, ctrl), g in table.groupby(["grasp_k", "resistance", "controller"], sort=False):
+        plane.append({"grasp_k": float(k), "resistance": float(res), "controller": str(ctrl), **_stats(g)})
+    ratios: dict[str, Any] = {}  # Tac-Man's mean time over each Turbo's (the paper: 250.7 / 7.6 = 33x)
+    for arm, cs in overall.items():
+        for tm in ("tacman", "tacman_reaim"):
+            for tb in ("turbo", "turbo_u0", "turbo_lead"):
+                a, b = cs.get(tm, {}).get("time_s", {}).get("mean"), cs.get(tb, {}).get("time_s", {}).get("mean")
+                if tm in cs and tb in cs:
+                    ratios.setdefault(str(arm), {})[f"{tm}/{tb}"] = None if a is None or b is None else a / b
     return {"backend": cfg.backend, "speed": cfg.speed, "control_dt": cfg.control_dt, "max_time": cfg.max_time,
             "objects": cfg.objects.model_dump(),
             "self_id": {"iterations": cfg.selfid_iters, **m_a_summary(table), "eps": cfg.eps},
-            "kinds": kinds, "overall": overall,
+            "grasp": cfg.grasp.model, "kinds": kinds, "overall": overall, "plane": plane, "time_ratios": ratios,
             "paper": {"turbo": {"time_s": "7.6 +- 2.3", "efficiency": "0.239 +- 0.063", "jerk": "109.82 +- 147.71"},
                       "tacman": {"time_s": "250.7 +- 194.4", "efficiency": "0.012 +- 0.011",
-                                 "jerk": "4921.44 +- 3722.49"}, "success": "100% both"}}
+                                 "jerk": "4921.44 +- 3722.49"}, "success": "100% both", "time_ratio": 250.7 / 7.6,
+                      "note": "efficiency in % per 60 Hz step (compare efficiency_60hz), jerk time-weighted in s^-3 "
+                              "(compare jerk_tw)"}}
 
 
 def report(summary: dict) -> str:
-    lines = [f"{'kind':10s} {'arm':7s} {'controller':10s} {'success':>8s} {'time s':>13s} {'eff %/step':>14s} "
-             f"{'jerk':>16s} {'dev mean mm':>12s} {'dev max mm':>11s} {'slips':>5s}"]
+    """The summary as text: per kind x arm x controller (the paper's metrics beside ours), the time ratios, and the
+    stiffness x resistance plane when it has more than one cell."""
+    lines = [f"{'kind':10s} {'arm':7s} {'controller':12s} {'success':>8s} {'time s':>13s} {'eff %/step':>14s} "
+             f"{'eff %/60Hz':>14s} {'jerk':>16s} {'jerk_tw s^-3':>16s} {'path mm':>12s} {'dev mean mm':>12s} "
+             f"{'slips':>5s}"]
 
     def ms(m, k, fmt):
         v = m[k]
@@ -261,9 +396,19 @@ def report(summary: dict) -> str:
     rows = [(k, a, c, m) for k, arms in summary["kinds"].items() for a, cs in arms.items() for c, m in cs.items()]
     rows += [("ALL", a, c, m) for a, cs in summary["overall"].items() for c, m in cs.items()]
     for k, a, c, m in rows:
-        lines.append(f"{k:10s} {a:7s} {c:10s} {100 * m['success_rate']:7.0f}% {ms(m, 'time_s', '.1f'):>13s} "
-                     f"{ms(m, 'efficiency', '.3f'):>14s} {ms(m, 'jerk', '.0f'):>16s} "
-                     f"{ms(m, 'dev_mean_mm', '.2f'):>12s} {(m['dev_max_mm']['mean'] or 0):11.2f} {m['slips']:5d}")
+        lines.append(f"{k:10s} {a:7s} {c:12s} {100 * m['success_rate']:7.0f}% {ms(m, 'time_s', '.1f'):>13s} "
+                     f"{ms(m, 'efficiency', '.3f'):>14s} {ms(m, 'efficiency_60hz', '.3f'):>14s} "
+                     f"{ms(m, 'jerk', '.0f'):>16s} {ms(m, 'jerk_tw', '.1f'):>16s} {ms(m, 'path_dev_mm', '.2f'):>12s} "
+                     f"{ms(m, 'dev_mean_mm', '.2f'):>12s} {m['slips']:5d}")
+    for arm, rs in summary.get("time_ratios", {}).items():
+        lines.append(f"time ratios (arm {arm}; paper tacman/turbo 33x): " + ", ".join(
+            f"{k} {'-' if v is None else f'{v:.1f}x'}" for k, v in rs.items()))
+    plane = summary.get("plane", [])
+    if len({(r["grasp_k"], r["resistance"]) for r in plane}) > 1:
+        lines.append(f"{'grasp k N/m':>12s} {'resistance':>10s} {'controller':12s} {'success':>8s} {'time s':>13s}")
+        for r in plane:
+            lines.append(f"{r['grasp_k']:12.3g} {r['resistance']:10.3g} {r['controller']:12s} "
+                         f"{100 * r['success_rate']:7.0f}% {ms(r, 'time_s', '.1f'):>13s}")
     return "\n".join(lines)
 
 
@@ -291,30 +436,101 @@ def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
     fig.suptitle("handle (solid) and gripper (dashed) paths, first objects", fontsize=9)
     written += save_figure(fig, out_dir, "articulated_trajectories")
 
-    fig = Figure(figsize=(4 * len(METRICS), 3.6), layout="constrained")
-    labels = [(k, c) for k in kinds for c in ctrls]
-    for m_i, m in enumerate(METRICS):
-        ax = fig.add_subplot(1, len(METRICS), m_i + 1)
-        data = [table[(table["kind"] == k) & (table["controller"] == c) & table["success"]][m].dropna().to_numpy()
-                for k, c in labels]
-        pos = [i for i, d in enumerate(data) if len(d)]
-        if pos:
-            ax.boxplot([data[i] for i in pos], positions=pos)
-        ax.set_xticks(range(len(labels)), [f"{k[:4]}\n{c}" for k, c in labels], fontsize=6)
-        ax.set_title(m + (" (log)" if m in ("time_s", "jerk") else ""), fontsize=9)
-        if m in ("time_s", "jerk") and pos:
-            ax.set_yscale("log")
-    fig.suptitle("successful rollouts, both arms; success rate: " + ", ".join(
-        f"{k[:4]}/{c} {100 * table[(table['kind'] == k) & (table['controller'] == c)]['success'].mean():.0f}%"
-        for k, c in labels), fontsize=7)
-    written += save_figure(fig, out_dir, "articulated_metrics")
+    written += save_figure(metrics_figure(table), out_dir, "articulated_metrics")
+    if len({(r["grasp_k"], r["resistance"]) for r in summary.get("plane", [])}) > 1:
+        written += save_figure(plane_figure(summary), out_dir, "articulated_plane")
     return written
+
+
+def metrics_figure(table: pd.DataFrame):
+    """Success rate and each metric's distribution (successful rollouts, both arms) per kind x controller.
+
+    One panel per quantity on a grid of four columns; tick labels ``kind/controller`` vertical, each panel wide
+    enough for its labels (no two overlap)."""
+    from matplotlib.figure import Figure
+
+    kinds = list(dict.fromkeys(table["kind"]))
+    ctrls = list(dict.fromkeys(table["controller"]))
+    labels = [(k, c) for k in kinds for c in ctrls]
+    names = ("success_rate",) + METRICS
+    cols = 4
+    rows = -(-len(names) // cols)
+    width = max(3.2, 0.16 * len(labels) + 0.9)
+    fig = Figure(figsize=(cols * width, rows * 3.4), layout="constrained")
+    for m_i, m in enumerate(names):
+        ax = fig.add_subplot(rows, cols, m_i + 1)
+        if m == "success_rate":
+            rate = [100 * table[(table["kind"] == k) & (table["controller"] == c)]["success"].mean()
+                    for k, c in labels]
+            ax.bar(range(len(labels)), rate, color=[f"C{ctrls.index(c)}" for _, c in labels])
+            ax.set_ylim(0, 105)
+            ax.set_title("success rate [%]", fontsize=9)
+        else:
+            data = [table[(table["kind"] == k) & (table["controller"] == c) & table["success"]][m].dropna()
+                    .to_numpy() for k, c in labels]
+            pos = [i for i, d in enumerate(data) if len(d)]
+            if pos:
+                ax.boxplot([data[i] for i in pos], positions=pos)
+            log = m in ("time_s", "jerk", "jerk_tw") and pos and min(float(np.min(data[i])) for i in pos) > 0
+            if log:
+                ax.set_yscale("log")
+            ax.set_title(m + (" (log)" if log else ""), fontsize=9)
+        ax.set_xticks(range(len(labels)), [f"{k[:5]}/{c}" for k, c in labels], fontsize=6, rotation=90)
+        ax.set_xlim(-0.6, len(labels) - 0.4)
+    fig.suptitle("articulated objects: success (all rollouts) and metrics (successful rollouts, both arms)",
+                 fontsize=9)
+    return fig
+
+
+def plane_figure(summary: dict):
+    """Success rate and mean time per controller over the grasp-stiffness x resistance plane (``summary["plane"]``).
+
+    Rows: success [%] and mean time to success [s] (blank where nothing succeeded); columns: controllers; cells:
+    stiffness ``grasp_k`` [N/m] (x) by resistance scale (y), each annotated with its value."""
+    from matplotlib.figure import Figure
+
+    plane = summary["plane"]
+    ctrls = list(dict.fromkeys(r["controller"] for r in plane))
+    ks = sorted({r["grasp_k"] for r in plane})
+    rs = sorted({r["resistance"] for r in plane})
+    fig = Figure(figsize=(3.3 * len(ctrls), 5.8), layout="constrained")
+    for j, c in enumerate(ctrls):
+        succ = np.full((len(rs), len(ks)), np.nan)
+        time = np.full((len(rs), len(ks)), np.nan)
+        for r in plane:
+            if r["controller"] == c:
+                a, b = rs.index(r["resistance"]), ks.index(r["grasp_k"])
+                succ[a, b] = 100 * r["success_rate"]
+                t = r["time_s"]["mean"]
+                time[a, b] = np.nan if t is None else t
+        for i, (grid, name, cmap, lim) in enumerate(((succ, "success [%]", "RdYlGn", (0, 100)),
+                                                      (time, "mean time [s]", "viridis", None))):
+            ax = fig.add_subplot(2, len(ctrls), i * len(ctrls) + j + 1)
+            im = ax.imshow(grid, origin="lower", cmap=cmap, aspect="auto", vmin=lim[0] if lim else None,
+                           vmax=lim[1] if lim else None)
+            for a in range(len(rs)):
+                for b in range(len(ks)):
+                    v = grid[a, b]
+                    ax.text(b, a, "-" if np.isnan(v) else f"{v:.0f}" if i == 0 else f"{v:.1f}", ha="center",
+                            va="center", fontsize=8)
+            ax.set_xticks(range(len(ks)), [f"{k:.2g}" for k in ks], fontsize=7)
+            ax.set_yticks(range(len(rs)), [f"{r:g}" for r in rs], fontsize=7)
+            ax.set_xlabel("grasp stiffness k [N/m]", fontsize=8)
+            ax.set_ylabel("resistance scale", fontsize=8)
+            ax.set_title(f"{c}: {name}", fontsize=9)
+            fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.suptitle("spring grasp: stiffness x object resistance (all kinds, all arms)", fontsize=9)
+    return fig
 
 
 COLUMNS = {
     "kind": "object kind: prismatic, revolute, helical or bezier [label]",
     "object": "object index within its kind [id]",
-    "controller": "controller: tacman, turbo, turbo_u0 or turbo_lead [label]",
+    "controller": "controller: tacman (stop-and-go, as its papers), tacman_reaim (our departure), turbo (literal "
+                  "Eq. 14-21), turbo_u0 or turbo_lead (our departures) [label]",
+    "grasp_k": "spring grasp stiffness (grid axis; unused by the weld grasp) [N/m]",
+    "resistance": "scale on the object's damping and friction loss (grid axis) [-]",
+    "grasp": "grasp model: 'weld' or 'spring' [label]",
     "arm": "arm inverse Jacobian: 'true' or 'selfid' (the fixed self-ID estimate) [label]",
     "order": "Bezier order of the track, 0 for other kinds [-]",
     "fit_error_mm": "Bezier: max distance of the track to its Bezier curve, 0 when exact [mm]",
@@ -328,9 +544,15 @@ COLUMNS = {
     "steps_used": "control steps until success (or all) [steps]",
     "progress": "final normalised progress along the path, 1 = success threshold [-]",
     "efficiency": "action efficiency: 100 min(progress, level) / level / steps_used [% of the path per step]",
+    "efficiency_60hz": "action efficiency per 1/60 s, the paper's step: 100 min(progress, level) / level / (60 "
+                       "steps_used control_dt) [% of the path per 60 Hz step]",
     "jerk": "mean ||d^3 q / dt^3|| over the steps used [rad/s^3]",
+    "jerk_tw": "time-weighted jerk: time average of the base joint's |d^3 q_1 / dt^3| over the task "
+               "(sim.time_weighted_jerk) [s^-3]",
     "invalid_steps": "steps whose contact set failed Eq. 11-12 [steps]",
     "alpha_min": "smallest velocity scaling alpha applied (Eq. 25) [-]",
+    "recovery_steps": "Tac-Man control steps spent in recovery, the object not driven (0 for Turbo) [steps]",
+    "recovery_trace": "(S,) the step was a Tac-Man recovery, every stride-th step [bool]",
     "handle_trace": "(3 S,) handle positions in the G1 frame every stride-th step, row-major (S, 3) [m]",
     "gripper_trace": "(3 S,) gripper positions in the G1 frame every stride-th step, row-major (S, 3) [m]",
     "progress_trace": "(S,) normalised progress every stride-th step [-]",
@@ -339,6 +561,7 @@ COLUMNS = {
     "time_s": "time to success (steps_used * control_dt), NaN if not successful [s]",
     "dev_mean_mm": "mean contact deviation over the steps used [mm]",
     "dev_max_mm": "max contact deviation [mm]",
+    "path_dev_mm": "path deviation: mean distance from the gripper (the arm's pose) to the handle [mm]",
 }
 """The results columns (``results.parquet``): one row per object, controller and arm."""
 

@@ -147,10 +147,10 @@ def test_marker_contact_set_follows_eq2():
 
 
 def test_controller_labels_round_trip_and_unknown_labels_are_refused():
-    assert sim.CONTROLLERS == ("tacman", "turbo", "turbo_u0", "turbo_lead")
+    assert sim.CONTROLLERS == ("tacman", "turbo", "turbo_u0", "turbo_lead", "tacman_reaim")
     for c in sim.Controller:
         assert sim.Controller.parse(c.label) is c and sim.CONTROLLERS[c] == c.label
-    with pytest.raises(ValueError, match="allowed: tacman, turbo, turbo_u0, turbo_lead"):
+    with pytest.raises(ValueError, match="allowed: tacman, turbo, turbo_u0, turbo_lead, tacman_reaim"):
         sim.Controller.parse("turbo_fast")
 
 
@@ -190,7 +190,8 @@ def _params(obj, controllers, *, use_estimate=False, jinv=None):
         jinv_est=jnp.zeros((B, 6, 6)) if jinv is None else jnp.broadcast_to(jinv, (B, 6, 6)),
         key=jax.random.key_data(jax.random.split(jax.random.key(0), B)), speed=full(0.03), marker_noise=full(5e-6),
         contact_eps=full(3e-4), qdot_max=jnp.ones((B, 6)), beta=full(0.9), dev_high=full(1e-3), dev_low=full(2e-4),
-        recovery_gain=full(0.5), slip=full(5e-3), slip_rot=full(0.3), lead_max=full(1e-3), twist_tau=full(0.06))
+        recovery_gain=full(0.5), slip=full(5e-3), slip_rot=full(0.3), lead_max=full(1e-3), twist_tau=full(0.06),
+        grasp=jnp.tile(jnp.array([2e4, 280.0, 5.0, 0.44]), (B, 1)))
 
 
 def _objects(kind, n_rows, frictionloss=1.0):
@@ -202,7 +203,8 @@ def _objects(kind, n_rows, frictionloss=1.0):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind,steps", [("prismatic", 700), ("revolute", 900)])
 def test_drawer_and_door_opened_by_both_controllers(kind, steps):
-    """Tac-Man, TacMan-Turbo keeping u0 and with the integral lead open a drawer (> 250 mm) and a door (> 60 deg).
+    """Tac-Man re-aiming (1 mm / 0.2 mm thresholds), TacMan-Turbo keeping u0 and with the integral lead open a drawer
+    (> 250 mm) and a door (> 60 deg) under the weld grasp (about 7.3 kN/m) and 1 N friction, 5 N s/m damping.
 
     Literal Turbo stalls; the lead keeps |v0| where keep_speed's proportional shear slows down."""
     with jax.numpy_rank_promotion("allow"):
@@ -210,7 +212,7 @@ def test_drawer_and_door_opened_by_both_controllers(kind, steps):
         m, lay = scenes.compile_scene(kind, p1, R1)
         st = sim.make_static("native", lay, m, PADS, arm, q0, steps=steps, substeps=10, stride=50)
         C = sim.Controller
-        ctrl = [C.TACMAN, C.TURBO_U0, C.TURBO, C.TURBO_LEAD]
+        ctrl = [C.TACMAN_REAIM, C.TURBO_U0, C.TURBO, C.TURBO_LEAD]
         r = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))(_params(_objects(kind, 4), ctrl))
     assert list(np.asarray(r.success)) == [True, True, False, True]
     assert not np.any(np.asarray(r.failed))

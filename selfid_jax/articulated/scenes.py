@@ -12,12 +12,26 @@ parameter is expressed in ``G1``. The base velocity ``u0`` points along
 ``G1``'s x axis (the known rough direction); the pads close along y; the
 handle bar runs along z.
 
-Gripper (all kinds): a mocap body ``target`` moved by the arm, a free
-``gripper`` body (0.5 kg) welded to it (``solref`` ``drive_solref``: the body
-carries velocity, so the object's damping and friction loss load it), and a
-``gel`` body on six spring-damper joints under the gripper (shear/normal
-stiffness ``gel_k`` N/m, torsional ``gel_kr`` N m/rad) welded to the handle:
-the compliant pads. No-slip holds by construction; a slip is declared (and
+Gripper, two grasp models (``SceneSettings.grasp``):
+
+* ``"weld"`` (the original): a mocap body ``target`` moved by the arm, a free
+  ``gripper`` body (0.5 kg) welded to it (``solref`` ``drive_solref``: the body
+  carries velocity, so the object's damping and friction loss load it), and a
+  ``gel`` body on six spring-damper joints under the gripper (shear/normal
+  stiffness ``gel_k`` N/m, torsional ``gel_kr`` N m/rad) welded to the handle:
+  the compliant pads. The gel-to-handle weld is in series with the gel, and
+  MuJoCo clamps a weld's time constant to twice the timestep, so the
+  effective grasp stiffness is about 7.3 kN/m at ``gel_k`` 20 kN/m (measured
+  on a static pull), whatever ``grasp_solref`` says.
+* ``"spring"``: the gripper is the mocap body ``target`` itself (the arm's
+  tracking taken as exact) and the grasp is an explicit spring-damper wrench
+  between it and the handle, applied to the handle every physics step by
+  :mod:`.sim` (stiffness ``k`` [N/m], ``kr`` [N m/rad] and dampings per
+  rollout): the stiffness is exactly the configured one, from soft to
+  near-rigid (at ``k = 1e6`` N/m the physics timestep must be <= about
+  0.7 ms; the experiment checks it).
+
+No-slip holds by construction; a slip is declared (and
 the rollout failed) when the in-hand translation exceeds ``slip`` m or the
 rotation ``slip_rot`` rad. There are no contacts (all geoms have
 ``contype = conaffinity = 0``): the MJX zero-contact elliptic-cone crash
@@ -84,6 +98,7 @@ class SceneSettings(NamedTuple):
     drive_solref: float = 0.005  # s, weld time constant mocap -> gripper
     grasp_solref: float = 0.004  # s, weld time constant gel -> handle
     track_solref: float = 0.004  # s, time constant of the crank's screw and the tracks' y(x), yaw(x) couplings
+    grasp: str = "weld"  # grasp model: "weld" (gel joints + welds) or "spring" (explicit wrench, see the module doc)
 
 
 class ObjectParams(NamedTuple):
@@ -127,6 +142,12 @@ _GRIPPER = """
         <joint name="gel_rz" type="hinge" axis="0 0 1" stiffness="{kr}" damping="{cr}"/>
         <inertial pos="0 0 0" mass="0.02" diaginertia="1e-6 1e-6 1e-6"/>
       </body>
+    </body>"""
+
+_GRIPPER_SPRING = """
+    <body name="target" mocap="true" pos="{p}" quat="{q}">
+      <geom type="box" pos="0 0.012 0" size="0.012 0.003 0.012" contype="0" conaffinity="0" rgba=".3 .3 .3 1"/>
+      <geom type="box" pos="0 -0.012 0" size="0.012 0.003 0.012" contype="0" conaffinity="0" rgba=".3 .3 .3 1"/>
     </body>"""
 
 _HANDLE = """<body name="handle" pos="{pos}">
@@ -178,8 +199,15 @@ def scene_xml(kind: str, p1, R1, settings: SceneSettings = SceneSettings()) -> s
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     s = settings
+    if s.grasp not in ("weld", "spring"):
+        raise ValueError(f"grasp must be 'weld' or 'spring', got {s.grasp!r}")
     p, q = _fmt(p1), _fmt(_quat(R1))
-    gripper = _GRIPPER.format(p=p, q=q, k=s.gel_k, c=s.gel_c, kr=s.gel_kr, cr=s.gel_cr)
+    if s.grasp == "weld":
+        gripper = _GRIPPER.format(p=p, q=q, k=s.gel_k, c=s.gel_c, kr=s.gel_kr, cr=s.gel_cr)
+        welds = (f'<weld name="drive" body1="target" body2="gripper" solref="{s.drive_solref} 1"/>\n'
+                 f'    <weld name="grasp" body1="gel" body2="handle" solref="{s.grasp_solref} 1"/>')
+    else:
+        gripper, welds = _GRIPPER_SPRING.format(p=p, q=q), ""
     obj = _OBJECT[kind].format(p=p, q=q, handle=_HANDLE.format(pos="0 0 0"))
     return f"""<mujoco model="articulated_{kind}">
   <compiler angle="radian" autolimits="true"/>
@@ -187,8 +215,7 @@ def scene_xml(kind: str, p1, R1, settings: SceneSettings = SceneSettings()) -> s
   <worldbody>{gripper}{obj}
   </worldbody>
   <equality>
-    <weld name="drive" body1="target" body2="gripper" solref="{s.drive_solref} 1"/>
-    <weld name="grasp" body1="gel" body2="handle" solref="{s.grasp_solref} 1"/>
+    {welds}
     {_EQ_EXTRA[kind].format(t=s.track_solref)}
   </equality>
 </mujoco>"""
@@ -200,14 +227,15 @@ class Layout(NamedTuple):
     kind: str
     part: int  # body id of the moving part
     handle: int  # body id of the handle
-    gripper: int  # body id of the gripper
+    gripper: int  # body id of the gripper (the mocap ``target`` under the spring grasp)
     obj_jnts: tuple  # joint ids of the object (first = the progress joint)
     obj_dofs: tuple  # their dof addresses
     obj_qpos: int  # qpos address of the progress joint
-    gripper_qpos: int  # qpos address of the gripper's free joint (pos 3, quat 4)
+    gripper_qpos: int  # qpos address of the gripper's free joint (pos 3, quat 4); -1 under the spring grasp
     eqs: tuple  # ids of the object's joint equalities
     p1: tuple  # (3,) G1 position (world)
     R1: tuple  # (3, 3) G1 rotation (world), nested tuples
+    grasp: str = "weld"  # grasp model (SceneSettings.grasp)
 
 
 @functools.lru_cache(maxsize=16)
@@ -228,11 +256,12 @@ def compile_scene(kind: str, p1, R1, settings: SceneSettings = SceneSettings()):
     eqs = tuple(int(name(mujoco.mjtObj.mjOBJ_EQUALITY, e)) for e in ("screw", "track_y", "track_yaw")
                 if name(mujoco.mjtObj.mjOBJ_EQUALITY, e) >= 0)
     gfree = int(name(mujoco.mjtObj.mjOBJ_JOINT, "gripper_free"))
+    spring = settings.grasp == "spring"
     layout = Layout(kind, int(name(mujoco.mjtObj.mjOBJ_BODY, "part")), int(name(mujoco.mjtObj.mjOBJ_BODY, "handle")),
-                    int(name(mujoco.mjtObj.mjOBJ_BODY, "gripper")), jids,
+                    int(name(mujoco.mjtObj.mjOBJ_BODY, "target" if spring else "gripper")), jids,
                     tuple(int(m.jnt_dofadr[j]) for j in jids), int(m.jnt_qposadr[jids[0]]),
-                    int(m.jnt_qposadr[gfree]), eqs, tuple(map(float, np.ravel(p1))),
-                    tuple(tuple(map(float, r)) for r in np.asarray(R1)))
+                    -1 if spring else int(m.jnt_qposadr[gfree]), eqs, tuple(map(float, np.ravel(p1))),
+                    tuple(tuple(map(float, r)) for r in np.asarray(R1)), settings.grasp)
     return m, layout
 
 

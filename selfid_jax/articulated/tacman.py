@@ -16,7 +16,9 @@ Pieces (each jit- and vmap-able, no Python control flow on values):
   keeps the base velocity ``u0`` (the literal law stalls on resisting objects);
   :func:`lead_update`, :func:`smooth_twist`, :func:`advance` -- the integral
   lead and the filtered screw of :func:`lead_step` (``turbo_lead``);
-* :func:`alpha_scale` -- joint-velocity limit scaling (Eq. 25-27);
+* :func:`alpha_scale` -- joint-velocity limit scaling (Eq. 25-26) and
+  :func:`stretch_fraction` -- Eq. 27, the scaled step stretched over
+  ``dt / alpha``;
 * :func:`turbo_init`/:func:`turbo_step` (and :func:`lead_step` on the same
   state) and :func:`tacman_init`/:func:`tacman_step`:
   one control step of each controller: ``(state, reading) -> (state, u, info)``.
@@ -48,6 +50,7 @@ __all__ = [
     "predict",
     "se3",
     "smooth_twist",
+    "stretch_fraction",
     "tacman_init",
     "tacman_step",
     "turbo_init",
@@ -149,6 +152,19 @@ def alpha_scale(qdot, qdot_max, beta, eps=1e-9):
     """
     ratio = beta * qdot_max / jnp.maximum(jnp.abs(qdot), eps)
     return jnp.minimum(jnp.min(ratio), 1.0)
+
+
+def stretch_fraction(alpha, k):
+    """Eq. 27: the fraction of control interval ``k`` (0, 1, ...) that a step scaled by ``alpha`` still runs.
+
+    A command scaled by ``alpha <= 1`` (Eq. 26) reaches its target in ``dt /
+    alpha`` (Eq. 27), i.e. ``1 / alpha`` control intervals: the first
+    ``floor(1 / alpha)`` in full and the last in part. Returns ``clip(1 / alpha
+    - k, 0, 1)`` (scalar, dimensionless; 1 for ``k = 0`` at ``alpha = 1``), so
+    ``sum_k alpha * stretch_fraction(alpha, k) = 1``: the whole unscaled
+    displacement. ``alpha`` is floored at 1e-6.
+    """
+    return jnp.clip(1.0 / jnp.maximum(alpha, 1e-6) - k, 0.0, 1.0)
 
 
 def deviation(T_in_hand: jaxlie.SE3, ref, mask):
@@ -286,6 +302,7 @@ class TacManParams(NamedTuple):
     dev_low: ArrayLike  # () deviation at which a recovery stage ends [m]
     recovery_gain: ArrayLike  # () fraction of the in-hand pose removed per recovery step (0, 1]
     max_speed: ArrayLike  # () recovery speed cap [m/s] (the rotation is capped at max_speed / 0.05 m)
+    reaim: ArrayLike = False  # () bool: after a recovery, re-aim along the handle's net motion (tacman_reaim)
 
 
 class TacManState(NamedTuple):
@@ -305,11 +322,15 @@ def tacman_step(state: TacManState, r: Reading, p: TacManParams):
     """One Tac-Man step (exploration-compensation): ``(state, u_cmd (6,), (valid, X_hat))``.
 
     Exploration: move at ``speed`` along ``direction`` (gripper frame) until the
-    contact deviation exceeds ``dev_high``. Recovery: hold the object and move
-    the gripper onto the handle (``recovery_gain`` of the in-hand pose per step, capped)
-    until the deviation is below ``dev_low``; then the exploration direction
-    becomes the handle's net displacement over the cycle (in the new gripper
-    frame), the adaptation that keeps the reactive loop going round a door.
+    contact deviation exceeds ``dev_high``. Recovery (stop-and-go): the object
+    is not driven; the gripper only moves onto the handle (``recovery_gain``
+    of the in-hand pose per step, capped at ``max_speed``) until the
+    deviation is below ``dev_low``. With ``p.reaim`` False (``tacman``, as the
+    Tac-Man papers describe it) the exploration direction stays the fixed
+    gripper-frame ``direction``, so the drift off a curved path is corrected
+    only in recovery (the zig-zag); with ``p.reaim`` True (``tacman_reaim``,
+    our departure) the direction becomes the handle's net displacement over
+    the cycle (in the new gripper frame) at the end of each recovery.
     """
     X, valid = kabsch(r.ref, r.cur, r.mask)
     X = jax.tree_util.tree_map(lambda a, b: jnp.where(valid, a, b), X, state.X_prev)
@@ -322,7 +343,7 @@ def tacman_step(state: TacManState, r: Reading, p: TacManParams):
     moved_g = r.T_g.rotation().inverse() @ moved
     dist = jnp.linalg.norm(moved_g)
     new_dir = jnp.where(dist > 1e-4, moved_g / jnp.maximum(dist, 1e-12), state.direction)
-    direction = jnp.where(end_rec, new_dir, state.direction)
+    direction = jnp.where(end_rec & jnp.asarray(p.reaim, bool), new_dir, state.direction)
     p_start = jnp.where(end_rec, T_h.translation(), state.p_start)
     rec = _decoupled(X) * p.recovery_gain / p.dt
     v_lim, w_lim = p.max_speed, p.max_speed / 0.05
