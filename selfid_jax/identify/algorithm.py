@@ -17,6 +17,7 @@ from jax.typing import ArrayLike
 import numpy as np
 
 from selfid_jax.identify import estimator
+from selfid_jax.identify import recursive as rec_mod
 from selfid_jax.math.geometry import noisy_pose  # noqa: F401 - re-exported: algorithm.noisy_pose
 from selfid_jax.math.checks import check_positive_int, check_scalar, float_dtype
 from selfid_jax.identify.refine import needs_samples, refine
@@ -112,25 +113,44 @@ def self_identify(
     m_a = jnp.broadcast_to(jnp.asarray(m_a, dtype), (n_act,))
     state0 = estimator.init(n_act, task_dim, capacity=capacity, v_tol=v_tol, forget=forget, dtype=dtype)
 
-    def body(carry, k):
-        state, env, done = carry
-        k_act, k_obs = jax.random.split(k)
-        dtheta = jax.random.uniform(k_act, (n_act,), dtype, -1.0, 1.0) * m_a
-        env_new, V = observe(env, k_obs, dtheta)
-        V = jnp.asarray(V, dtype)
-        new = estimator.update(state, dtheta, V)
-        J = refine(new, estimator.initial_guess(new), method=method, **options)
-        new = estimator.record(new, J, eps, eps_rel)
-        delta = new.last_deltas[1]
-        if stop_at_convergence:
-            new = jax.tree.map(lambda a, b: jnp.where(done, a, b), state, new)
-            env_new = jax.tree.map(lambda a, b: jnp.where(done, a, b), env, env_new)
-            delta = jnp.where(done, 0.0, delta)
-            done = done | (new.converged_at > 0)
-        return (new, env_new, done), (new.estimate, delta, dtheta, V)
+    recursive = _recursive_closed_form(method, options)
+    rec0 = rec_mod.init(task_dim, dtype)
+
+    def make_body(fast: bool):
+        def body(carry, k):
+            state, rec, env, done = carry
+            k_act, k_obs = jax.random.split(k)
+            dtheta = jax.random.uniform(k_act, (n_act,), dtype, -1.0, 1.0) * m_a
+            env_new, V = observe(env, k_obs, dtheta)
+            V = jnp.asarray(V, dtype)
+            if not recursive:
+                new = estimator.update(state, dtheta, V)
+                J = refine(new, estimator.initial_guess(new), method=method, **options)
+                new, rec_new = estimator.record(new, J, eps, eps_rel), rec
+            elif fast:
+                new, rec_new = rec_mod.fast_step(state, rec, dtheta, V, eps, eps_rel, rcond=options.get("rcond"))
+            else:
+                new, rec_new = rec_mod.exact_step(state, rec, dtheta, V, eps, eps_rel, rcond=options.get("rcond"))
+            delta = new.last_deltas[1]
+            if stop_at_convergence:
+                new, rec_new = jax.tree.map(lambda a, b: jnp.where(done, a, b), (state, rec), (new, rec_new))
+                env_new = jax.tree.map(lambda a, b: jnp.where(done, a, b), env, env_new)
+                delta = jnp.where(done, 0.0, delta)
+                done = done | (new.converged_at > 0)
+            return (new, rec_new, env_new, done), (new.estimate, delta, dtheta, V)
+
+        return body
 
     keys = jax.random.split(key, iters)
-    (state, env, _), (estimates, deltas, dthetas, Vs) = jax.lax.scan(body, (state0, env, jnp.array(False)), keys)
+    carry0 = (state0, rec0, env, jnp.array(False))
+    if recursive:
+        # Eq. 14 by the rank-one step once S_vv has full rank (identify.recursive): the first
+        # task_dim + 2 iterations and any block the step was not exact for run the batch closed form.
+        carry, ys = rec_mod.fallback_scan(make_body(True), make_body(False), lambda c: c[1].full, carry0, keys,
+                                          warmup=task_dim + 2)
+    else:
+        carry, ys = jax.lax.scan(make_body(False), carry0, keys)
+    (state, _, env, _), (estimates, deltas, dthetas, Vs) = carry, ys
     return SelfIDResult(
         state=state,
         estimate=state.estimate,
@@ -141,6 +161,16 @@ def self_identify(
         V=Vs,
         env=env,
     )
+
+
+def _recursive_closed_form(method: str, options: dict) -> bool:
+    """Whether the refinement is the plain closed form (no ridge), which :mod:`~selfid_jax.identify.recursive` keeps
+    by rank-one steps."""
+    if method != "closed_form" or set(options) - {"rcond", "ridge", "loss", "sign_project"}:
+        return False
+    ridge = options.get("ridge", 0.0)
+    plain = isinstance(ridge, (int, float)) and ridge == 0
+    return plain and options.get("loss", "l2") == "l2" and not options.get("sign_project", False)
 
 
 def run(

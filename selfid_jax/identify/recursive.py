@@ -82,7 +82,22 @@ def cond_any(pred: jax.Array, true_fn: Callable, false_fn: Callable, operands: A
     branches must return the same pytree structure, shapes and dtypes.
     Differentiable (``jvp`` and ``grad``: the rule differentiates ``lax.cond``).
     """
-    return _cond_any_jvp(true_fn, false_fn, pred, operands)
+    # Values the branches close over (traced ones, batched under an outer vmap, say) become explicit
+    # operands: a custom batching rule sees only its arguments.
+    t_fn, t_consts = _hoist(true_fn, operands)
+    f_fn, f_consts = _hoist(false_fn, operands)
+    return _cond_any_jvp(lambda o: t_fn(o[0], o[1]), lambda o: f_fn(o[0], o[2]), pred, (operands, t_consts, f_consts))
+
+
+def _hoist(fn, operands):
+    """``(g, consts)`` with ``g(operands, consts) == fn(operands)`` and every value ``fn`` closes over in ``consts``."""
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(operands)
+    out_tree = jax.tree.structure(out_shape)
+
+    def g(ops, consts):
+        return jax.tree.unflatten(out_tree, jax.core.eval_jaxpr(closed.jaxpr, consts, *jax.tree.leaves(ops)))
+
+    return g, list(closed.consts)
 
 
 def _select(pred, a, b):
