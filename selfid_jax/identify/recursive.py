@@ -41,6 +41,7 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
+import numpy as np
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
@@ -358,3 +359,48 @@ def run(
     (state, rec), (estimates, deltas) = fallback_scan(fast, exact, lambda c: c[1].full, (state, rec), xs,
                                                       warmup=warmup)
     return state, rec, estimates, deltas
+
+
+def pack(state: E.EstimatorState, rec: Recursion) -> tuple[jax.Array, jax.Array]:
+    """``(state, rec)`` as two flat arrays: ``floats (L,)`` (state dtype) and ``ints (K,)`` int32.
+
+    For the live loop at batch 1, where each array passed through ``jit``
+    costs dispatch time: :func:`packed_step` takes and returns these two
+    instead of the 21 leaves. :func:`unpack` inverts it.
+    """
+    leaves = jax.tree.leaves((state, rec))
+    dtype = state.S_tv.dtype
+    floats = [x.ravel() for x in leaves if jnp.issubdtype(x.dtype, jnp.floating)]
+    ints = [x.astype(jnp.int32).ravel() for x in leaves if not jnp.issubdtype(x.dtype, jnp.floating)]
+    return jnp.concatenate(floats).astype(dtype), jnp.concatenate(ints)
+
+
+def unpack(floats: jax.Array, ints: jax.Array, n: int, m: int, capacity: int = 0) -> tuple[E.EstimatorState, Recursion]:
+    """Inverse of :func:`pack` for ``n`` actuators, ``m`` task dimensions and a ``capacity``-row buffer."""
+    template = jax.eval_shape(lambda: (E.init(n, m, capacity=capacity, dtype=floats.dtype), init(m, floats.dtype)))
+    leaves, tree = jax.tree.flatten(template)
+    out, fo, io = [], 0, 0
+    for t in leaves:
+        size = int(np.prod(t.shape, dtype=int))
+        if jnp.issubdtype(t.dtype, jnp.floating):
+            out.append(floats[fo:fo + size].reshape(t.shape))
+            fo += size
+        else:
+            out.append(ints[io:io + size].reshape(t.shape).astype(t.dtype))
+            io += size
+    if (fo, io) != (floats.shape[-1], ints.shape[-1]):
+        raise ValueError(f"unpack: expected {fo} floats and {io} ints for n={n}, m={m}, capacity={capacity}, "
+                         f"got {floats.shape[-1]} and {ints.shape[-1]}")
+    return jax.tree.unflatten(tree, out)
+
+
+def packed_step(floats, ints, dtheta, V, eps, eps_rel=0.0, *, n: int, m: int, capacity: int = 0, **options):
+    """:func:`step` on the packed form of :func:`pack`: returns the new ``(floats, ints)``.
+
+    ``n``, ``m``, ``capacity`` are static; ``options`` as :func:`step`. Jit it
+    (with ``static_argnames=("n", "m", "capacity")``); the estimate is
+    ``unpack(...)[0].estimate`` or, without unpacking, ``floats[k:k + n m]``
+    at the offset of ``estimate``.
+    """
+    state, rec = unpack(floats, ints, n, m, capacity)
+    return pack(*step(state, rec, dtheta, V, eps, eps_rel, **options))
