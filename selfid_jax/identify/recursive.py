@@ -379,6 +379,11 @@ def unpack(floats: jax.Array, ints: jax.Array, n: int, m: int, capacity: int = 0
     """Inverse of :func:`pack` for ``n`` actuators, ``m`` task dimensions and a ``capacity``-row buffer."""
     template = jax.eval_shape(lambda: (E.init(n, m, capacity=capacity, dtype=floats.dtype), init(m, floats.dtype)))
     leaves, tree = jax.tree.flatten(template)
+    sizes = [(int(np.prod(t.shape, dtype=int)), bool(jnp.issubdtype(t.dtype, jnp.floating))) for t in leaves]
+    fo, io = sum(k for k, f in sizes if f), sum(k for k, f in sizes if not f)
+    if (fo, io) != (floats.shape[-1], ints.shape[-1]):
+        raise ValueError(f"unpack: expected {fo} floats and {io} ints for n={n}, m={m}, capacity={capacity}, "
+                         f"got {floats.shape[-1]} and {ints.shape[-1]}")
     out, fo, io = [], 0, 0
     for t in leaves:
         size = int(np.prod(t.shape, dtype=int))
@@ -388,9 +393,6 @@ def unpack(floats: jax.Array, ints: jax.Array, n: int, m: int, capacity: int = 0
         else:
             out.append(ints[io:io + size].reshape(t.shape).astype(t.dtype))
             io += size
-    if (fo, io) != (floats.shape[-1], ints.shape[-1]):
-        raise ValueError(f"unpack: expected {fo} floats and {io} ints for n={n}, m={m}, capacity={capacity}, "
-                         f"got {floats.shape[-1]} and {ints.shape[-1]}")
     return jax.tree.unflatten(tree, out)
 
 
