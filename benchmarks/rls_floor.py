@@ -153,8 +153,8 @@ def throughput(batch, steps, reps, rounds, n=6, m=3):
     rows = {}
     for name, ts in times.items():
         t = statistics.median(ts)
-        rows[name] = {"ms_per_step": 1e3 * t, "steps_per_s": 1.0 / t, "x_plain_rls": plain / t, "x_baselines_rls": rls / t,
-                      "first_call_s": first[name], "rel_err_vs_float64_lstsq": errs[name]}
+        rows[name] = {"ms_per_step": 1e3 * t, "steps_per_s": 1.0 / t, "x_plain_rls": plain / t,
+                      "x_baselines_rls": rls / t, "first_call_s": first[name], "rel_err_vs_float64_lstsq": errs[name]}
     return rows
 
 

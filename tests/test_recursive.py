@@ -28,8 +28,7 @@ def data(T, n=N, m=M, seed=0, noise=1e-4, dead=None):
 
 def numpy_estimates(d, V, forget=1.0, v_tol=1e-9):
     """Eq. 6-14 in float64 numpy after each sample: sign * magnitude guess, then the minimum-norm correction."""
-    T, n = d.shape
-    m = V.shape[1]
+    T = d.shape[0]
     out = []
     for t in range(1, T + 1):
         w = forget ** np.arange(t - 1, -1, -1.0)  # weight of sample k: forget^(t - k)
