@@ -28,11 +28,25 @@ batch form, as it should).
 
 Under ``vmap`` the choice between the two is made for the whole batch at once
 (:func:`cond_any`, a custom batching rule): the re-solve runs, for every
-member, only on the steps where at least one member needs it, and the
-recursive step alone otherwise (a plain ``lax.cond`` under ``vmap`` would run
-both every step). Derivatives go through a ``custom_jvp`` whose rule
-differentiates the plain selection, so ``grad`` and ``jvp`` work (through
-the same formula either way).
+member, only where at least one member needs it, and the recursive step
+alone otherwise (a plain ``lax.cond`` under ``vmap`` would run both every
+time). Derivatives go through a ``custom_jvp`` whose rule differentiates the
+plain ``lax.cond``, so ``grad`` and ``jvp`` work (through the same formula
+either way).
+
+Two forms. :func:`step` decides per sample, before the step, from the carry
+and the sample alone (the bound ``tr(P_new) <= tr(P) / lam`` and the new
+trace): the live loop's form, one sample per call. :func:`run` takes a block
+of samples: the first few by the batch form (:func:`exact_step`), the rest by
+the branch-free rank-one step (:func:`fast_step`), and re-runs the block's
+tail by the batch form if any rank-one step was not exact
+(:func:`fallback_scan`): one branch per block, the fleet form under ``vmap``,
+and the form :func:`selfid_jax.identify.algorithm.self_identify` runs. On
+XLA's CPU backend a conditional inside the per-sample loop splits the
+step's one fused pass over the state into one pass per field (and copies
+the carry), which costs more than the rank-one step saves; hence the block.
+:func:`pack` and :func:`packed_step` pass the state through ``jit`` as two
+flat arrays instead of 21, for the per-call cost at batch 1.
 """
 
 from __future__ import annotations
@@ -41,8 +55,8 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
-import numpy as np
 import jax.numpy as jnp
+import numpy as np
 from jax.typing import ArrayLike
 
 from selfid_jax.identify import estimator as E
