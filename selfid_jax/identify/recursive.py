@@ -24,7 +24,10 @@ Rayleigh quotient exceeds ``rcond tr(S_vv)``. Every Rayleigh quotient is at
 least ``lambda_min(S_vv) >= 1 / tr(P)``, so the step is taken only while
 ``rcond tr(S_vv) tr(P) < 1/2``, where the batch form keeps every direction by
 a margin of 2 (forgetting that lets a direction fade hands it back to the
-batch form, as it should).
+batch form, as it should). The steps start only from a batch solve whose
+round-off bound ``eps tr(P) tr(S_vv)`` is below :data:`ENTER_TOL`, since their
+error is that of the solve they start from (decaying as later samples
+outweigh it): float32 data too ill-conditioned for that stays on the batch form.
 
 Under ``vmap`` the choice between the two is made for the whole batch at once
 (:func:`cond_any`, a custom batching rule): the re-solve runs, for every
@@ -64,6 +67,11 @@ from selfid_jax.identify.refine import statistics_closed_form
 from selfid_jax.math.checks import check_array, check_scalar
 from selfid_jax.math.kernels import small_sum
 from selfid_jax.math.linalg import default_rcond, psd_pinv
+
+
+ENTER_TOL = 1e-3
+"""The rank-one steps start from a batch solve only where ``eps tr(P) tr(S_vv)`` (a bound on its relative round-off)
+is below this: in float32 a Gram matrix of condition number up to about 17,000, in float64 any the rank test keeps."""
 
 
 class Recursion(NamedTuple):
@@ -172,7 +180,10 @@ def _resolve(S_vv, S_tv, J0, rcond):
     """Batch closed form (Eq. 14) and the inverse Gram matrix: ``(J (n, m), P (m, m), full ())``."""
     J = statistics_closed_form(S_vv, S_tv, J0, rcond=rcond)
     P, N = psd_pinv(S_vv, rcond=rcond)
-    full = jnp.all(N == 0) & _conditioned(P, S_vv, rcond) & jnp.all(jnp.isfinite(J))
+    # Enter the rank-one steps only from a well-posed solve: their error is that of the solve they start
+    # from, decaying as later samples outweigh it (eps cond(S_vv) <= eps tr(P) tr(S_vv) < ENTER_TOL).
+    entry = _trace(P) * _trace(S_vv) * jnp.finfo(S_vv.dtype).eps < ENTER_TOL
+    full = jnp.all(N == 0) & _conditioned(P, S_vv, rcond) & entry & jnp.all(jnp.isfinite(J))
     return J, P, full
 
 
