@@ -13,9 +13,12 @@ interleaved rounds (medians; compile separate):
 * ``new step, per sample``: :func:`selfid_jax.identify.recursive.step` in the
   same harness (one branch choice per vmapped batch per sample);
 * ``new step, block``: :func:`selfid_jax.identify.recursive.run` over the
-  ``--steps`` samples under ``vmap`` (batch form for the first m + 2, rank-one
+  ``--steps`` samples under ``vmap`` (batch form for the first m + 5, rank-one
   steps after, one branch per block): the fleet form, and what
-  ``self_identify`` runs.
+  ``self_identify`` runs;
+* ``new step, block, steady``: the same on ``--steps`` further samples of
+  estimators that have already seen ``--steps`` (``warmup=0``): the rate of
+  a fleet past its start.
 
 Then the float32 error of the new step against float64 least squares (the
 timed data, and ``--long`` samples for ``--long-batch`` estimators, with and
@@ -113,11 +116,25 @@ def scan_fn(batch, init, step, read):
 
 def block_fn(batch, n, m, resolve_every: int = 0):
     def one(d, V):
-        s, _, _, _ = R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 2,
+        s, _, _, _ = R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 5,
                            resolve_every=resolve_every)
         return s.estimate
 
     return jax.jit(jax.vmap(one, in_axes=(1, 1)))
+
+
+def steady_fn(n, m, d0, V0):
+    """The block step from the state after ``d0 (T, batch, n)``, ``V0``: ``fn(d, V) -> estimates``."""
+    def first(d, V):
+        return R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 5)[:2]
+
+    s0, r0 = jax.block_until_ready(jax.jit(jax.vmap(first, in_axes=(1, 1)))(d0, V0))
+
+    def more(s, r, d, V):
+        return R.run(s, r, d, V, EPS, warmup=0)[0].estimate
+
+    fn = jax.jit(jax.vmap(more, in_axes=(0, 0, 1, 1)))
+    return lambda d, V: fn(s0, r0, d, V)
 
 
 def lstsq(d, V, count):
@@ -130,23 +147,27 @@ def rel_err(J, ref):
 
 
 def throughput(batch, steps, reps, rounds, n=6, m=3):
-    d64, V64 = make_data(batch, steps, n, m)
-    d, V = jnp.asarray(d64, F32), jnp.asarray(V64, F32)
-    ref = lstsq(d64, V64, min(200, batch))
+    d64, V64 = make_data(batch, 2 * steps, n, m)
+    d, V = jnp.asarray(d64[:steps], F32), jnp.asarray(V64[:steps], F32)
+    ref = lstsq(d64[:steps], V64[:steps], min(200, batch))
     fns = {name: scan_fn(batch, *row) for name, row in scan_rows(n, m).items()}
     fns["new step, block"] = block_fn(batch, n, m)
+    fns["new step, block, steady"] = steady_fn(n, m, d, V)
+    d2, V2 = jnp.asarray(d64[steps:], F32), jnp.asarray(V64[steps:], F32)
+    ref2 = lstsq(d64, V64, min(200, batch))
     first, errs = {}, {}
+    data = {name: ((d2, V2, ref2) if "steady" in name else (d, V, ref)) for name in fns}
     for name, fn in fns.items():
         t0 = time.perf_counter()
-        out = jax.block_until_ready(fn(d, V))
+        out = jax.block_until_ready(fn(*data[name][:2]))
         first[name] = time.perf_counter() - t0
-        errs[name] = rel_err(out, ref)
+        errs[name] = rel_err(out, data[name][2])
     times = {name: [] for name in fns}
     for _ in range(rounds):
         for name, fn in fns.items():
             for _ in range(reps):
                 t0 = time.perf_counter()
-                jax.block_until_ready(fn(d, V))
+                jax.block_until_ready(fn(*data[name][:2]))
                 times[name].append((time.perf_counter() - t0) / steps)
     plain = statistics.median(times["plain RLS"])
     rls = statistics.median(times["baselines.rls"])
@@ -230,10 +251,12 @@ def report(res: dict) -> str:
             lines.append(f"batch 1, {where}, {name:22s}: p50 {1e3 * r['p50_ms']:6.1f} us, p99 {1e3 * r['p99_ms']:6.1f} "
                          "us per sample")
     new = res["rows"]["new step, block"]
+    steady = res["rows"]["new step, block, steady"]
     p99 = res["latency"]["n=6,m=3"]["new step"]["p99_ms"]
     goals = [("new >= 0.5x plain RLS", new["x_plain_rls"] >= 0.5, f"{new['x_plain_rls']:.2f}x"),
              (">= 1x baselines.rls", new["x_baselines_rls"] >= 1.0, f"{new['x_baselines_rls']:.2f}x"),
              (">= 2000 steps/s", new["steps_per_s"] >= 2000, f"{new['steps_per_s']:.0f}"),
+             ("steady >= 0.5x plain RLS", steady["x_plain_rls"] >= 0.5, f"{steady['x_plain_rls']:.2f}x"),
              ("batch-1 p99 <= 0.1 ms (n=6, m=3)", p99 <= 0.1, f"{p99:.3f} ms"),
              ("float32 error <= 1e-4", max(res["long"]["rel_err"].values()) <= 1e-4,
               f"{max(res['long']['rel_err'].values()):.1e}")]

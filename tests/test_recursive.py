@@ -149,7 +149,7 @@ def test_gradient_matches_finite_differences():
 
     def loss(V):
         s0, r0 = E.init(N, M, capacity=0), R.init(M)
-        return jnp.sum(R.run(s0, r0, jnp.asarray(d), V, 1e-3, warmup=M + 2)[2][-1] ** 2)
+        return jnp.sum(R.run(s0, r0, jnp.asarray(d), V, 1e-3, warmup=M + 5)[2][-1] ** 2)
 
     g = np.asarray(jax.grad(loss)(jnp.asarray(V)))
     h = 1e-6
@@ -171,7 +171,7 @@ def test_float32_over_10000_samples_within_1e_4_of_float64_least_squares():
 
     def one(d, V):
         s = E.init(6, 3, capacity=0, dtype=jnp.float32)
-        return R.run(s, R.init(3, jnp.float32), d, V, 1e-3, warmup=5)[0].estimate
+        return R.run(s, R.init(3, jnp.float32), d, V, 1e-3, warmup=8)[0].estimate
 
     J = np.asarray(jax.jit(jax.vmap(one, in_axes=(1, 1)))(jnp.asarray(d, jnp.float32), jnp.asarray(V, jnp.float32)))
     for b in range(B):

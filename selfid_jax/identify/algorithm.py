@@ -145,9 +145,9 @@ def self_identify(
     carry0 = (state0, rec0, env, jnp.array(False))
     if recursive:
         # Eq. 14 by the rank-one step once S_vv has full rank (identify.recursive): the first
-        # task_dim + 2 iterations and any block the step was not exact for run the batch closed form.
+        # task_dim + 5 iterations, and the rest again if any rank-one step was not exact, run the batch closed form.
         carry, ys = rec_mod.fallback_scan(make_body(True), make_body(False), lambda c: c[1].full, carry0, keys,
-                                          warmup=task_dim + 2)
+                                          warmup=task_dim + 5)
     else:
         carry, ys = jax.lax.scan(make_body(False), carry0, keys)
     (state, _, env, _), (estimates, deltas, dthetas, Vs) = carry, ys

@@ -64,7 +64,7 @@ from jax.typing import ArrayLike
 
 from selfid_jax.identify import estimator as E
 from selfid_jax.identify.refine import statistics_closed_form
-from selfid_jax.math.checks import check_array, check_scalar
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
 from selfid_jax.math.kernels import small_sum
 from selfid_jax.math.linalg import default_rcond, psd_pinv
 
@@ -300,39 +300,50 @@ def fast_step(state, rec, dtheta, V, eps, eps_rel=0.0, *, rcond=None, resolve_ev
     return E.record(new, J, eps, eps_rel), Recursion(P=P, full=ok)
 
 
-def fallback_scan(fast_body: Callable, exact_body: Callable, ok_of: Callable, carry, xs, *, warmup: int):
+def fallback_scan(fast_body: Callable, exact_body: Callable, ok_of: Callable, carry, xs, *, warmup: int,
+                  block: int | None = None):
     """``lax.scan`` of ``exact_body`` over ``xs``, computed where it can be by the cheaper ``fast_body``.
 
     ``exact_body(carry, x) -> (carry, y)`` and ``fast_body`` (same signature
     and types) are scan bodies; ``ok_of(carry) -> ()`` bool says whether the
     fast step just taken was exact. The first ``warmup`` (static) elements of
-    ``xs`` run ``exact_body``; the rest run ``fast_body``, and if any of its
-    steps was not exact, they are run again by ``exact_body`` from where the
-    warm-up ended (under ``vmap`` by :func:`cond_any`: for the whole batch,
-    only when a member needs it). Returns ``(carry, ys)`` as ``lax.scan``
-    does, equal to the exact scan up to round-off.
+    ``xs`` run ``exact_body``; the rest run in blocks of ``block`` (static;
+    default: one block) elements by ``fast_body``, and a block any of whose steps was not exact
+    is run again by ``exact_body`` from where it started (under ``vmap`` by
+    :func:`cond_any`: for the whole batch, only when a member needs it).
+    Returns ``(carry, ys)`` as ``lax.scan`` does, equal to the exact scan up
+    to round-off.
     """
     T = jax.tree.leaves(xs)[0].shape[0]
     warmup = min(max(int(warmup), 0), T)
-    head = jax.tree.map(lambda x: x[:warmup], xs)
-    tail = jax.tree.map(lambda x: x[warmup:], xs)
-    carry, ys_head = jax.lax.scan(exact_body, carry, head)
-    if warmup == T:
-        return carry, ys_head
+    block = max(T - warmup, 1) if block is None else max(int(block), 1)
+    carry, ys_head = jax.lax.scan(exact_body, carry, jax.tree.map(lambda x: x[:warmup], xs))
 
     def fast(c, x):
         c, good = c
         c, y = fast_body(c, x)
         return (c, good & ok_of(c)), y
 
-    (carry_f, good), ys_f = jax.lax.scan(fast, (carry, jnp.ones((), bool)), tail)
+    def one_block(c0, xs_b):
+        (c_f, good), ys_f = jax.lax.scan(fast, (c0, jnp.ones((), bool)), xs_b)
 
-    def redo(ops):
-        c0, xs_, _ = ops
-        return jax.lax.scan(exact_body, c0, xs_)
+        def redo(ops):
+            c, xs_, _ = ops
+            return jax.lax.scan(exact_body, c, xs_)
 
-    carry, ys_tail = cond_any(~good, redo, lambda ops: ops[2], (carry, tail, (carry_f, ys_f)))
-    return carry, jax.tree.map(lambda a, b: jnp.concatenate([a, b]), ys_head, ys_tail)
+        return cond_any(~good, redo, lambda ops: ops[2], (c0, xs_b, (c_f, ys_f)))
+
+    n_blocks, rest = divmod(T - warmup, block)
+    parts = [ys_head]
+    if n_blocks:
+        body = jax.tree.map(lambda x: x[warmup:warmup + n_blocks * block].reshape((n_blocks, block) + x.shape[1:]),
+                            xs)
+        carry, ys = jax.lax.scan(one_block, carry, body)
+        parts.append(jax.tree.map(lambda y: y.reshape((n_blocks * block,) + y.shape[2:]), ys))
+    if rest:
+        carry, ys = one_block(carry, jax.tree.map(lambda x: x[T - rest:], xs))
+        parts.append(ys)
+    return carry, jax.tree.map(lambda *a: jnp.concatenate(a), *parts)
 
 
 def run(
@@ -344,6 +355,7 @@ def run(
     eps_rel: ArrayLike = 0.0,
     *,
     warmup: int | None = None,
+    block: int | None = None,
     rcond: ArrayLike | None = None,
     resolve_every: int = 0,
 ) -> tuple[E.EstimatorState, Recursion, jax.Array, jax.Array]:
@@ -351,10 +363,10 @@ def run(
 
     ``estimates (T, n, m)``: the refined estimate after each sample;
     ``deltas (T,)``: its ``||J_t - J_{t-1}||_F``. The first ``warmup``
-    samples (static; default ``m + 2`` for a state with no sample yet, else 0)
+    samples (static; default ``m + 5`` for a state with no sample yet, else 0)
     run the batch closed form (:func:`exact_step`), the rest the rank-one step
-    (:func:`fast_step`), re-run by the batch form if any of them was not
-    exact (:func:`fallback_scan`). Equal to ``T`` calls of :func:`step` up to
+    (:func:`fast_step`) in blocks of ``block`` (static; default one block), a block re-run by the
+    batch form if any of its steps was not exact (:func:`fallback_scan`). Equal to ``T`` calls of :func:`step` up to
     round-off; under ``vmap`` it is the fleet form (one branch per block, not
     per sample). Jit, vmap and differentiate.
     """
@@ -368,8 +380,10 @@ def run(
         check_scalar("rcond", rcond, ge=0.0)
     resolve_every = E.check_nonnegative_int("resolve_every", resolve_every)
     if warmup is None:
-        warmup = m + 2 if (not isinstance(state.count, jax.core.Tracer) and int(state.count) == 0) else 0
+        warmup = m + 5 if (not isinstance(state.count, jax.core.Tracer) and int(state.count) == 0) else 0
     warmup = E.check_nonnegative_int("warmup", warmup)
+    if block is not None:
+        block = check_positive_int("block", block)
     dtype = state.S_tv.dtype
     xs = (jnp.asarray(dtheta, dtype), jnp.asarray(V, dtype))
 
@@ -382,7 +396,7 @@ def run(
         return c, (c[0].estimate, c[0].last_deltas[1])
 
     (state, rec), (estimates, deltas) = fallback_scan(fast, exact, lambda c: c[1].full, (state, rec), xs,
-                                                      warmup=warmup)
+                                                      warmup=warmup, block=block)
     return state, rec, estimates, deltas
 
 
