@@ -14,7 +14,8 @@ interleaved rounds (medians; compile separate):
   same harness (one branch choice per vmapped batch per sample);
 * ``new step, block``: :func:`selfid_jax.identify.recursive.run` over the
   ``--steps`` samples under ``vmap`` (batch form for the first m + 5, rank-one
-  steps after, one branch per block): the fleet form, and what
+  steps after, one branch per block; ``history=False``: like the per-sample
+  rows, no per-sample record is written): the fleet form, and what
   ``self_identify`` runs;
 * ``new step, block, steady``: the same on ``--steps`` further samples of
   estimators that have already seen ``--steps`` (``warmup=0``): the rate of
@@ -117,7 +118,7 @@ def scan_fn(batch, init, step, read):
 def block_fn(batch, n, m, resolve_every: int = 0):
     def one(d, V):
         s, _, _, _ = R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 5,
-                           resolve_every=resolve_every)
+                           resolve_every=resolve_every, history=False)
         return s.estimate
 
     return jax.jit(jax.vmap(one, in_axes=(1, 1)))
@@ -126,12 +127,12 @@ def block_fn(batch, n, m, resolve_every: int = 0):
 def steady_fn(n, m, d0, V0):
     """The block step from the state after ``d0 (T, batch, n)``, ``V0``: ``fn(d, V) -> estimates``."""
     def first(d, V):
-        return R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 5)[:2]
+        return R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 5, history=False)[:2]
 
     s0, r0 = jax.block_until_ready(jax.jit(jax.vmap(first, in_axes=(1, 1)))(d0, V0))
 
     def more(s, r, d, V):
-        return R.run(s, r, d, V, EPS, warmup=0)[0].estimate
+        return R.run(s, r, d, V, EPS, warmup=0, history=False)[0].estimate
 
     fn = jax.jit(jax.vmap(more, in_axes=(0, 0, 1, 1)))
     return lambda d, V: fn(s0, r0, d, V)
@@ -198,7 +199,7 @@ def latency(n, m, calls, block):
     old = jax.jit(old_step)
     new = jax.jit(lambda s, r, x, v: R.step(s, r, x, v, EPS))
     new_donated = jax.jit(lambda s, r, x, v: R.step(s, r, x, v, EPS), donate_argnums=(0, 1))
-    run = jax.jit(lambda s, r, x, v: R.run(s, r, x, v, EPS, warmup=0)[:2])
+    run = jax.jit(lambda s, r, x, v: R.run(s, r, x, v, EPS, warmup=0, history=False)[:2])
     packed = jax.jit(lambda f, i, x, v: R.packed_step(f, i, x, v, EPS, n=n, m=m))
     res = {}
 

@@ -235,3 +235,13 @@ def test_self_identify_closed_form_equals_the_batch_path():
     np.testing.assert_allclose(res.deltas, jax.vmap(lambda a, b: jnp.linalg.norm(a - b))(
         Jb, jnp.concatenate([jnp.zeros_like(Jb[:1]), Jb[:-1]])), rtol=1e-6)
     assert int(res.converged_at) == int(sb.converged_at)
+
+
+def test_run_without_history_ends_in_the_same_state():
+    d, V = data(25, seed=8)
+    s0, r0 = E.init(N, M, capacity=0), R.init(M)
+    s, r, Js, deltas = R.run(s0, r0, d, V, 1e-3)
+    s2, r2, none_J, none_d = R.run(s0, r0, d, V, 1e-3, history=False)
+    assert none_J is None and none_d is None
+    chex.assert_trees_all_close((s2, r2), (s, r), rtol=1e-12)
+    np.testing.assert_allclose(s.estimate, Js[-1])

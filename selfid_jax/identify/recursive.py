@@ -358,7 +358,8 @@ def run(
     block: int | None = None,
     rcond: ArrayLike | None = None,
     resolve_every: int = 0,
-) -> tuple[E.EstimatorState, Recursion, jax.Array, jax.Array]:
+    history: bool = True,
+) -> tuple[E.EstimatorState, Recursion, jax.Array | None, jax.Array | None]:
     """:func:`step` over a block of samples ``dtheta (T, n)``, ``V (T, m)``: ``(state, rec, estimates, deltas)``.
 
     ``estimates (T, n, m)``: the refined estimate after each sample;
@@ -368,7 +369,9 @@ def run(
     (:func:`fast_step`) in blocks of ``block`` (static; default one block), a block re-run by the
     batch form if any of its steps was not exact (:func:`fallback_scan`). Equal to ``T`` calls of :func:`step` up to
     round-off; under ``vmap`` it is the fleet form (one branch per block, not
-    per sample). Jit, vmap and differentiate.
+    per sample). ``history=False`` (static) keeps no per-sample record:
+    ``estimates`` and ``deltas`` are None and the block writes only the state
+    (the final estimate is ``state.estimate``). Jit, vmap and differentiate.
     """
     n, m, _ = E.sizes(state)
     check_array("dtheta", dtheta, (None, n))
@@ -387,17 +390,19 @@ def run(
     dtype = state.S_tv.dtype
     xs = (jnp.asarray(dtheta, dtype), jnp.asarray(V, dtype))
 
+    def out(c):
+        return (c[0].estimate, c[0].last_deltas[1]) if history else ()
+
     def exact(c, x):
         c = exact_step(*c, *x, eps, eps_rel, rcond=rcond)
-        return c, (c[0].estimate, c[0].last_deltas[1])
+        return c, out(c)
 
     def fast(c, x):
         c = fast_step(*c, *x, eps, eps_rel, rcond=rcond, resolve_every=resolve_every)
-        return c, (c[0].estimate, c[0].last_deltas[1])
+        return c, out(c)
 
-    (state, rec), (estimates, deltas) = fallback_scan(fast, exact, lambda c: c[1].full, (state, rec), xs,
-                                                      warmup=warmup, block=block)
-    return state, rec, estimates, deltas
+    (state, rec), ys = fallback_scan(fast, exact, lambda c: c[1].full, (state, rec), xs, warmup=warmup, block=block)
+    return (state, rec, *ys) if history else (state, rec, None, None)
 
 
 def pack(state: E.EstimatorState, rec: Recursion) -> tuple[jax.Array, jax.Array]:
