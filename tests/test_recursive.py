@@ -245,3 +245,17 @@ def test_run_without_history_ends_in_the_same_state():
     assert none_J is None and none_d is None
     chex.assert_trees_all_close((s2, r2), (s, r), rtol=1e-12)
     np.testing.assert_allclose(s.estimate, Js[-1])
+
+
+class TestVariants(chex.TestCase):
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_step_equals_exact_step(self):
+        d, V = data(9, seed=9)
+        step = self.variant(lambda s, r, x, v: R.step(s, r, x, v, 1e-3))
+        s, r = E.init(N, M, capacity=0), R.init(M)
+        se, re_ = s, r
+        for t in range(9):
+            s, r = step(s, r, d[t], V[t])
+            se, re_ = R.exact_step(se, re_, d[t], V[t], 1e-3)
+            np.testing.assert_allclose(s.estimate, se.estimate, rtol=1e-9, atol=1e-12)
+        assert bool(r.full) and int(s.count) == 9
