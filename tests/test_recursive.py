@@ -228,7 +228,7 @@ def test_self_identify_closed_form_equals_the_batch_path():
     J_true = jnp.array([[1.0, 0.5, 0.0], [-0.3, 2.0, 0.4], [0.2, -0.1, 1.5], [0.3, 0.0, -0.7]]).T  # (m, n)
     obs = sj.stateless(lambda key, dt: J_true @ dt + 1e-4 * jax.random.normal(key, (3,)))
     res = sj.self_identify(obs, jax.random.key(0), 0.05, 1e-9, n_act=4, task_dim=3, iters=40,
-                           stop_at_convergence=False)
+                           stop_at_convergence=False, recursive=True)
     d, V = np.asarray(res.dtheta), np.asarray(res.V)
     assert rel(res.estimates, numpy_estimates(d, V)) < 1e-9
     sb, Jb = batch_loop(d, V, eps=1e-9)
@@ -259,3 +259,19 @@ class TestVariants(chex.TestCase):
             se, re_ = R.exact_step(se, re_, d[t], V[t], 1e-3)
             np.testing.assert_allclose(s.estimate, se.estimate, rtol=1e-9, atol=1e-12)
         assert bool(r.full) and int(s.count) == 9
+
+
+def test_self_identify_defaults_to_the_rank_one_form_for_long_runs_only():
+    from selfid_jax.identify import algorithm as A
+
+    obs = sj.stateless(lambda key, dt: jnp.array([[1.0, 0.2, 0.0], [0.0, 1.5, -0.3], [0.4, 0.0, 0.8]]) @ dt)
+    run = lambda iters, rec: jax.jit(lambda k: sj.self_identify(obs, k, 0.05, 1e-6, n_act=3, task_dim=3, iters=iters,
+                                                                 recursive=rec))
+    n_scans = lambda iters, rec: str(jax.make_jaxpr(lambda k: sj.self_identify(
+        obs, k, 0.05, 1e-6, n_act=3, task_dim=3, iters=iters, recursive=rec))(jax.random.key(0))).count("scan[")
+    assert n_scans(A.RECURSIVE_MIN_ITERS - 1, None) == n_scans(12, False) == 1  # the experiments' sizes: batch form
+    assert n_scans(A.RECURSIVE_MIN_ITERS, None) >= 3  # warm-up, rank-one steps, re-run (in the rule and its jvp)
+    key = jax.random.key(3)
+    a, b = run(A.RECURSIVE_MIN_ITERS, None)(key), run(A.RECURSIVE_MIN_ITERS, False)(key)
+    assert rel(a.estimates, np.asarray(b.estimates)) < 1e-9
+    assert int(a.converged_at) == int(b.converged_at)

@@ -65,6 +65,7 @@ def self_identify(
     refine_options: dict | None = None,
     eps_rel=0.0,
     forget=1.0,
+    recursive: bool | None = None,
 ) -> SelfIDResult:
     """Run Algorithm 1 for ``iters`` self-ID iterations under ``lax.scan``.
 
@@ -88,6 +89,14 @@ def self_identify(
       stop_at_convergence: static; if True the estimator stops updating once
         converged (Algorithm 1 returns there), later iterations repeat that estimate.
       refine_options: static keyword options for :func:`~selfid_jax.identify.refine.refine`.
+      recursive: static; keep the plain closed form (``method="closed_form"``,
+        no ridge) by rank-one steps once ``S_vv`` has full rank
+        (:mod:`~selfid_jax.identify.recursive`: the batch form for the first
+        ``task_dim + 5`` iterations, rank-one steps after, the batch form again
+        for the rest if any step was not exact; equal to the batch path up to
+        round-off). Default: when ``iters >= RECURSIVE_MIN_ITERS`` (64), where
+        it pays for compiling the step three times (about 3x the compile time
+        of the self-ID part); ignored for other refinements.
 
     ``m_a``, ``eps``, ``eps_rel``, ``v_tol`` and ``forget`` may be traced, so one compilation
     serves a sweep over them; vmap over ``key``, ``m_a``, ``eps`` or ``env``.
@@ -113,7 +122,8 @@ def self_identify(
     m_a = jnp.broadcast_to(jnp.asarray(m_a, dtype), (n_act,))
     state0 = estimator.init(n_act, task_dim, capacity=capacity, v_tol=v_tol, forget=forget, dtype=dtype)
 
-    recursive = _recursive_closed_form(method, options)
+    recursive = _recursive_closed_form(method, options) and (iters >= RECURSIVE_MIN_ITERS if recursive is None
+                                                             else bool(recursive))
     rec0 = rec_mod.init(task_dim, dtype)
 
     def make_body(fast: bool):
@@ -163,6 +173,11 @@ def self_identify(
     )
 
 
+RECURSIVE_MIN_ITERS = 64
+"""Default of :func:`self_identify`'s ``recursive``: the rank-one closed form from this many iterations on (the
+experiments' 12-30 iterations keep the batch form, and its compile time)."""
+
+
 def _recursive_closed_form(method: str, options: dict) -> bool:
     """Whether the refinement is the plain closed form (no ridge), which :mod:`~selfid_jax.identify.recursive` keeps
     by rank-one steps."""
@@ -190,6 +205,7 @@ def run(
     refine_options: dict | None = None,
     eps_rel=0.0,
     forget=1.0,
+    recursive: bool | None = None,
 ) -> SelfIDResult:
     """Algorithm 1 on a simulated :class:`~selfid_jax.systems.System` starting at ``q0 (n,)``.
 
@@ -201,7 +217,7 @@ def run(
     the estimator. ``result.env`` is the configuration where self-ID ended.
     ``m_a``, ``eps``, ``eps_rel``, ``pose_noise``, ``rot_noise``, ``forget`` and
     ``q0`` may be traced: vmap over them and over ``key``. Concrete noise levels must be
-    finite and >= 0.
+    finite and >= 0. ``recursive``: as :func:`self_identify`.
     """
     from selfid_jax.math.checks import check_array
 
@@ -233,4 +249,5 @@ def run(
         refine_options=refine_options,
         eps_rel=eps_rel,
         forget=forget,
+        recursive=recursive,
     )
