@@ -29,7 +29,8 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-BENCHMARKS = ("estimator", "estimator_2dev", "rollouts", "refine", "valid_region", "ablation", "articulated")
+BENCHMARKS = ("estimator", "estimator_2dev", "rls_floor", "rollouts", "refine", "valid_region", "ablation",
+              "articulated")
 
 
 def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 900) -> tuple[dict, float]:
@@ -54,6 +55,8 @@ def collect(skip=(), gpu_scale=False) -> dict:
                                          "--shard"],
                            {"XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") +
                                           " --xla_force_host_platform_device_count=2").strip()}),
+        "rls_floor": ("rls_floor", ["--batch", str(batch_est), "--steps", "50", "--reps", "3", "--rounds", "2",
+                                    "--long", "10000", "--long-batch", "20", "--calls", "1000"], None),
         "rollouts": ("rollouts", ["--batches", str(batch_roll), "--loops", "20"], None),
         "refine": ("refine", ["--batch", "2000", "--slsqp", "20"], None),
         "valid_region": ("valid_region", ["--full-chunks", "1"], None),
@@ -94,6 +97,28 @@ def table(res: dict) -> list[dict]:
             _row(rows, "  ... against the 64-sample buffer (before)", ours["steps_per_s"] / before["steps_per_s"],
                  "x before", "", None,
                  f"before {before['steps_per_s']:.1f} steps/s = {before['ratio_to_rls']:.3f}x RLS")
+    if "rls_floor" in res:
+        r = res["rls_floor"]["result"]
+        new, old = r["rows"]["new step, block"], r["rows"]["old full step"]
+        plain, brls = r["rows"]["plain RLS"], r["rows"]["baselines.rls"]
+        _row(rows, f"self-ID step at the RLS floor ({r['batch']} estimators, blocked)", new["steps_per_s"], "steps/s",
+             ">= 2000", new["steps_per_s"] >= 2000, f"old full step {old['steps_per_s']:.0f} steps/s")
+        _row(rows, "  ... against a plain five-line RLS in the same run", new["x_plain_rls"], "x plain RLS", ">= 0.5",
+             new["x_plain_rls"] >= 0.5, f"plain RLS {plain['steps_per_s']:.0f} steps/s")
+        _row(rows, "  ... against baselines.rls in the same run", new["x_baselines_rls"], "x baselines.rls", ">= 1",
+             new["x_baselines_rls"] >= 1.0, f"baselines.rls {brls['steps_per_s']:.0f} steps/s")
+        steady = r["rows"]["new step, block, steady"]
+        _row(rows, "  ... past the start (warm-up done), against plain RLS", steady["x_plain_rls"], "x plain RLS",
+             ">= 0.5", steady["x_plain_rls"] >= 0.5,
+             f"{steady['steps_per_s']:.0f} steps/s = {steady['x_baselines_rls']:.2f}x baselines.rls")
+        err = max(r["long"]["rel_err"].values())
+        _row(rows, f"  ... float32 over {r['long']['samples']} samples vs float64 least squares", err, "relative",
+             "<= 1e-4", err <= 1e-4)
+        lat = r["latency"]["n=6,m=3"]
+        _row(rows, "  ... batch-1 latency p99 (n=6, m=3, one sample per call)", lat["new step"]["p99_ms"], "ms",
+             "<= 0.1", lat["new step"]["p99_ms"] <= 0.1,
+             f"p50 {lat['new step']['p50_ms']:.3f} ms; packed state p99 {lat['new step, packed state']['p99_ms']:.3f}"
+             f" ms; blocked p99 {[v for k, v in lat.items() if 'per call' in k][0]['p99_ms']:.3f} ms per sample")
     if "rollouts" in res:
         r = res["rollouts"]["result"]
         jax_rows = {k: v for k, v in r.items() if k.startswith("JAX")}

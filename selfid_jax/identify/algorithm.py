@@ -17,6 +17,7 @@ from jax.typing import ArrayLike
 import numpy as np
 
 from selfid_jax.identify import estimator
+from selfid_jax.identify import recursive as rec_mod
 from selfid_jax.math.geometry import noisy_pose  # noqa: F401 - re-exported: algorithm.noisy_pose
 from selfid_jax.math.checks import check_positive_int, check_scalar, float_dtype
 from selfid_jax.identify.refine import needs_samples, refine
@@ -64,6 +65,7 @@ def self_identify(
     refine_options: dict | None = None,
     eps_rel=0.0,
     forget=1.0,
+    recursive: bool | None = None,
 ) -> SelfIDResult:
     """Run Algorithm 1 for ``iters`` self-ID iterations under ``lax.scan``.
 
@@ -87,6 +89,14 @@ def self_identify(
       stop_at_convergence: static; if True the estimator stops updating once
         converged (Algorithm 1 returns there), later iterations repeat that estimate.
       refine_options: static keyword options for :func:`~selfid_jax.identify.refine.refine`.
+      recursive: static; keep the plain closed form (``method="closed_form"``,
+        no ridge) by rank-one steps once ``S_vv`` has full rank
+        (:mod:`~selfid_jax.identify.recursive`: the batch form for the first
+        ``task_dim + 5`` iterations, rank-one steps after, the batch form again
+        for the rest if any step was not exact; equal to the batch path up to
+        round-off). Default: when ``iters >= RECURSIVE_MIN_ITERS`` (64), where
+        it pays for compiling the step three times (about 3x the compile time
+        of the self-ID part); ignored for other refinements.
 
     ``m_a``, ``eps``, ``eps_rel``, ``v_tol`` and ``forget`` may be traced, so one compilation
     serves a sweep over them; vmap over ``key``, ``m_a``, ``eps`` or ``env``.
@@ -112,25 +122,45 @@ def self_identify(
     m_a = jnp.broadcast_to(jnp.asarray(m_a, dtype), (n_act,))
     state0 = estimator.init(n_act, task_dim, capacity=capacity, v_tol=v_tol, forget=forget, dtype=dtype)
 
-    def body(carry, k):
-        state, env, done = carry
-        k_act, k_obs = jax.random.split(k)
-        dtheta = jax.random.uniform(k_act, (n_act,), dtype, -1.0, 1.0) * m_a
-        env_new, V = observe(env, k_obs, dtheta)
-        V = jnp.asarray(V, dtype)
-        new = estimator.update(state, dtheta, V)
-        J = refine(new, estimator.initial_guess(new), method=method, **options)
-        new = estimator.record(new, J, eps, eps_rel)
-        delta = new.last_deltas[1]
-        if stop_at_convergence:
-            new = jax.tree.map(lambda a, b: jnp.where(done, a, b), state, new)
-            env_new = jax.tree.map(lambda a, b: jnp.where(done, a, b), env, env_new)
-            delta = jnp.where(done, 0.0, delta)
-            done = done | (new.converged_at > 0)
-        return (new, env_new, done), (new.estimate, delta, dtheta, V)
+    recursive = _recursive_closed_form(method, options) and (iters >= RECURSIVE_MIN_ITERS if recursive is None
+                                                             else bool(recursive))
+    rec0 = rec_mod.init(task_dim, dtype)
+
+    def make_body(fast: bool):
+        def body(carry, k):
+            state, rec, env, done = carry
+            k_act, k_obs = jax.random.split(k)
+            dtheta = jax.random.uniform(k_act, (n_act,), dtype, -1.0, 1.0) * m_a
+            env_new, V = observe(env, k_obs, dtheta)
+            V = jnp.asarray(V, dtype)
+            if not recursive:
+                new = estimator.update(state, dtheta, V)
+                J = refine(new, estimator.initial_guess(new), method=method, **options)
+                new, rec_new = estimator.record(new, J, eps, eps_rel), rec
+            elif fast:
+                new, rec_new = rec_mod.fast_step(state, rec, dtheta, V, eps, eps_rel, rcond=options.get("rcond"))
+            else:
+                new, rec_new = rec_mod.exact_step(state, rec, dtheta, V, eps, eps_rel, rcond=options.get("rcond"))
+            delta = new.last_deltas[1]
+            if stop_at_convergence:
+                new, rec_new = jax.tree.map(lambda a, b: jnp.where(done, a, b), (state, rec), (new, rec_new))
+                env_new = jax.tree.map(lambda a, b: jnp.where(done, a, b), env, env_new)
+                delta = jnp.where(done, 0.0, delta)
+                done = done | (new.converged_at > 0)
+            return (new, rec_new, env_new, done), (new.estimate, delta, dtheta, V)
+
+        return body
 
     keys = jax.random.split(key, iters)
-    (state, env, _), (estimates, deltas, dthetas, Vs) = jax.lax.scan(body, (state0, env, jnp.array(False)), keys)
+    carry0 = (state0, rec0, env, jnp.array(False))
+    if recursive:
+        # Eq. 14 by the rank-one step once S_vv has full rank (identify.recursive): the first
+        # task_dim + 5 iterations, and the rest again if any rank-one step was not exact, run the batch closed form.
+        carry, ys = rec_mod.fallback_scan(make_body(True), make_body(False), lambda c: c[1].full, carry0, keys,
+                                          warmup=task_dim + 5)
+    else:
+        carry, ys = jax.lax.scan(make_body(False), carry0, keys)
+    (state, _, env, _), (estimates, deltas, dthetas, Vs) = carry, ys
     return SelfIDResult(
         state=state,
         estimate=state.estimate,
@@ -141,6 +171,21 @@ def self_identify(
         V=Vs,
         env=env,
     )
+
+
+RECURSIVE_MIN_ITERS = 64
+"""Default of :func:`self_identify`'s ``recursive``: the rank-one closed form from this many iterations on (the
+experiments' 12-30 iterations keep the batch form, and its compile time)."""
+
+
+def _recursive_closed_form(method: str, options: dict) -> bool:
+    """Whether the refinement is the plain closed form (no ridge), which :mod:`~selfid_jax.identify.recursive` keeps
+    by rank-one steps."""
+    if method != "closed_form" or set(options) - {"rcond", "ridge", "loss", "sign_project"}:
+        return False
+    ridge = options.get("ridge", 0.0)
+    plain = isinstance(ridge, (int, float)) and ridge == 0
+    return plain and options.get("loss", "l2") == "l2" and not options.get("sign_project", False)
 
 
 def run(
@@ -160,6 +205,7 @@ def run(
     refine_options: dict | None = None,
     eps_rel=0.0,
     forget=1.0,
+    recursive: bool | None = None,
 ) -> SelfIDResult:
     """Algorithm 1 on a simulated :class:`~selfid_jax.systems.System` starting at ``q0 (n,)``.
 
@@ -171,7 +217,7 @@ def run(
     the estimator. ``result.env`` is the configuration where self-ID ended.
     ``m_a``, ``eps``, ``eps_rel``, ``pose_noise``, ``rot_noise``, ``forget`` and
     ``q0`` may be traced: vmap over them and over ``key``. Concrete noise levels must be
-    finite and >= 0.
+    finite and >= 0. ``recursive``: as :func:`self_identify`.
     """
     from selfid_jax.math.checks import check_array
 
@@ -203,4 +249,5 @@ def run(
         refine_options=refine_options,
         eps_rel=eps_rel,
         forget=forget,
+        recursive=recursive,
     )
