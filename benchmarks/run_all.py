@@ -30,7 +30,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BENCHMARKS = ("estimator", "estimator_2dev", "rls_floor", "rollouts", "refine", "valid_region", "ablation",
-              "articulated")
+              "articulated", "scaling", "compile_time")
 
 
 def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 900) -> tuple[dict, float]:
@@ -58,6 +58,9 @@ def collect(skip=(), gpu_scale=False) -> dict:
         "rls_floor": ("rls_floor", ["--batch", str(batch_est), "--steps", "50", "--reps", "3", "--rounds", "2",
                                     "--long", "10000", "--long-batch", "20", "--calls", "1000"], None),
         "rollouts": ("rollouts", ["--batches", str(batch_roll), "--loops", "20"], None),
+        "scaling": ("scaling", [] if gpu_scale else ["--quick"], None),
+        "compile_time": ("compile_time", ["--configs", "valid_region_two_link", "valid_region_ur5e",
+                                          "tracking_ur5e_cube", "tracking_peg_in_hole", "design_all"], None),
         "refine": ("refine", ["--batch", "2000", "--slsqp", "20"], None),
         "valid_region": ("valid_region", ["--full-chunks", "1"], None),
         "ablation": ("ablation", ["--full-chunks", "1"], None),
@@ -70,7 +73,7 @@ def collect(skip=(), gpu_scale=False) -> dict:
         if key in skip:
             continue
         print(f"== {key}", flush=True)
-        data, wall = _script(script, args, env)
+        data, wall = _script(script, args, env, timeout=3600 if key == "compile_time" else 900)
         res[key] = {"result": data, "script_wall_s": wall}
     return res
 
@@ -119,6 +122,23 @@ def table(res: dict) -> list[dict]:
              "<= 0.1", lat["new step"]["p99_ms"] <= 0.1,
              f"p50 {lat['new step']['p50_ms']:.3f} ms; packed state p99 {lat['new step, packed state']['p99_ms']:.3f}"
              f" ms; blocked p99 {[v for k, v in lat.items() if 'per call' in k][0]['p99_ms']:.3f} ms per sample")
+    if "scaling" in res:
+        r = res["scaling"]["result"]
+        est = r["estimator"]
+        ratio = max(e["peak_bytes_per_less_data"] / e["state_bytes"] for e in est if e["batch"] >= 100
+                    and e["peak_bytes_per_less_data"] is not None)
+        _row(rows, "self-ID step peak memory per estimator (batch >= 100), over the state's size", ratio,
+             "x state", "<= 2", ratio <= 2, f"state {est[0]['state_bytes']} B; stops paying after batch "
+             f"{r['stops_paying']['estimator']} (estimator), {r['stops_paying']['rollout']} (rollout)")
+    if "compile_time" in res:
+        for c in res["compile_time"]["result"]["rows"]:
+            if "error" in c:
+                _row(rows, f"compile: {c['config']}", None, "", "", False, c["error"])
+                continue
+            _row(rows, f"compile: {c['config']}, longest XLA program", c["xla_max_s"], "s", "<= 30",
+                 c["xla_max_s"] <= 30, f"cold {c['cold_wall_s']:.1f} s, warm {c['warm_wall_s']:.1f} s whole process; "
+                 f"trace {c['trace_s']:.1f}, lower {c['lower_s']:.1f}, XLA {c['xla_s']:.1f} s; warm compiles "
+                 f"{c['warm_programs']}")
     if "rollouts" in res:
         r = res["rollouts"]["result"]
         jax_rows = {k: v for k, v in r.items() if k.startswith("JAX")}
