@@ -294,8 +294,8 @@ def build_dynamic_arm(spec, gravcomp: float | None = None):
     if isinstance(spec, MjcfSystem):
         if spec.site is None or spec.body is not None or spec.actuators is not None or spec.joints_fixed:
             raise ValueError(f"realism.plant 'dynamic': system {system_name(spec)!r} sets body/actuators/"
-                             f"joints_fixed or no site, which the dynamic arm does not support; it steps the file's own "
-                             f"position servos with the POM at site {spec.site!r}")
+                             f"joints_fixed or no site, which the dynamic arm does not support; it steps the "
+                             f"file's own position servos with the POM at site {spec.site!r}")
         return dynamic_arm(spec.mjcf, spec.site, gravcomp=gravcomp, name=f"dynamic_{system_name(spec)}")
     raise ValueError(f"realism.plant 'dynamic' needs an arm whose actuators are position servos (the built-in "
                      f"'ur5e', 'ur5e_6d' or an mjcf arm), got system {system_name(spec)!r}; use plant 'servo' for it")
