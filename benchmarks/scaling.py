@@ -30,7 +30,6 @@ more.
 from __future__ import annotations
 
 import argparse
-import importlib
 import statistics
 import time
 
@@ -39,13 +38,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from emit import emit
+from estimator import ours_step  # the full self-ID step the estimator benchmark times
 
 from selfid_jax import control
 from selfid_jax.control import paths
 from selfid_jax.identify import estimator as E
 from selfid_jax.systems.ur5e import ur5e
 
-RF = importlib.import_module("selfid_jax.identify.refine")  # the module (the package exports a function of its name)
 F32 = jnp.float32
 PAYS = 1.2  # a 10x larger batch must raise the throughput by at least this factor to pay
 
@@ -74,12 +73,6 @@ def _peak_bytes(jitted, *args) -> int | None:
     return int(mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes)
 
 
-def _step(state, dtheta, V):
-    state = E.update(state, dtheta, V)
-    J = RF.statistics_closed_form(state.S_vv, state.S_tv, E.initial_guess(state))
-    return E.record(state, J, 1e-3)
-
-
 def estimator_row(batch: int, n: int, m: int, steps: int, reps: int) -> dict:
     """One estimator shape: ``steps`` full self-ID steps for ``batch`` vmapped estimators."""
     rng = np.random.default_rng(batch + 100 * n + m)
@@ -92,7 +85,7 @@ def estimator_row(batch: int, n: int, m: int, steps: int, reps: int) -> dict:
 
     def run(state, d, V):
         def body(s, x):
-            return jax.vmap(_step)(s, *x), None
+            return jax.vmap(ours_step)(s, *x), None
 
         return jax.lax.scan(body, state, (d, V))[0]
 
