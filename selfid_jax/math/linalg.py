@@ -1,8 +1,9 @@
 """Small dense linear algebra: pseudo-inverses, adjugate inverses and the unrolled PSD solves behind Eq. 14.
 
 The Jacobian pseudo-inverse, the adjugate inverse of k x k matrices (k <= 3),
-and the unrolled rank-revealing pseudo-inverse and solve of small PSD matrices
-behind Eq. 14's closed form.
+the unrolled rank-revealing pseudo-inverse and solve of small PSD matrices
+behind Eq. 14's closed form, and the implicit-function-theorem derivative of
+a root found by any solver (the closed-chain hands' Newton solves).
 
 Pure ``jax.numpy``, one matrix per call (``vmap`` for batches). Units are the
 caller's: ``pseudo_inverse`` of a task Jacobian (task units per actuator unit)
@@ -143,3 +144,56 @@ def _spd_right_solve(B, A):
         for j in range(k + 1, m):
             y[k] = y[k] - L[j][k] * y[j]
     return jnp.stack(y, axis=-1)
+
+
+def implicit_root(residual, y, args, F_y=None):
+    """``y``, a root of ``residual(y, args) = 0`` found by any solver, with derivatives by the implicit function theorem.
+
+    The value is ``y`` itself, bit for bit. Its derivative with respect to
+    ``args`` (any pytree) is ``dy = -F_y^-1 (d residual / d args) dargs``,
+    ``F_y = d residual / dy`` at ``(y, args)`` (``(k, k)``; computed by
+    ``jacfwd`` if not given), solved by LU (``jnp.linalg.solve``); ``y``
+    and ``F_y`` themselves are treated as constants. Forward and reverse mode,
+    jit and vmap. Unlike a solver's own implicit adjoint (optimistix's goes
+    through lineax, which checks the solve with a host callback), the
+    program holds no host callback, so XLA's persistent compilation cache
+    can keep it. A singular or non-finite ``F_y`` gives non-finite
+    derivatives, never an error.
+
+    Args:
+      residual: ``(y (k,), args) -> (k,)``, differentiable in ``args``.
+      y: ``(k,)`` the root.
+      args: the residual's other arguments.
+      F_y: optional ``(k, k)`` Jacobian of ``residual`` in ``y`` at the root.
+    """
+    y = jax.lax.stop_gradient(y)
+    if F_y is None:
+        F_y = jax.jacfwd(residual)(y, jax.lax.stop_gradient(args))
+    return _implicit_root(residual, y, jax.lax.stop_gradient(F_y), args)
+
+
+@jax.custom_jvp
+def _implicit_value(y, F_y, args, residual_box):
+    return y
+
+
+def _implicit_root(residual, y, F_y, args):
+    return _implicit_value(y, F_y, args, _Static(residual))
+
+
+class _Static:
+    """A callable passed through ``custom_jvp`` as a static, hashable-by-identity leaf-free pytree node."""
+
+    def __init__(self, fn):
+        self.fn = fn
+
+
+jax.tree_util.register_pytree_node(_Static, lambda s: ((), s.fn), lambda fn, _: _Static(fn))
+
+
+@_implicit_value.defjvp
+def _implicit_value_jvp(primals, tangents):
+    y, F_y, args, box = primals
+    dargs = tangents[2]
+    _, rhs = jax.jvp(lambda a: box.fn(y, a), (args,), (dargs,))
+    return y, -jnp.linalg.solve(F_y, rhs)

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from selfid_jax.math import geometry
+from selfid_jax.math.linalg import implicit_root
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
 from selfid_jax.systems.validation import Limits
@@ -195,16 +196,18 @@ class ModelOKinematicPose:
 
         P = params
         q = jnp.asarray(q, P.q_home.dtype)
-        y0 = P.y_home + P.dy_dq @ (q - P.q_home)
-        sol = optx.root_find(_residual, optx.Newton(rtol=self.rtol, atol=self.atol), y0, args=(P, q),
+        # The solve sees no tangents: derivatives come from implicit_root (no host callback in the program).
+        Ps, qs = jax.lax.stop_gradient((P, q))
+        y0 = Ps.y_home + Ps.dy_dq @ (qs - Ps.q_home)
+        sol = optx.root_find(_residual, optx.Newton(rtol=self.rtol, atol=self.atol), y0, args=(Ps, qs),
                              max_steps=self.max_steps, throw=False)
-        ys = jax.lax.stop_gradient(sol.value)
-        F_y = jax.jacfwd(_residual)(ys, (P, jax.lax.stop_gradient(q)))
+        ys = sol.value
+        F_y = jax.jacfwd(_residual)(ys, (Ps, qs))
         ok = ((sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(ys))
-              & jnp.all((q >= P.safe_low) & (q <= P.safe_high)) & (tilt_angle(_pose(P, ys)[1]) <= P.max_tilt))
+              & jnp.all((qs >= Ps.safe_low) & (qs <= Ps.safe_high)) & (tilt_angle(_pose(Ps, ys)[1]) <= Ps.max_tilt))
         if self.check_stability:
             ok = ok & _stable(ys, F_y)
-        return sol.value, F_y, ok
+        return implicit_root(_residual, ys, (P, q), F_y), F_y, ok
 
     def __call__(self, params, q):
         y, _, ok = self.solve(params, q)

@@ -7,8 +7,9 @@ Three backends evaluate the closed chain at leg lengths ``q (6,)`` (m):
 
 * ``"kinematic"`` (default): Newton's method (``optimistix.root_find``,
   float64) on ``|p + R b_i - a_i| - q_i = 0`` for the POM pose, started at
-  home; derivatives by the implicit function theorem (optimistix's implicit
-  adjoint: ``jax.jacfwd`` and ``jax.jacrev`` both work).
+  home; derivatives by the implicit function theorem
+  (:func:`~selfid_jax.math.linalg.implicit_root`: ``jax.jacfwd`` and
+  ``jax.jacrev`` both work, and the program holds no host callback).
 * ``"mjx"``: the MJCF stepped in MJX from home under ``ctrl = q`` until settled
   (:mod:`~selfid_jax.systems.hands.settle`); jit/vmap, forward-mode derivatives.
 * ``"native"``: the same with ``mujoco.rollout`` on CPU threads through
@@ -33,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from selfid_jax.math import geometry
+from selfid_jax.math.linalg import implicit_root
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
 from selfid_jax.systems.validation import Limits
@@ -169,9 +171,11 @@ class StewartKinematicPose:
         q = jnp.asarray(q)
         dt = jnp.result_type(q, params.a)
         x0 = jnp.zeros(6, dt)
-        sol = optx.root_find(_residual, optx.Newton(rtol=self.rtol, atol=self.atol), x0, args=(params, q.astype(dt)),
-                             max_steps=self.max_steps, throw=False)
-        x = sol.value
+        args = (params, q.astype(dt))
+        # The solve sees no tangents: derivatives come from implicit_root (no host callback in the program).
+        sol = optx.root_find(_residual, optx.Newton(rtol=self.rtol, atol=self.atol), x0,
+                             args=jax.lax.stop_gradient(args), max_steps=self.max_steps, throw=False)
+        x = implicit_root(_residual, sol.value, args)
         p, R = _pose(params, x)
         det = jnp.linalg.det(stewart_inverse_jacobian(params, p, R))
         ok = (
