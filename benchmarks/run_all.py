@@ -128,6 +128,10 @@ def table(res: dict) -> list[dict]:
              "<= 0.1", lat["new step"]["p99_ms"] <= 0.1,
              f"p50 {lat['new step']['p50_ms']:.3f} ms; packed state p99 {lat['new step, packed state']['p99_ms']:.3f}"
              f" ms; blocked p99 {[v for k, v in lat.items() if 'per call' in k][0]['p99_ms']:.3f} ms per sample")
+        sync = lat.get("new step, packed, donated, sync")
+        if sync:
+            _row(rows, "  ... the same, packed state, donated, synchronous CPU dispatch", sync["p99_ms"], "ms",
+                 "<= 0.1", sync["p99_ms"] <= 0.1, f"p50 {sync['p50_ms']:.3f} ms (jax_cpu_enable_async_dispatch=False)")
     if "scaling" in res:
         r = res["scaling"]["result"]
         est = r["estimator"]
