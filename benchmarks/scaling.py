@@ -15,9 +15,13 @@ Rows:
 Each row prints the run time per call (median of ``--reps`` after a warm-up;
 compile time separate), the throughput (estimator-steps or rollouts per
 second), the peak memory of the compiled program (XLA's own
-``memory_analysis``: arguments + outputs + temporaries, before aliasing) per
+``memory_analysis``: arguments + outputs + temporaries, less the outputs
+aliased to donated arguments; the estimator's program with its state
+donated, as a fleet runs it, so that the new state overwrites the old) per
 batch element, and for the estimator the state's own size per estimator (the
-bytes of its pytree's leaves), the goal being a peak within 2x of it. "Stops
+bytes of its pytree's leaves), the goal being a peak within 2x of it; and the
+same ratio for the rank-one step of :mod:`selfid_jax.identify.recursive`
+(per sample and blocked) at batch 10k. "Stops
 paying": the smallest batch whose throughput no larger batch beats by 20 % or
 more.
 
@@ -63,14 +67,16 @@ def _median_time(fn, *args, reps: int) -> tuple[float, float]:
 
 
 def _peak_bytes(jitted, *args) -> int | None:
-    """Arguments + outputs + temporaries of the compiled program [bytes] (None where XLA reports nothing)."""
+    """Arguments + outputs + temporaries, less the outputs aliased to donated arguments, of the compiled program
+    [bytes] (None where XLA reports nothing)."""
     try:
         mem = jitted.lower(*args).compile().memory_analysis()
     except Exception:  # noqa: BLE001  (a backend without the analysis)
         return None
     if mem is None:
         return None
-    return int(mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes)
+    return int(mem.argument_size_in_bytes + mem.output_size_in_bytes + mem.temp_size_in_bytes
+               - mem.alias_size_in_bytes)
 
 
 def estimator_row(batch: int, n: int, m: int, steps: int, reps: int) -> dict:
@@ -91,12 +97,41 @@ def estimator_row(batch: int, n: int, m: int, steps: int, reps: int) -> dict:
 
     jitted = jax.jit(run)
     first, t = _median_time(jitted, state0, d, V, reps=reps)
-    peak = _peak_bytes(jitted, state0, d, V)
+    # the memory of the program a fleet runs: its state donated, so that XLA writes the new state over the old
+    # (timed without donation, which would consume state0 at the first call; the step is the same)
+    peak = _peak_bytes(jax.jit(run, donate_argnums=0), state0, d, V)
     data_bytes = 4 * steps * (n + m)  # per estimator: its samples, an argument of the benchmark, not of the step
     return dict(what="estimator", batch=batch, n=n, m=m, steps=steps, compile_s=first - t, run_s=t,
                 per_s=batch * steps / t, state_bytes=state_bytes,
                 peak_bytes_per=None if peak is None else peak / batch,
                 peak_bytes_per_less_data=None if peak is None else peak / batch - data_bytes)
+
+
+def recursive_memory(batch: int, steps: int) -> dict:
+    """Peak per estimator (less its samples) over the state's size, donated, of ``steps`` samples of the rank-one
+    self-ID step (:mod:`selfid_jax.identify.recursive`): ``step`` per sample and the blocked ``run``."""
+    from selfid_jax.identify import recursive as R
+
+    n, m = 6, 3
+    grow = lambda x: jnp.broadcast_to(x, (batch,) + jnp.shape(x))  # noqa: E731
+    s0 = jax.tree.map(grow, E.init(n, m, capacity=0, dtype=F32))
+    r0 = jax.tree.map(grow, R.init(m, F32))
+    size = sum(np.dtype(x.dtype).itemsize * int(np.prod(np.shape(x))) for x in jax.tree.leaves((s0, r0))) / batch
+    d, V = jnp.zeros((steps, batch, n), F32), jnp.zeros((steps, batch, m), F32)
+
+    def per_sample(s, r, d, V):
+        return jax.lax.scan(lambda c, x: (jax.vmap(lambda s, r, a, b: R.step(s, r, a, b, 1e-3))(*c, *x), None),
+                            (s, r), (d, V))[0]
+
+    def blocked(s, r, d, V):
+        return jax.vmap(lambda s, r, a, b: R.run(s, r, a, b, 1e-3, warmup=0, history=False)[:2],
+                        in_axes=(0, 0, 1, 1))(s, r, d, V)
+
+    out = {}
+    for name, fn in (("recursive.step", per_sample), ("recursive.run", blocked)):
+        peak = _peak_bytes(jax.jit(fn, donate_argnums=(0, 1)), s0, r0, d, V)
+        out[name] = None if peak is None else (peak / batch - 4 * steps * (n + m)) / size
+    return dict(batch=batch, state_bytes=size, peak_over_state=out)
 
 
 def rollout_row(batch: int, reps: int) -> dict:
@@ -195,13 +230,17 @@ def main():
         ratio = _ratio(r)
         lines.append(f"{r['n']:>3} {r['m']:>3} {r['per_s']:>12,.0f} {_fmt_bytes(r['state_bytes']):>10} "
                      f"{_fmt_bytes(r['peak_bytes_per_less_data']):>10} {ratio:>10}")
-    lines.append("peak/est: the compiled program's peak per estimator, less its own samples (an argument of the "
-                 "benchmark); goal <= 2x the state")
+    rec = recursive_memory(10_000, args.steps)
+    lines.append(f"rank-one step (state + Recursion {rec['state_bytes']:.0f} B), peak/state at batch 10,000: "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in rec["peak_over_state"].items() if v is not None))
+    lines.append("peak/est: the compiled program's peak per estimator with its state donated (arguments + outputs + "
+                 "temporaries, less the outputs aliased to the donated state), less its own samples (an argument "
+                 "of the benchmark); goal <= 2x the state")
     if args.figure:
         figure(est, roll, args.figure)
         lines.append(f"figure: {args.figure}")
-    emit(dict(estimator=est, rollout=roll, shapes=shapes, stops_paying=dict(estimator=stops_paying(est),
-                                                                            rollout=stops_paying(roll))),
+    paying = dict(estimator=stops_paying(est), rollout=stops_paying(roll))
+    emit(dict(estimator=est, rollout=roll, shapes=shapes, recursive_memory=rec, stops_paying=paying),
          "\n".join(lines), args.json)
 
 

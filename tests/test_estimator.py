@@ -210,6 +210,24 @@ class JitVmapTest(chex.TestCase):
         chex.assert_trees_all_close(state, ref, rtol=1e-12)
         chex.assert_trees_all_close(self.variant(sj.initial_guess)(state), sj.initial_guess(ref), rtol=1e-12)
 
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_record_with_a_given_delta_equals_record(self):
+        """``delta=`` (the caller's ``||J - estimate||_F``, e.g. a rank-one update's ``||e|| ||k||``) records what
+        ``record`` computes itself, convergence included; a wrong shape names the argument."""
+        rng = np.random.default_rng(7)
+        state = E.update(E.init(3, 2, capacity=0), rng.normal(size=3), rng.normal(size=2))
+        rec = self.variant(lambda s, J, d: E.record(s, J, 0.5, delta=d))
+        for _ in range(3):
+            e, k = 0.1 * rng.normal(size=3), 0.1 * rng.normal(size=2)
+            J = np.asarray(state.estimate) + np.outer(e, k)
+            got = rec(state, J, np.linalg.norm(e) * np.linalg.norm(k))
+            ref = E.record(state, J, 0.5)
+            chex.assert_trees_all_close(got, ref, rtol=1e-12, atol=1e-15)
+            state = E.update(got, rng.normal(size=3), rng.normal(size=2))
+        assert int(got.converged_at) == int(ref.converged_at) > 0
+        with pytest.raises(ValueError, match="delta"):
+            E.record(state, J, 0.5, delta=np.ones(2))
+
     def test_vmap_equals_loop(self):
         rng = np.random.default_rng(4)
         B, K, n, m = 3, 5, 3, 2

@@ -355,7 +355,8 @@ def _both_within(deltas: jax.Array, norms: jax.Array, fresh: jax.Array, eps, eps
     return jnp.all(fresh & (deltas <= eps + eps_rel * norms), axis=-1)
 
 
-def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLike = 0.0) -> EstimatorState:
+def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLike = 0.0, *,
+           delta: ArrayLike | None = None) -> EstimatorState:
     """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
 
     Stores ``delta_t = ||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1
@@ -368,12 +369,19 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
     (inverse-Jacobian units); ``eps_rel`` relative to the estimate's size, for
     systems whose inverse Jacobians are far from unit norm (a fingertip of
     40 rad/m, a large arm of 0.5 rad/m): one threshold then serves all.
+    ``delta`` (optional, ``()``): ``||J - state.estimate||_F`` where the
+    caller has it already (for a rank-one update ``e k^T`` it is
+    ``||e|| ||k||``), which saves a pass over ``J``; default: computed here.
     """
     n, m, _ = sizes(state)
     check_array("J", J, (n, m))
     check_thresholds(eps, eps_rel)
     J = jnp.asarray(J, state.estimate.dtype)
-    delta = jnp.sqrt(small_sum((J - state.estimate) ** 2))
+    if delta is None:
+        delta = jnp.sqrt(small_sum((J - state.estimate) ** 2))
+    else:
+        check_array("delta", delta, ())
+        delta = jnp.asarray(delta, state.estimate.dtype)
     iteration = state.iteration + 1
     deltas = jnp.stack([state.last_deltas[1], delta])
     norms = jnp.stack([state.last_norms[1], jnp.sqrt(small_sum(J**2))])
