@@ -37,9 +37,11 @@ The hands' MJX model is the one the library settles with
 (:func:`selfid_jax.systems.hands.settle.mjx_model`: one Newton iteration, 4
 line-search steps, a sparse mass matrix on CPU); ``--mjcf-options`` profiles
 the MJCF's own options (Newton up to 100 iterations, 50 line-search steps,
-dense), as the library settled before. ``--iterations`` / ``--ls-iterations``
-override any scene's MJX solver options, ``--jacobian`` the hands' mass
-matrix layout (never the native model's).
+dense), the options the library settled with before (with today's loop). ``--iterations`` / ``--ls-iterations``
+override any scene's MJX solver options (the drawer's MJX model runs 4
+line-search steps, as ``selfid_jax.articulated.sim`` sets; ``--ls-iterations
+50`` is the MJCF's), ``--jacobian`` the hands' mass matrix layout (never the
+native model's).
 
     python benchmarks/mjx_profile.py                      # batch 1,000, all three scenes (~3 minutes on 2 cores)
     python benchmarks/mjx_profile.py --batch 100 --scenes stewart
