@@ -30,7 +30,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BENCHMARKS = ("estimator", "estimator_2dev", "rls_floor", "rollouts", "refine", "valid_region", "ablation",
-              "articulated", "scaling", "compile_time")
+              "articulated", "scaling", "compile_time", "mjx_profile")
 
 
 def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 900) -> tuple[dict, float]:
@@ -65,6 +65,8 @@ def collect(skip=(), gpu_scale=False) -> dict:
         "valid_region": ("valid_region", ["--full-chunks", "1"], None),
         "ablation": ("ablation", ["--full-chunks", "1"], None),
         "articulated": ("articulated", ["--batch", "200" if gpu_scale else "8", "--steps", "100"], None),
+        "mjx_profile": ("mjx_profile", ["--scenes", "stewart", "--no-stages", "--native", "16", "--native-steps", "10",
+                                        "--batch", "10000" if gpu_scale else "500"], None),
     }
     if gpu_scale:
         plans.pop("estimator_2dev")
@@ -203,6 +205,14 @@ def table(res: dict) -> list[dict]:
             _row(rows, "  ... MJX against native in the same run", r["mjx_vs_native"], "x native", "", None,
                  f"compile+first {mjx['first_call_s']:.1f} s; handle paths differ by up to "
                  f"{1e3 * r['max_handle_diff_m']:.2g} mm (friction loss {r['frictionloss']} N)")
+    if "mjx_profile" in res:
+        for s in res["mjx_profile"]["result"]["scenes"]:
+            if "settle" in s:
+                st = s["settle"]
+                _row(rows, f"MJX settling ({s['scene']}, batch {s['batch']}), time against native",
+                     st["mjx_time_x_native"], "x native", "<= 3", st["mjx_time_x_native"] <= 3,
+                     f"mjx {st['mjx_poses_per_s']:.0f}, native {st['native_poses_per_s']:.0f} poses/s; one step "
+                     f"{s['mjx_step_us']:.0f} us/pose, native rollout {s['native_rollout_us']:.0f}")
     return rows
 
 

@@ -211,3 +211,39 @@ def test_three_backends_agree_on_a_short_rollout(hand):
     for backend in ("mjx", "native"):
         np.testing.assert_allclose(runs[backend], runs["kinematic"], atol=1e-6, err_msg=backend)
     assert np.ptp(runs["kinematic"][:, 0]) > 5e-4  # the hand really moved
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["stewart", "model_o"])
+def test_settle_options_keep_the_settled_pose(name):
+    """settle.mjx_model's settling options (one Newton iteration and 4 line-search steps a step, sparse mass matrix
+    on CPU; the loop carrying the state only) settle 6 random commands to the pose MJX gives with the MJCF's own
+    options (up to 100 iterations, 50 line-search steps, dense) and to native MuJoCo's."""
+    from selfid_jax.systems.hands import model_o_hand as mo
+    from selfid_jax.systems.hands.stewart import STEWART_SETTLE_TOL
+
+    if name == "stewart":
+        mj, qpos0 = mujoco.MjModel.from_xml_path(STEWART_XML), None
+        steps, tol = STEWART_SETTLE_STEPS, STEWART_SETTLE_TOL
+        q = _box(11, 6)
+    else:
+        mj, steps, tol = mo.model_o_mjmodel(), mo.MODEL_O_SETTLE_STEPS, mo.MODEL_O_SETTLE_TOL
+        qpos0, home = mo.model_o_keyframe()
+        q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (6, 3))
+    fast = settle.mjx_model(mj)
+    mjcf = settle.mjx_model(mj, iterations=None, ls_iterations=None, sparse=False)
+    assert (int(fast.opt.iterations), int(fast.opt.ls_iterations)) == (1, 4)
+    assert (int(mjcf.opt.iterations), int(mjcf.opt.ls_iterations)) == (mj.opt.iterations, mj.opt.ls_iterations)
+    sid = int(mj.site("pom").id)
+    pose = settle.MjxSettlePose(sid, steps, tol)
+    inf = jnp.full(mj.nu, jnp.inf)
+    start = None if qpos0 is None else jnp.asarray(qpos0)
+    run = jax.jit(jax.vmap(pose, in_axes=(None, 0)))
+    p_f, R_f = run(settle.SettleParams(fast, -inf, inf, start), jnp.asarray(q))
+    p_m, R_m = run(settle.SettleParams(mjcf, -inf, inf, start), jnp.asarray(q))
+    p_n, R_n, ok_n = settle.native_settle(mj, sid, q, qpos0=qpos0, max_steps=steps, tol=tol)
+    assert ok_n.all() and np.all(np.isfinite(p_f)) and np.all(np.isfinite(p_m))
+    e_fm, eR_fm = _pose_err(p_f, R_f, p_m, R_m)
+    e_fn, eR_fn = _pose_err(p_f, R_f, p_n, R_n)
+    assert e_fm < 1e-12 and eR_fm < 1e-10, (e_fm, eR_fm)
+    assert e_fn < 1e-8 and eR_fn < 1e-6, (e_fn, eR_fn)
