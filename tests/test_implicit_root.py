@@ -20,9 +20,8 @@ def _residual(y, args):
 def _root(M, b):
     """Newton's method to round-off (no tangents reach it), then the root with its IFT derivative."""
     args = jax.lax.stop_gradient((M, b))
-    y = jnp.zeros(3, b.dtype)
-    for _ in range(30):
-        y = y - jnp.linalg.solve(jax.jacfwd(_residual)(y, args), _residual(y, args))
+    step = lambda _, y: y - jnp.linalg.solve(jax.jacfwd(_residual)(y, args), _residual(y, args))
+    y = jax.lax.fori_loop(0, 30, step, jnp.zeros(3, b.dtype))
     return implicit_root(_residual, y, (M, b))
 
 

@@ -144,6 +144,7 @@ def test_vmap_nested_vmap_and_one_trace():
             assert rel(J[a, b], numpy_estimates(d2[a, :, b], V2[a, :, b])) < 1e-9
 
 
+@pytest.mark.slow  # three gradient programs of the blocked run (cond_any under grad and vmap): about 15 s of compile
 def test_gradient_matches_finite_differences():
     d, V = data(12, seed=5)
 
@@ -151,14 +152,15 @@ def test_gradient_matches_finite_differences():
         s0, r0 = E.init(N, M, capacity=0), R.init(M)
         return jnp.sum(R.run(s0, r0, jnp.asarray(d), V, 1e-3, warmup=M + 5)[2][-1] ** 2)
 
-    g = np.asarray(jax.grad(loss)(jnp.asarray(V)))
+    grad, value = jax.jit(jax.grad(loss)), jax.jit(loss)  # one compilation each (eagerly, every call traces)
+    g = np.asarray(grad(jnp.asarray(V)))
     h = 1e-6
     for idx in [(0, 0), (5, 1), (11, 2)]:
         e = np.zeros_like(V)
         e[idx] = h
-        fd = (float(loss(jnp.asarray(V + e))) - float(loss(jnp.asarray(V - e)))) / (2 * h)
+        fd = (float(value(jnp.asarray(V + e))) - float(value(jnp.asarray(V - e)))) / (2 * h)
         np.testing.assert_allclose(g[idx], fd, rtol=1e-5)
-    gv = jax.vmap(jax.grad(loss))(jnp.stack([jnp.asarray(V)] * 2))
+    gv = jax.jit(jax.vmap(jax.grad(loss)))(jnp.stack([jnp.asarray(V)] * 2))
     np.testing.assert_allclose(gv[1], g, rtol=1e-9)
 
 

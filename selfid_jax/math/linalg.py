@@ -147,7 +147,8 @@ def _spd_right_solve(B, A):
 
 
 def implicit_root(residual, y, args, F_y=None):
-    """``y``, a root of ``residual(y, args) = 0`` found by any solver, with derivatives by the implicit function theorem.
+    """``y``, a root of ``residual(y, args) = 0`` found by any solver, with derivatives by the implicit function
+    theorem.
 
     The value is ``y`` itself, bit for bit. Its derivative with respect to
     ``args`` (any pytree) is ``dy = -F_y^-1 (d residual / d args) dargs``,
