@@ -28,7 +28,8 @@ from selfid_jax.control import paths
 from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
                                                   add_m_a_columns, m_a_columns, m_a_summary)
 from selfid_jax.runner.config import unique
-from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner import Experiment, Part, part_threads, precision
+from selfid_jax.runner.execute import in_thread
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.systems import System
@@ -143,13 +144,24 @@ def compute(static: Static, p: Params) -> Outputs:
 
 
 def build(cfg: DemoConfig) -> list[Part]:
-    """One part per run, each built (and later run) in float64 if its system needs it (closed-chain hands)."""
-    parts = []
-    for i, run in enumerate(cfg.runs):
+    """One part per run, each built (and later run) in float64 if its system needs it (closed-chain hands).
+
+    The runs are built side by side in threads (:func:`~selfid_jax.runner.part_threads`: their start
+    searches compile on a core each); each part is what it would be built alone.
+    """
+
+    def one(i: int, run: DemoRun) -> Part:
         x64 = needs_x64(run.system)
         with precision(x64):
-            parts.append(_run_part(run, cfg.seed + 2 * i, x64))
-    return parts
+            return _run_part(run, cfg.seed + 2 * i, x64)
+
+    threads = part_threads(len(cfg.runs))
+    if threads == 1:
+        return [one(i, run) for i, run in enumerate(cfg.runs)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="selfid-jax-build") as pool:
+        return list(pool.map(in_thread(one), range(len(cfg.runs)), cfg.runs))
 
 
 def _run_part(run: DemoRun, seed: int, x64: bool) -> Part:

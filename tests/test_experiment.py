@@ -224,3 +224,55 @@ def test_part_names_cannot_leave_the_run_directory():
                                     compute=lambda s, p: p, summarize=lambda df, cfg: {})
         with pytest.raises(ValueError, match="one path component"):
             exp.parts(BaseConfig(experiment="bad_names"))
+
+
+def _build_two(cfg):
+    meta = pd.DataFrame({"x": cfg.values})
+    params = DoublingParams(np.asarray(cfg.values), np.full(len(cfg.values), cfg.scale))
+    return [experiment.Part("first", None, params, meta),
+            experiment.Part("second", None, params._replace(scale=params.scale + 1.0), meta)]
+
+
+_TRACED_IN: list[str] = []
+
+
+def _compute_noting_thread(static, p):
+    import threading
+
+    _TRACED_IN.append(threading.current_thread().name)
+    return _compute(static, p)
+
+
+TWO_PARTS = experiment.Experiment(
+    name="user_doubling_two_parts", config=DoublingConfig, build=_build_two, compute=_compute_noting_thread,
+    summarize=lambda table, cfg: {"sum_y": float(table["y"].sum())}, description="two parts (a user's experiment)",
+)
+
+
+def test_parts_run_side_by_side_in_threads_and_give_the_tables_they_give_in_turn(tmp_path, monkeypatch):
+    """Two parts on two threads: the same table, row for row, as one after the other, each part traced in a worker
+    thread under the caller's float width; SELFID_JAX_PART_THREADS chooses, and a bad value is named."""
+    import jax as _jax
+
+    from selfid_jax.runner.execute import part_threads
+
+    cfg = DoublingConfig(experiment="user_doubling_two_parts", values=[1.0, 2.5, -3.0, 4.0], chunk_size=3)
+    tables = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("SELFID_JAX_PART_THREADS", threads)
+        _TRACED_IN.clear()
+        with _jax.enable_x64(False):  # a caller's setting context: the worker threads must see it too
+            table, _ = experiment.run(TWO_PARTS, cfg, tmp_path / threads, fresh=True)
+        assert len(_TRACED_IN) == 2
+        assert all(name.startswith("selfid-jax-part") for name in _TRACED_IN) == (threads == "2"), _TRACED_IN
+        tables[threads] = table
+        for part in ("first", "second"):
+            manifest = json.loads((tmp_path / threads / "parts" / part / "manifest.json").read_text())
+            assert manifest["x64"] is False
+    pd.testing.assert_frame_equal(tables["1"], tables["2"])
+    np.testing.assert_allclose(tables["2"]["y"], [2.0, 5.0, -6.0, 8.0, 3.0, 7.5, -9.0, 12.0])
+    monkeypatch.setenv("SELFID_JAX_PART_THREADS", "0")
+    with pytest.raises(ValueError, match="SELFID_JAX_PART_THREADS must be a positive integer, got '0'"):
+        part_threads(2)
+    monkeypatch.delenv("SELFID_JAX_PART_THREADS")
+    assert part_threads(1) == 1 and 1 <= part_threads(64) <= 64

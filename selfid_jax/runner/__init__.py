@@ -3,7 +3,7 @@
 It knows no robot, controller or method (an import-linter contract in
 ``pyproject.toml`` holds it to that). ``selfid_jax.runner`` re-exports the
 contract (:class:`Experiment`, :class:`Part`), the registry (:func:`get`,
-:func:`available`, :func:`register`, :func:`load`) and :func:`run`, each
+:func:`available`, :func:`register`, :func:`load`), :func:`run` and :func:`part_threads`, each
 imported on first use (so that :mod:`selfid_jax.runner.signals` loads alone).
 """
 
@@ -13,6 +13,7 @@ _LAZY = {
     "Experiment": "selfid_jax.runner.contract",
     "Part": "selfid_jax.runner.contract",
     "precision": "selfid_jax.runner.execute",
+    "part_threads": "selfid_jax.runner.execute",
     "run": "selfid_jax.runner.execute",
     "ENTRY_POINT_GROUP": "selfid_jax.runner.registry",
     "available": "selfid_jax.runner.registry",
@@ -23,10 +24,11 @@ _LAZY = {
 
 if TYPE_CHECKING:
     from selfid_jax.runner.contract import Experiment, Part
-    from selfid_jax.runner.execute import precision, run
+    from selfid_jax.runner.execute import part_threads, precision, run
     from selfid_jax.runner.registry import ENTRY_POINT_GROUP, available, get, load, register
 
-__all__ = ["ENTRY_POINT_GROUP", "Experiment", "Part", "available", "get", "load", "precision", "register", "run"]
+__all__ = ["ENTRY_POINT_GROUP", "Experiment", "Part", "available", "get", "load", "part_threads", "precision",
+           "register", "run"]
 
 
 def __getattr__(name: str):

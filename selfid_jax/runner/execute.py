@@ -25,7 +25,7 @@ from selfid_jax.runner.rundir import create_run_dir, record_refused, write_resul
 from selfid_jax.runner.errors import SweepResumeError
 from selfid_jax.runner.sweep import run_chunked
 
-__all__ = ["check_columns", "precision", "run"]
+__all__ = ["PART_THREADS_ENV", "check_columns", "in_thread", "part_threads", "precision", "run"]
 
 
 def precision(x64: bool):
@@ -52,7 +52,8 @@ def run(
     reopened for resuming (:func:`~selfid_jax.runner.rundir.create_run_dir`,
     recording ``config_path`` and ``overrides``; ``fresh`` discards what it
     holds), then each part runs through :func:`selfid_jax.runner.sweep.run_chunked` (resumable
-    chunks under ``out_dir/parts/<name>/``), the parts' tables (after
+    chunks under ``out_dir/parts/<name>/``; several parts side by side in threads, one per core,
+    :func:`part_threads`), the parts' tables (after
     ``tabulate``) are concatenated into ``out_dir/results.parquet`` and the
     summary is written to ``out_dir/summary.json``. ``parts``: the result of
     ``experiment.parts(cfg)`` if already built (the CLI builds them, and so
@@ -88,15 +89,63 @@ def check_columns(experiment: Experiment, table: pd.DataFrame) -> list[str]:
     return missing
 
 
+def part_threads(n_parts: int) -> int:
+    """How many parts :func:`run` runs at once: one per CPU core this process may use, at most ``n_parts``.
+
+    ``$SELFID_JAX_PART_THREADS`` (a positive integer) overrides the core count; 1 runs the parts one after
+    another. XLA compiles one program on one core, so on ``k`` cores ``k`` parts compile side by side.
+    """
+    import os
+
+    raw = os.environ.get(PART_THREADS_ENV, "").strip()
+    if raw:
+        if not raw.isdigit() or int(raw) < 1:
+            raise ValueError(f"${PART_THREADS_ENV} must be a positive integer, got {raw!r}")
+        cores = int(raw)
+    else:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(int(n_parts), cores))
+
+
+PART_THREADS_ENV = "SELFID_JAX_PART_THREADS"
+
+
+def in_thread(fn):
+    """``fn`` wrapped to run in another thread under this thread's JAX settings.
+
+    JAX's setting contexts (``jax.enable_x64(...)``, ``jax.default_device(...)``,
+    ``jax.numpy_rank_promotion(...)``, ``jax.default_matmul_precision(...)``)
+    hold for the thread that entered them only; the wrapper reads their values
+    here, when it is made, and enters them around each call, so a part run in a
+    worker thread computes what it would in the caller's.
+    """
+    import functools
+
+    import jax
+
+    settings = (bool(jax.config.jax_enable_x64), jax.config.jax_default_device,
+                jax.config.jax_numpy_rank_promotion, jax.config.jax_default_matmul_precision)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        x64, device, promotion, matmul = settings
+        with (jax.enable_x64(x64), jax.default_device(device), jax.numpy_rank_promotion(promotion),
+              jax.default_matmul_precision(matmul)):
+            return fn(*args, **kwargs)
+
+    return call
+
+
 def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress: bool, parts):
     import jax
 
     inputs = cfg.input_files() if hasattr(cfg, "input_files") else {}
     fp = fingerprint(dump_config(cfg), inputs)
-    tables = []
-    for part in experiment.parts(cfg) if parts is None else parts:
+    parts = list(experiment.parts(cfg) if parts is None else parts)
+
+    def one(index: int, part: Part):
         with precision(part.x64):
-            wide = run_chunked(
+            return run_chunked(
                 experiment.batched(part.static),
                 part.params,
                 chunk_size=cfg.chunk_size,
@@ -106,7 +155,26 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
                 progress=progress,
                 desc=part.name,
                 fingerprint=fp,
+                position=index if len(parts) > 1 else None,
             )
+
+    # Several parts of one process run side by side in threads (each with its own precision; XLA releases the
+    # GIL while it compiles and computes): every part's table is what it would be alone. Several processes of a
+    # jax.distributed run must dispatch in lockstep, so they run the parts in order.
+    threads = part_threads(len(parts)) if jax.process_count() == 1 else 1
+    if threads > 1:
+        import concurrent.futures
+
+        pool = concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="selfid-jax-part")
+        futures = [pool.submit(in_thread(one), i, part) for i, part in enumerate(parts)]
+        try:
+            wides = [f.result() for f in futures]
+        finally:  # on an error, parts not yet started do not start; running ones finish their chunk in flight
+            pool.shutdown(wait=True, cancel_futures=True)
+    else:
+        wides = [one(i, part) for i, part in enumerate(parts)]
+    tables = []
+    for wide, part in zip(wides, parts):
         if wide is None:  # another process of a jax.distributed run writes the files
             return None
         wide = wide.drop(columns=["row"])

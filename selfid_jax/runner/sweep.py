@@ -193,6 +193,7 @@ def run_chunked(
     devices: Sequence[jax.Device] | None = None,
     desc: str = "sweep",
     fingerprint: Mapping[str, Any] | None = None,
+    position: int | None = None,
 ) -> pd.DataFrame:
     """Run ``compute_fn`` over ``N`` parameter rows in resumable, sharded chunks.
 
@@ -224,6 +225,7 @@ def run_chunked(
       fingerprint: what the rows depend on beyond ``params`` and ``meta`` (config,
         files read, package source: :func:`selfid_jax.runner.fingerprint.fingerprint`),
         stored in the manifest; resuming chunks made with another one is refused.
+      position: the progress bar's line (for sweeps run side by side in threads).
 
     Returns:
       The results table, ``N`` rows sorted by ``row`` (int64, 0..N-1), with the
@@ -285,7 +287,7 @@ def run_chunked(
             _compute_chunks(
                 _row_function(compute_fn, treedef, list(params)), params, meta,
                 todo, out_dir=out_dir, manifest=manifest, batch=batch, devices=devices, writer=writer,
-                static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped),
+                static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped), position=position,
             )
         result = chunks.assemble(out_dir, manifest) if writer else None
     if jax.process_count() > 1:
@@ -380,7 +382,7 @@ def compute_rows(compute_fn: Callable[[Any], Any], params: Any, *, batch: int,
 
 def _compute_chunks(
     compute_fn, params, meta, todo, *, out_dir, manifest, batch, devices, writer, static_shapes, progress, desc,
-    n_done,
+    n_done, position=None,
 ) -> None:
     n_chunks = manifest["n_chunks"]
     executable, place = _executables(compute_fn, params, devices)
@@ -393,7 +395,7 @@ def _compute_chunks(
         return rows, executable(size)(args)
 
     bar = tqdm(
-        total=n_chunks, initial=n_done, unit="chunk", desc=desc, dynamic_ncols=True,
+        total=n_chunks, initial=n_done, unit="chunk", desc=desc, dynamic_ncols=True, position=position,
         disable=None if progress and writer else True,
     )
     t0, rows_done = time.perf_counter(), 0
