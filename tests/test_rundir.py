@@ -32,6 +32,7 @@ from test_sweep import (
 )
 
 from selfid_jax import cli, runner as experiment
+from selfid_jax.runner import cli as runner_cli
 
 from selfid_jax.experiments.common import figures as plots
 
@@ -121,7 +122,9 @@ def test_second_process_is_refused_and_fresh_deletes_nothing(tmp_path, capsys):
             err = _one_line_error(capsys)
             assert f"run directory {out} is in use by process {holder.pid}" in err
             assert time.perf_counter() - t0 < 5  # at once, not after computing
-        assert cli.main(["demo", "--out", str(out)]) == 2
+        with pytest.MonkeyPatch.context() as mp:  # refused before the demo builds (its start searches compile)
+            mp.setattr(runner_cli, "_build", lambda *a: pytest.fail("built the experiment of a busy run directory"))
+            assert cli.main(["demo", "--out", str(out)]) == 2
         assert f"in use by process {holder.pid}" in capsys.readouterr().err
         meta, params = make_inputs()
         with pytest.raises(RunDirBusy, match=f"process {holder.pid}"):

@@ -218,10 +218,11 @@ def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progre
     from selfid_jax.runner import signals
     from selfid_jax.runner.sweep import clear_stop, request_stop, stop_requested as sweep_stop_requested
 
-    from selfid_jax.runner.lock import check_run_dir
+    from selfid_jax.runner.lock import check_free, check_run_dir
 
     signals.phase("setup")
     check_run_dir(run_dir)  # before any compute: a file in the way, an unwritable folder (RunDirError, exit 2)
+    check_free(run_dir)  # and a directory another process is running in (RunDirBusy, exit 2), before the build
     parts = _build(exp, cfg, str(config_path) if config_path is not None else exp.name)
     received: list[int] = []
     t0 = time.perf_counter()

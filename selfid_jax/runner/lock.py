@@ -26,7 +26,7 @@ from pathlib import Path
 from selfid_jax.runner.errors import RunDirBusy, RunDirError
 from selfid_jax.runner.layout import LOCK_FILE
 
-__all__ = ["LOCK_FILE", "RunDirBusy", "RunDirError", "hold", "is_held", "make_run_dir"]
+__all__ = ["LOCK_FILE", "RunDirBusy", "RunDirError", "check_free", "hold", "is_held", "make_run_dir"]
 
 _HELD: dict[Path, list[int]] = {}  # resolved run dir -> [fd, depth]
 _GUARD = threading.Lock()
@@ -54,6 +54,30 @@ def check_run_dir(run_dir: str | Path) -> Path:
             raise RunDirError(f"{p}: a dangling symbolic link in the way of {run_dir}; remove it or choose another "
                               "--out")
     return run_dir
+
+
+def check_free(run_dir: str | Path) -> None:
+    """Raise :class:`RunDirBusy` at once if another process holds the lock of ``run_dir``; nothing otherwise.
+
+    For the command line, before it builds an experiment (a start search can take a minute): a busy directory
+    is refused before any compute. It creates and writes nothing (no lock file where there is none) and
+    holds nothing; :func:`hold` still decides, since another process may take the lock after this check.
+    """
+    run_dir = Path(run_dir)
+    path = run_dir / LOCK_FILE
+    if not path.is_file() or is_held(run_dir):
+        return
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return  # unreadable: hold() will say why
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as err:
+        if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise _busy(run_dir) from None
+    finally:
+        os.close(fd)  # drops the probe's own lock, if it got it
 
 
 def make_run_dir(run_dir: str | Path) -> Path:
