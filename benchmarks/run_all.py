@@ -6,7 +6,7 @@ prints one table: the measured value, the issue-14 goal and whether this run
 met it, and writes everything (the table and each script's full record) to
 ``--out``. Timings are medians of a few repetitions but still move with the
 load of the machine; ratios measured in one process (``x RLS``, ``x SLSQP``)
-are the robust numbers. About 2.5 minutes on 2 idle CPU cores (4-5 under load).
+are the robust numbers. About 11 minutes on 2 CPU cores at load 1.5, most of it ``compile_time``.
 
     python benchmarks/run_all.py [--out benchmarks/results.json] [--markdown] [--skip ablation ...]
 
