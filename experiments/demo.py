@@ -29,7 +29,7 @@ from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, 
                                                   add_m_a_columns, m_a_columns, m_a_summary)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, part_threads, precision
-from selfid_jax.runner.execute import in_thread
+from selfid_jax.runner.execute import side_by_side
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.figures import save_figure
 from selfid_jax.systems import System
@@ -155,13 +155,7 @@ def build(cfg: DemoConfig) -> list[Part]:
         with precision(x64):
             return _run_part(run, cfg.seed + 2 * i, x64)
 
-    threads = part_threads(len(cfg.runs))
-    if threads == 1:
-        return [one(i, run) for i, run in enumerate(cfg.runs)]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="selfid-jax-build") as pool:
-        return list(pool.map(in_thread(one), range(len(cfg.runs)), cfg.runs))
+    return side_by_side(one, cfg.runs, threads=part_threads(len(cfg.runs)), name="selfid-jax-build")
 
 
 def _run_part(run: DemoRun, seed: int, x64: bool) -> Part:

@@ -12,6 +12,8 @@ is in actuator units per task unit.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -170,31 +172,16 @@ def implicit_root(residual, y, args, F_y=None):
     y = jax.lax.stop_gradient(y)
     if F_y is None:
         F_y = jax.jacfwd(residual)(y, jax.lax.stop_gradient(args))
-    return _implicit_root(residual, y, jax.lax.stop_gradient(F_y), args)
+    return _implicit_value(residual, y, jax.lax.stop_gradient(F_y), args)
 
 
-@jax.custom_jvp
-def _implicit_value(y, F_y, args, residual_box):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _implicit_value(residual, y, F_y, args):
     return y
 
 
-def _implicit_root(residual, y, F_y, args):
-    return _implicit_value(y, F_y, args, _Static(residual))
-
-
-class _Static:
-    """A callable passed through ``custom_jvp`` as a static, hashable-by-identity leaf-free pytree node."""
-
-    def __init__(self, fn):
-        self.fn = fn
-
-
-jax.tree_util.register_pytree_node(_Static, lambda s: ((), s.fn), lambda fn, _: _Static(fn))
-
-
 @_implicit_value.defjvp
-def _implicit_value_jvp(primals, tangents):
-    y, F_y, args, box = primals
-    dargs = tangents[2]
-    _, rhs = jax.jvp(lambda a: box.fn(y, a), (args,), (dargs,))
+def _implicit_value_jvp(residual, primals, tangents):
+    y, F_y, args = primals
+    _, rhs = jax.jvp(lambda a: residual(y, a), (args,), (tangents[2],))
     return y, -jnp.linalg.solve(F_y, rhs)

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 import pandas as pd
 
@@ -25,7 +26,10 @@ from selfid_jax.runner.rundir import create_run_dir, record_refused, write_resul
 from selfid_jax.runner.errors import SweepResumeError
 from selfid_jax.runner.sweep import run_chunked
 
-__all__ = ["PART_THREADS_ENV", "check_columns", "in_thread", "part_threads", "precision", "run"]
+T = TypeVar("T")
+R = TypeVar("R")
+
+__all__ = ["PART_THREADS_ENV", "check_columns", "part_threads", "precision", "run", "side_by_side"]
 
 
 def precision(x64: bool):
@@ -89,6 +93,9 @@ def check_columns(experiment: Experiment, table: pd.DataFrame) -> list[str]:
     return missing
 
 
+PART_THREADS_ENV = "SELFID_JAX_PART_THREADS"
+
+
 def part_threads(n_parts: int) -> int:
     """How many parts :func:`run` runs at once: one per CPU core this process may use, at most ``n_parts``.
 
@@ -107,33 +114,41 @@ def part_threads(n_parts: int) -> int:
     return max(1, min(int(n_parts), cores))
 
 
-PART_THREADS_ENV = "SELFID_JAX_PART_THREADS"
+def side_by_side(fn: Callable[[int, T], R], items: Sequence[T], *, threads: int, name: str = "selfid-jax-part"
+                 ) -> list[R]:
+    """``[fn(i, item) for i, item in enumerate(items)]``, on ``threads`` worker threads when more than one.
 
-
-def in_thread(fn):
-    """``fn`` wrapped to run in another thread under this thread's JAX settings.
-
-    JAX's setting contexts (``jax.enable_x64(...)``, ``jax.default_device(...)``,
-    ``jax.numpy_rank_promotion(...)``, ``jax.default_matmul_precision(...)``)
-    hold for the thread that entered them only; the wrapper reads their values
-    here, when it is made, and enters them around each call, so a part run in a
-    worker thread computes what it would in the caller's.
+    Each call runs under the caller's JAX setting contexts (``jax.enable_x64(...)``,
+    ``jax.default_device(...)``, ``jax.numpy_rank_promotion(...)``,
+    ``jax.default_matmul_precision(...)``), which hold for the thread that
+    entered them only: they are read here and entered around each call, so an
+    item computed in a worker is what it would be in the caller's thread. The
+    results come back in order; the first error is raised once the calls
+    already running have returned (calls not yet started are dropped).
+    ``name``: the worker threads' name prefix.
     """
-    import functools
+    if threads <= 1 or len(items) <= 1:
+        return [fn(i, item) for i, item in enumerate(items)]
+    import concurrent.futures
 
     import jax
 
-    settings = (bool(jax.config.jax_enable_x64), jax.config.jax_default_device,
-                jax.config.jax_numpy_rank_promotion, jax.config.jax_default_matmul_precision)
+    cfg = jax.config
+    settings = (bool(cfg.jax_enable_x64), cfg.jax_default_device,  # type: ignore[attr-defined]
+                cfg.jax_numpy_rank_promotion, cfg.jax_default_matmul_precision)  # type: ignore[attr-defined]
 
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
+    def call(i: int, item: T) -> R:
         x64, device, promotion, matmul = settings
         with (jax.enable_x64(x64), jax.default_device(device), jax.numpy_rank_promotion(promotion),
               jax.default_matmul_precision(matmul)):
-            return fn(*args, **kwargs)
+            return fn(i, item)
 
-    return call
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix=name)
+    futures = [pool.submit(call, i, item) for i, item in enumerate(items)]
+    try:
+        return [f.result() for f in futures]
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress: bool, parts):
@@ -158,21 +173,11 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
                 position=index if len(parts) > 1 else None,
             )
 
-    # Several parts of one process run side by side in threads (each with its own precision; XLA releases the
-    # GIL while it compiles and computes): every part's table is what it would be alone. Several processes of a
-    # jax.distributed run must dispatch in lockstep, so they run the parts in order.
+    # Several parts of one process run side by side in threads (XLA releases the GIL while it compiles and
+    # computes): every part's table is what it would be alone. Several processes of a jax.distributed run must
+    # dispatch in lockstep, so they run the parts in order.
     threads = part_threads(len(parts)) if jax.process_count() == 1 else 1
-    if threads > 1:
-        import concurrent.futures
-
-        pool = concurrent.futures.ThreadPoolExecutor(max_workers=threads, thread_name_prefix="selfid-jax-part")
-        futures = [pool.submit(in_thread(one), i, part) for i, part in enumerate(parts)]
-        try:
-            wides = [f.result() for f in futures]
-        finally:  # on an error, parts not yet started do not start; running ones finish their chunk in flight
-            pool.shutdown(wait=True, cancel_futures=True)
-    else:
-        wides = [one(i, part) for i, part in enumerate(parts)]
+    wides = side_by_side(one, parts, threads=threads)
     tables = []
     for wide, part in zip(wides, parts):
         if wide is None:  # another process of a jax.distributed run writes the files
