@@ -249,7 +249,7 @@ TWO_PARTS = experiment.Experiment(
 )
 
 
-def test_parts_run_side_by_side_in_threads_and_give_the_tables_they_give_in_turn(tmp_path, monkeypatch):
+def test_parts_run_side_by_side_in_threads_and_give_the_tables_they_give_in_turn(tmp_path, monkeypatch, capsys):
     """Two parts on two threads: the same table, row for row, as one after the other, each part traced in a worker
     thread under the caller's float width; SELFID_JAX_PART_THREADS chooses, and a bad value is named."""
     import jax as _jax
@@ -274,5 +274,14 @@ def test_parts_run_side_by_side_in_threads_and_give_the_tables_they_give_in_turn
     monkeypatch.setenv("SELFID_JAX_PART_THREADS", "0")
     with pytest.raises(ValueError, match="SELFID_JAX_PART_THREADS must be a positive integer, got '0'"):
         part_threads(2)
+    # the command line names it in one line, exit 2, before it builds anything
+    from selfid_jax.runner import cli as runner_cli
+
+    experiment.register(TWO_PARTS)
+    path = tmp_path / "two.yaml"
+    path.write_text("experiment: user_doubling_two_parts\nvalues: [1.0]\n")
+    monkeypatch.setattr(runner_cli, "_build", lambda *a: pytest.fail("built before the bad setting was named"))
+    assert cli.main(["sweep", str(path), "--out", str(tmp_path / "bad"), "--no-progress"]) == 2
+    assert "SELFID_JAX_PART_THREADS must be a positive integer, got '0'" in capsys.readouterr().err
     monkeypatch.delenv("SELFID_JAX_PART_THREADS")
     assert part_threads(1) == 1 and 1 <= part_threads(64) <= 64

@@ -213,7 +213,7 @@ def _build(exp, cfg, source: str):
 def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progress: bool) -> int:
     """Build the parts (every check before the run directory is made), run the experiment into ``run_dir``
     (:func:`selfid_jax.runner.execute.run`, which locks it) under SIGTERM handling, report, draw."""
-    from selfid_jax.runner.execute import run
+    from selfid_jax.runner.execute import part_threads, run
 
     from selfid_jax.runner import signals
     from selfid_jax.runner.sweep import clear_stop, request_stop, stop_requested as sweep_stop_requested
@@ -223,6 +223,7 @@ def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progre
     signals.phase("setup")
     check_run_dir(run_dir)  # before any compute: a file in the way, an unwritable folder (RunDirError, exit 2)
     check_free(run_dir)  # and a directory another process is running in (RunDirBusy, exit 2), before the build
+    part_threads(1)  # and a bad $SELFID_JAX_PART_THREADS (ConfigError, exit 2)
     parts = _build(exp, cfg, str(config_path) if config_path is not None else exp.name)
     received: list[int] = []
     t0 = time.perf_counter()

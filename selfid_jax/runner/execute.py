@@ -23,7 +23,7 @@ from selfid_jax.runner.contract import Experiment, Part, UndocumentedColumns
 from selfid_jax.runner.fingerprint import fingerprint
 from selfid_jax.runner.layout import PARTS_DIR
 from selfid_jax.runner.rundir import create_run_dir, record_refused, write_results, write_summary
-from selfid_jax.runner.errors import SweepResumeError
+from selfid_jax.runner.errors import ConfigError, SweepResumeError
 from selfid_jax.runner.sweep import run_chunked
 
 T = TypeVar("T")
@@ -101,13 +101,14 @@ def part_threads(n_parts: int) -> int:
 
     ``$SELFID_JAX_PART_THREADS`` (a positive integer) overrides the core count; 1 runs the parts one after
     another. XLA compiles one program on one core, so on ``k`` cores ``k`` parts compile side by side.
+    A bad value raises :class:`~selfid_jax.runner.errors.ConfigError` naming it.
     """
     import os
 
     raw = os.environ.get(PART_THREADS_ENV, "").strip()
     if raw:
         if not raw.isdigit() or int(raw) < 1:
-            raise ValueError(f"${PART_THREADS_ENV} must be a positive integer, got {raw!r}")
+            raise ConfigError(f"${PART_THREADS_ENV} must be a positive integer, got {raw!r}")
         cores = int(raw)
     else:
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
