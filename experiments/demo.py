@@ -25,6 +25,7 @@ from selfid_jax import control
 from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.control import paths
+from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
                                                   add_m_a_columns, m_a_columns, m_a_summary)
 from selfid_jax.runner.config import unique
@@ -112,20 +113,31 @@ class Outputs(NamedTuple):
     positions_true: jax.Array  # (steps + 1, 3) [m]
 
 
+class _EstimateOrTruth(NamedTuple):
+    """The controller's inverse Jacobian: ``estimate (n, m)``, or the true ``pinv(J(q))`` where ``use_true ()``."""
+
+    estimate: jax.Array
+    use_true: jax.Array
+
+    def pose_and_jinv(self, system: System, q):
+        pose, J = system.pose_and_jacobian(q)
+        return pose, jnp.where(self.use_true, pseudo_inverse(J), self.estimate)
+
+
 def compute(static: Static, p: Params) -> Outputs:
     """Self-ID from ``p.q0``, then the star from where self-ID ended, with the estimate and with the truth."""
     system = static.system
     sid = selfid.run(system, jax.random.wrap_key_data(jnp.asarray(p.key)), p.q0, iters=static.iters, eps=p.eps,
                      eps_rel=p.eps_rel, m_a=p.m_a)
     q_start = sid.env  # follow from where self-ID left the arm
-
-    def follow(jinv):
-        return control.follow(system, jinv, static.path, q_start, p.controller, steps=static.steps,
-                              return_trajectory=True)
-
-    est, true = follow(control.fixed(sid.estimate)), follow(control.true_inverse(system))
-    truth = system.true_inverse_jacobian(q_start)
+    # Both stars in one vmapped rollout, and J and its inverse from one evaluation: on a closed-chain hand each
+    # evaluation site of the pose map is a Newton solve compiled again (10 sites were 6).
+    both = jax.vmap(lambda use_true: control.follow(system, _EstimateOrTruth(sid.estimate, use_true), static.path,
+                                                    q_start, p.controller, steps=static.steps,
+                                                    return_trajectory=True))(jnp.array([False, True]))
+    est, true = (jax.tree.map(lambda x, k=k: x[k], both) for k in (0, 1))
     J = system.jacobian(q_start)
+    truth = pseudo_inverse(J)
     return Outputs(
         q0=jnp.asarray(p.q0),
         converged_at=sid.converged_at,

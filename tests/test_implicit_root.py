@@ -1,5 +1,6 @@
-"""math.linalg.implicit_root: the implicit-function-theorem derivative of a root, and programs the persistent
-compilation cache can keep (no host callback) wherever the closed-chain hands are differentiated."""
+"""math.linalg.newton_root and implicit_root: the hands' Newton solve, the implicit-function-theorem derivative of a
+root, and programs the persistent compilation cache can keep (no host callback) wherever the hands are
+differentiated."""
 
 import chex
 import jax
@@ -7,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax.math.linalg import implicit_root
+from selfid_jax.math.linalg import implicit_root, newton_root
 
 A = np.array([[3.0, 1.0, 0.0], [0.5, 2.0, 0.2], [0.0, 0.3, 4.0]])
 
@@ -65,6 +66,63 @@ class TestImplicitRoot(chex.TestCase):
     def test_singular_operator_gives_non_finite_derivatives_not_an_error(self):
         f = lambda b_: implicit_root(lambda y, b: 0.0 * y - b, jnp.zeros(2), b_)  # F_y = 0
         assert not np.all(np.isfinite(jax.jacfwd(f)(jnp.ones(2))))
+
+
+def _numpy_newton(M, b, y0, steps):
+    """``steps`` Newton iterates of ``M y + 0.1 sin y = b`` from ``y0`` in numpy float64, and the last step."""
+    y, dy = np.asarray(y0, float), None
+    for _ in range(steps):
+        dy = np.linalg.solve(M + 0.1 * np.diag(np.cos(y)), M @ y + 0.1 * np.sin(y) - b)
+        y = y - dy
+    return y, dy
+
+
+class TestNewtonRoot(chex.TestCase):
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_root_and_its_jacobian_match_numpy(self):
+        b = jnp.array([1.0, 2.0, 3.0])
+        y, F_y, ok = self.variant(lambda b_: newton_root(_residual, jnp.zeros(3), (jnp.asarray(A), b_), rtol=1e-12,
+                                                         atol=1e-12, max_steps=30))(b)
+        y_ref, _ = _numpy_root_jacobian(A, np.asarray(b))
+        assert bool(ok)
+        np.testing.assert_allclose(y, y_ref, rtol=1e-13)
+        np.testing.assert_allclose(F_y, A + 0.1 * np.diag(np.cos(np.asarray(y))), rtol=1e-14)  # at the returned y
+
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_stops_at_the_cauchy_test_and_reports_max_steps(self):
+        b = np.array([1.0, 2.0, 3.0])
+        solve = self.variant(lambda b_, k: newton_root(_residual, jnp.zeros(3), (jnp.asarray(A), b_), rtol=1e-12,
+                                                       atol=1e-12, max_steps=k), static_argnums=1)
+        # the step count optimistix.Newton's test needs: step j small against y_j and |F(y_{j-1})| < atol
+        need = next(j for j in range(1, 30) if np.all(np.abs(_numpy_newton(A, b, np.zeros(3), j)[1])
+                                                      < 1e-12 + 1e-12 * np.abs(_numpy_newton(A, b, np.zeros(3), j)[0]))
+                    and np.all(np.abs(A @ _numpy_newton(A, b, np.zeros(3), j - 1)[0]
+                                      + 0.1 * np.sin(_numpy_newton(A, b, np.zeros(3), j - 1)[0]) - b) < 1e-12))
+        y, _, ok = solve(jnp.asarray(b), need)
+        assert bool(ok)
+        np.testing.assert_allclose(y, _numpy_newton(A, b, np.zeros(3), need)[0], rtol=1e-13)
+        y, F_y, ok = solve(jnp.asarray(b), 2)  # not enough steps: not converged, y the second iterate
+        assert not bool(ok)
+        y2 = _numpy_newton(A, b, np.zeros(3), 2)[0]
+        np.testing.assert_allclose(y, y2, rtol=1e-13)
+        np.testing.assert_allclose(F_y, A + 0.1 * np.diag(np.cos(y2)), rtol=1e-14)
+
+    @chex.variants(with_jit=True, without_jit=True)
+    def test_vmap_and_a_singular_jacobian_is_not_converged_not_an_error(self):
+        bs = jnp.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]])
+        y, _, ok = self.variant(jax.vmap(lambda b_: newton_root(_residual, jnp.zeros(3), (jnp.asarray(A), b_),
+                                                                rtol=1e-12, atol=1e-12, max_steps=30)))(bs)
+        assert np.all(np.asarray(ok))
+        for k in range(2):
+            np.testing.assert_allclose(y[k], _numpy_root_jacobian(A, np.asarray(bs[k]))[0], rtol=1e-12, atol=1e-15)
+        y, _, ok = self.variant(lambda b_: newton_root(lambda y_, b: y_ * y_ - b, jnp.zeros(2), b_, rtol=1e-12,
+                                                       atol=1e-12, max_steps=30))(jnp.ones(2))  # F_y = 0 at y0
+        assert not bool(ok)
+
+    def test_no_derivative_flows_through_the_iterations(self):
+        g = jax.grad(lambda b_: jnp.sum(newton_root(_residual, jnp.zeros(3), (jnp.asarray(A), b_), rtol=1e-12,
+                                                    atol=1e-12, max_steps=30)[0]))(jnp.ones(3))
+        np.testing.assert_array_equal(g, 0.0)  # the caller wraps y in implicit_root for derivatives
 
 
 def _host_callbacks(fn, *args) -> int:

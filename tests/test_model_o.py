@@ -104,7 +104,7 @@ def test_jacobians_forward_mode_through_solve_and_rotation(hand):
     q = jnp.asarray(mo.model_o_home() + OFFSETS[2])
     h6 = hand.with_task_dim(6)
     J6 = jax.jit(h6.jacobian)(q)
-    J_fwd = jax.jit(jax.jacfwd(lambda q_: hand.pose(q_)[0]))(q)  # optimistix's implicit adjoint
+    J_fwd = jax.jit(jax.jacfwd(lambda q_: hand.pose(q_)[0]))(q)  # implicit_root's derivative
     assert np.allclose(J_fwd, J6[:3], rtol=1e-9, atol=1e-12)
     # the 6-D rows: world-frame angular velocity against differences of the rotation vector
     pose = jax.jit(hand.pose)

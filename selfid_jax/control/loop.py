@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +31,13 @@ from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.system import System
 
 JinvFn = Callable[[jax.Array], jax.Array]
+
+
+class JinvSource(Protocol):
+    """Anything with ``pose_and_jinv(system, q (n,)) -> ((p (3,), R (3, 3)), Jinv (n, m))``: the controller's one
+    call per step (:class:`Fixed`, :class:`JacobianInverse`, :class:`FromFunction` or a user's own)."""
+
+    def pose_and_jinv(self, system: System, q) -> tuple[tuple[jax.Array, jax.Array], jax.Array]: ...
 """``jinv_fn(q (n,)) -> (n, m)``: the inverse Jacobian the controller uses at ``q``."""
 
 
@@ -505,7 +512,7 @@ def follow_law(
 
 def follow(
     system: System,
-    jinv: Fixed | JacobianInverse | FromFunction,
+    jinv: JinvSource | JinvFn,
     path: ArrayLike,
     q0: ArrayLike,
     controller: ControllerParams = ControllerParams(),

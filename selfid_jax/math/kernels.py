@@ -34,10 +34,13 @@ def small_sum(x: jax.Array, axis=None) -> jax.Array:
 
 
 def small_matmul(A, B):
-    """``A (p, k) @ B (k, q)`` as unrolled multiply-adds over the small static ``k`` (see :func:`small_sum`)."""
-    out = A[:, 0:1] * B[0:1, :]
-    for k in range(1, A.shape[1]):
-        out = out + A[:, k : k + 1] * B[k : k + 1, :]
+    """``A (..., p, k) @ B (..., k, q)`` as unrolled multiply-adds over the small static ``k`` (see :func:`small_sum`).
+
+    Leading dimensions broadcast as in ``@``.
+    """
+    out = A[..., :, 0:1] * B[..., 0:1, :]
+    for k in range(1, A.shape[-1]):
+        out = out + A[..., :, k : k + 1] * B[..., k : k + 1, :]
     return out
 
 

@@ -12,7 +12,7 @@ the tendon lengths ``a . theta_f = 0.012 theta_prox + 0.008 theta_dist``) is
 stationary subject to the contacts ``tip_f(theta_f) = c + R s_f``. With
 multipliers ``lambda_f`` (finger ``f``'s force on the object), 21 equations in
 21 unknowns (joint angles, object position and rotation vector, multipliers),
-solved by ``optimistix.Newton`` in float64: ``grad U + J_tip^T lambda = 0`` (6),
+solved by Newton's method in float64: ``grad U + J_tip^T lambda = 0`` (6),
 ``sum lambda_f = 0`` and ``sum (R s_f) x lambda_f = 0`` (the object's balance,
 6), ``tip_f - c - R s_f = 0`` (9). That is MuJoCo's static equilibrium of the
 MJCF (servo force ``kp (ctrl - L)``, springs, equality forces), so settled
@@ -46,7 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from selfid_jax.math import geometry
-from selfid_jax.math.linalg import implicit_root
+from selfid_jax.math.kernels import small_matmul, small_sum
+from selfid_jax.math.linalg import implicit_root, newton_root
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
 from selfid_jax.systems.validation import Limits
@@ -112,18 +113,25 @@ class ModelOParams(NamedTuple):
 # ------------------------------------------------------------------ equations
 def _finger(P, theta):
     """Fingertips ``(3, 3)``, hinge positions ``(3, 2, 3)`` and world hinge axes ``(3, 2, 3)`` at ``theta (3, 2)``."""
-    B1 = jnp.einsum("fij,fjk->fik", P.base_rot, geometry.so3_exp(P.axis1 * theta[:, :1]))
-    B2 = jnp.einsum("fij,fjk,fkl->fil", B1, P.dist_rot, geometry.so3_exp(P.axis2 * theta[:, 1:]))
-    j2 = P.base_pos + jnp.einsum("fij,fj->fi", B1, P.dist_pos)
-    tip = j2 + jnp.einsum("fij,fj->fi", B2, P.tip)
-    w1 = jnp.einsum("fij,fj->fi", P.base_rot, P.axis1)
-    w2 = jnp.einsum("fij,fjk,fk->fi", B1, P.dist_rot, P.axis2)
+    B1 = small_matmul(P.base_rot, geometry.so3_exp(P.axis1 * theta[:, :1]))
+    B1d = small_matmul(B1, P.dist_rot)
+    B2 = small_matmul(B1d, geometry.so3_exp(P.axis2 * theta[:, 1:]))
+    j2 = P.base_pos + _mv(B1, P.dist_pos)
+    tip = j2 + _mv(B2, P.tip)
+    w1 = _mv(P.base_rot, P.axis1)
+    w2 = _mv(B1d, P.axis2)
     return tip, jnp.stack([P.base_pos, j2], 1), jnp.stack([w1, w2], 1)
+
+
+def _mv(A, x):
+    """``A (..., i, j) @ x (..., j)`` by unrolled multiply-adds (these 3x3 products fuse; as dots each is a kernel)."""
+    return small_matmul(A, x[..., :, None])[..., 0]
 
 
 def _unpack(P, y):
     """``theta (3, 2)``, object centre ``c (3,)`` (m), rotation ``R (3, 3)``, multipliers ``lam (3, 3)`` (N)."""
-    return y[:6].reshape(3, 2), P.c0 + _ELL * y[6:9], geometry.so3_exp(y[9:12]) @ P.R0, y[12:].reshape(3, 3)
+    return (y[:6].reshape(3, 2), P.c0 + _ELL * y[6:9], small_matmul(geometry.so3_exp(y[9:12]), P.R0),
+            y[12:].reshape(3, 3))
 
 
 def _residual(y, args):
@@ -131,11 +139,11 @@ def _residual(y, args):
     P, q = args
     theta, c, R, lam = _unpack(P, y)
     tip, joints, axes = _finger(P, theta)
-    spring = P.stiffness * (theta - P.springref) - (P.kp * (q - jnp.sum(P.coef * theta, 1)))[:, None] * P.coef
-    contact = jnp.einsum("fkd,fd->fk", jnp.cross(axes, tip[:, None, :] - joints), lam)  # J_tip^T lambda
-    arm = P.contact @ R.T
-    return jnp.concatenate([((spring + contact) / _ELL).ravel(), jnp.sum(lam, 0),
-                            jnp.sum(jnp.cross(arm, lam), 0) / _ELL, ((tip - c[None, :] - arm) / _ELL).ravel()])
+    spring = P.stiffness * (theta - P.springref) - (P.kp * (q - small_sum(P.coef * theta, 1)))[:, None] * P.coef
+    contact = small_sum(jnp.cross(axes, tip[:, None, :] - joints) * lam[:, None, :], -1)  # J_tip^T lambda
+    arm = _mv(R[None], P.contact)
+    return jnp.concatenate([((spring + contact) / _ELL).ravel(), small_sum(lam, 0),
+                            small_sum(jnp.cross(arm, lam), 0) / _ELL, ((tip - c[None, :] - arm) / _ELL).ravel()])
 
 
 def _pose(P, y):
@@ -176,9 +184,9 @@ def tilt_angle(R):
 class ModelOKinematicPose:
     """Pose map ``(ModelOParams, q (3,)) -> (p (3,), R (3, 3))``: the POM at the grasp equilibrium (Newton, float64).
 
-    ``optimistix.Newton(rtol, atol)`` (unknowns in rad, cm, N) from the
-    predicted grasp solution, ``throw=False``, at most ``max_steps``
-    iterations; NaN unless converged, ``q`` in the safe box, tilt at most
+    :func:`~selfid_jax.math.linalg.newton_root` (``rtol``, ``atol``; unknowns in rad, cm, N) from the
+    predicted grasp solution, at most ``max_steps``
+    steps; NaN unless converged, ``q`` in the safe box, tilt at most
     ``max_tilt`` and (``check_stability``) the equilibrium stable. ``jacobian``
     and ``pose_and_jacobian`` give the world-frame ``(6, 3)`` Jacobian (rows
     ``dp`` in m/m, then ``omega`` in rad/m) by the implicit function theorem.
@@ -192,19 +200,14 @@ class ModelOKinematicPose:
 
     def solve(self, params, q):
         """``(y (21,), F_y (21, 21), ok ())``: unknowns, the equations' Jacobian there, the validity flag."""
-        import optimistix as optx
-
         P = params
         q = jnp.asarray(q, P.q_home.dtype)
         # The solve sees no tangents: derivatives come from implicit_root (no host callback in the program).
         Ps, qs = jax.lax.stop_gradient((P, q))
         y0 = Ps.y_home + Ps.dy_dq @ (qs - Ps.q_home)
-        sol = optx.root_find(_residual, optx.Newton(rtol=self.rtol, atol=self.atol), y0, args=(Ps, qs),
-                             max_steps=self.max_steps, throw=False)
-        ys = sol.value
-        F_y = jax.jacfwd(_residual)(ys, (Ps, qs))
-        ok = ((sol.result == optx.RESULTS.successful) & jnp.all(jnp.isfinite(ys))
-              & jnp.all((qs >= Ps.safe_low) & (qs <= Ps.safe_high)) & (tilt_angle(_pose(Ps, ys)[1]) <= Ps.max_tilt))
+        ys, F_y, ok = newton_root(_residual, y0, (Ps, qs), rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+        ok = (ok & jnp.all((qs >= Ps.safe_low) & (qs <= Ps.safe_high))
+              & (tilt_angle(_pose(Ps, ys)[1]) <= Ps.max_tilt))
         if self.check_stability:
             ok = ok & _stable(ys, F_y)
         return implicit_root(_residual, ys, (P, q), F_y), F_y, ok
@@ -345,16 +348,12 @@ def load_model_o_params(path: str = MODEL_O_XML, *, safe_range=MODEL_O_SAFE_RANG
 @jax.jit
 def _grasp_solution(P, theta0):
     """Unknowns ``(21,)`` at ``P.q_home`` from the keyframe joints ``theta0 (3, 2)``, an ok flag, ``dy/dq (21, 3)``."""
-    import optimistix as optx
-
     q = P.q_home
     y = jnp.concatenate([theta0.ravel(), jnp.zeros(15, theta0.dtype)])  # object at its keyframe pose
     A = jax.jacfwd(lambda lam: _residual(y.at[12:].set(lam), (P, q))[:12])(jnp.zeros(9, y.dtype))
     y = y.at[12:].set(jnp.linalg.lstsq(A, -_residual(y, (P, q))[:12])[0])  # multipliers: least-squares balance
-    sol = optx.root_find(_residual, optx.Newton(rtol=1e-13, atol=1e-13), y, args=(P, q), max_steps=50, throw=False)
-    y = sol.value
-    F_y = jax.jacfwd(_residual)(y, (P, q))
-    ok = (sol.result == optx.RESULTS.successful) & (jnp.max(jnp.abs(_residual(y, (P, q)))) < 1e-9) & _stable(y, F_y)
+    y, F_y, ok = newton_root(_residual, y, (P, q), rtol=1e-13, atol=1e-13, max_steps=50)
+    ok = ok & (jnp.max(jnp.abs(_residual(y, (P, q)))) < 1e-9) & _stable(y, F_y)
     return y, ok, -jnp.linalg.solve(F_y, jax.jacfwd(lambda q_: _residual(y, (P, q_)))(q))
 
 

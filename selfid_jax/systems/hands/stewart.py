@@ -5,7 +5,7 @@ header: base anchors on r_a = 0.05 m, object anchors on r_b = 0.035 m, home
 height 0.05 m, home legs 0.0595 m, scaled condition number 2.21 at home).
 Three backends evaluate the closed chain at leg lengths ``q (6,)`` (m):
 
-* ``"kinematic"`` (default): Newton's method (``optimistix.root_find``,
+* ``"kinematic"`` (default): Newton's method (:func:`~selfid_jax.math.linalg.newton_root`,
   float64) on ``|p + R b_i - a_i| - q_i = 0`` for the POM pose, started at
   home; derivatives by the implicit function theorem
   (:func:`~selfid_jax.math.linalg.implicit_root`: ``jax.jacfwd`` and
@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from selfid_jax.math import geometry
-from selfid_jax.math.linalg import implicit_root
+from selfid_jax.math.linalg import implicit_root, newton_root
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
 from selfid_jax.systems.validation import Limits
@@ -153,8 +153,8 @@ def _residual(x, args):
 class StewartKinematicPose:
     """Pose map ``(StewartParams, q (6,)) -> (p (3,), R (3, 3))`` by Newton's method on the leg constraints.
 
-    ``optimistix.Newton(rtol, atol)`` from home, ``throw=False``, at most
-    ``max_steps`` iterations; NaN unless converged, every leg inside its range,
+    :func:`~selfid_jax.math.linalg.newton_root` (``rtol``, ``atol``) from home, at most
+    ``max_steps`` steps; NaN unless converged, every leg inside its range,
     the rotation from home at most ``max_angle`` rad and the inverse Jacobian's
     determinant of the home sign. Hashable by value.
     """
@@ -166,20 +166,17 @@ class StewartKinematicPose:
 
     def solve(self, params, q):
         """``(x (6,), ok)``: the solve variable (see :func:`_pose`) and the validity flag."""
-        import optimistix as optx
-
         q = jnp.asarray(q)
         dt = jnp.result_type(q, params.a)
         x0 = jnp.zeros(6, dt)
         args = (params, q.astype(dt))
         # The solve sees no tangents: derivatives come from implicit_root (no host callback in the program).
-        sol = optx.root_find(_residual, optx.Newton(rtol=self.rtol, atol=self.atol), x0,
-                             args=jax.lax.stop_gradient(args), max_steps=self.max_steps, throw=False)
-        x = implicit_root(_residual, sol.value, args)
+        x, F_x, converged = newton_root(_residual, x0, args, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+        x = implicit_root(_residual, x, args, F_x)
         p, R = _pose(params, x)
         det = jnp.linalg.det(stewart_inverse_jacobian(params, p, R))
         ok = (
-            (sol.result == optx.RESULTS.successful)
+            converged
             & jnp.all((q >= params.q_low) & (q <= params.q_high))
             & (jnp.linalg.norm(jax.lax.stop_gradient(x[3:])) <= self.max_angle)
             & (jnp.sign(jax.lax.stop_gradient(det)) == params.det_sign)
