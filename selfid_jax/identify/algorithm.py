@@ -229,8 +229,10 @@ def run(
     def observe(q, k, dtheta):
         k_before, k_after = jax.random.split(k)
         q_new = system.apply(q, dtheta)
-        before = noisy_pose(k_before, system.pose(q), pose_noise, rot_noise)
-        after = noisy_pose(k_after, system.pose(q_new), pose_noise, rot_noise)
+        # both poses from one vmapped call: a closed-chain hand's pose is a Newton solve, compiled once per call site
+        (p, R) = jax.vmap(system.pose)(jnp.stack([q, q_new]))
+        before = noisy_pose(k_before, (p[0], R[0]), pose_noise, rot_noise)
+        after = noisy_pose(k_after, (p[1], R[1]), pose_noise, rot_noise)
         return q_new, system.task_difference(after, before)
 
     return self_identify(
