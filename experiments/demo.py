@@ -131,7 +131,7 @@ def compute(static: Static, p: Params) -> Outputs:
                      eps_rel=p.eps_rel, m_a=p.m_a)
     q_start = sid.env  # follow from where self-ID left the arm
     # Both stars in one vmapped rollout, and J and its inverse from one evaluation: on a closed-chain hand each
-    # evaluation site of the pose map is a Newton solve compiled again (10 sites were 6).
+    # place the pose map is evaluated is a Newton solve compiled again (the Model O program: 5 places, was 10).
     both = jax.vmap(lambda use_true: control.follow(system, _EstimateOrTruth(sid.estimate, use_true), static.path,
                                                     q_start, p.controller, steps=static.steps,
                                                     return_trajectory=True))(jnp.array([False, True]))

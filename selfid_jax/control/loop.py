@@ -31,6 +31,7 @@ from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.system import System
 
 JinvFn = Callable[[jax.Array], jax.Array]
+"""``jinv_fn(q (n,)) -> (n, m)``: the inverse Jacobian the controller uses at ``q``."""
 
 
 class JinvSource(Protocol):
@@ -38,7 +39,6 @@ class JinvSource(Protocol):
     call per step (:class:`Fixed`, :class:`JacobianInverse`, :class:`FromFunction` or a user's own)."""
 
     def pose_and_jinv(self, system: System, q) -> tuple[tuple[jax.Array, jax.Array], jax.Array]: ...
-"""``jinv_fn(q (n,)) -> (n, m)``: the inverse Jacobian the controller uses at ``q``."""
 
 
 class ControllerParams(NamedTuple):

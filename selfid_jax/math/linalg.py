@@ -180,17 +180,16 @@ def newton_root(residual, y0, args, *, rtol: float, atol: float, max_steps: int)
         return jax.jacfwd(lambda y_: (lambda r: (r, r))(residual(y_, args)), has_aux=True)(y)
 
     def body(c):
-        k, y, _, _, passed, _ = c
+        k, y, _, passed, _ = c
         F_y, F = evaluate(y)
         stop = passed | (k >= max_steps) | ~jnp.all(jnp.isfinite(y))
         dy = jnp.linalg.solve(F_y, F)
         y_new = y - dy
         small = (jnp.max(jnp.abs(dy) / (atol + rtol * jnp.abs(y_new))) < 1) & (jnp.max(jnp.abs(F)) < atol)
-        return (jnp.where(stop, k, k + 1), jnp.where(stop, y, y_new), F, F_y, jnp.where(stop, passed, small), stop)
+        return jnp.where(stop, k, k + 1), jnp.where(stop, y, y_new), F_y, jnp.where(stop, passed, small), stop
 
-    k0 = jnp.zeros((), jnp.int32)
-    init = (k0, y0, jnp.zeros_like(y0), jnp.zeros(y0.shape * 2, y0.dtype), jnp.zeros((), bool), jnp.zeros((), bool))
-    _, y, _, F_y, passed, _ = jax.lax.while_loop(lambda c: ~c[5], body, init)
+    init = (jnp.zeros((), jnp.int32), y0, jnp.zeros(y0.shape * 2, y0.dtype), jnp.zeros((), bool), jnp.zeros((), bool))
+    _, y, F_y, passed, _ = jax.lax.while_loop(lambda c: ~c[4], body, init)
     return y, F_y, passed & jnp.all(jnp.isfinite(y))
 
 

@@ -202,12 +202,10 @@ class ModelOKinematicPose:
         """``(y (21,), F_y (21, 21), ok ())``: unknowns, the equations' Jacobian there, the validity flag."""
         P = params
         q = jnp.asarray(q, P.q_home.dtype)
-        # The solve sees no tangents: derivatives come from implicit_root (no host callback in the program).
-        Ps, qs = jax.lax.stop_gradient((P, q))
-        y0 = Ps.y_home + Ps.dy_dq @ (qs - Ps.q_home)
-        ys, F_y, ok = newton_root(_residual, y0, (Ps, qs), rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
-        ok = (ok & jnp.all((qs >= Ps.safe_low) & (qs <= Ps.safe_high))
-              & (tilt_angle(_pose(Ps, ys)[1]) <= Ps.max_tilt))
+        # newton_root passes no tangents: derivatives come from implicit_root (no host callback in the program)
+        y0 = P.y_home + P.dy_dq @ (q - P.q_home)
+        ys, F_y, ok = newton_root(_residual, y0, (P, q), rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
+        ok = ok & jnp.all((q >= P.safe_low) & (q <= P.safe_high)) & (tilt_angle(_pose(P, ys)[1]) <= P.max_tilt)
         if self.check_stability:
             ok = ok & _stable(ys, F_y)
         return implicit_root(_residual, ys, (P, q), F_y), F_y, ok

@@ -170,7 +170,7 @@ class StewartKinematicPose:
         dt = jnp.result_type(q, params.a)
         x0 = jnp.zeros(6, dt)
         args = (params, q.astype(dt))
-        # The solve sees no tangents: derivatives come from implicit_root (no host callback in the program).
+        # newton_root passes no tangents: derivatives come from implicit_root (no host callback in the program)
         x, F_x, converged = newton_root(_residual, x0, args, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps)
         x = implicit_root(_residual, x, args, F_x)
         p, R = _pose(params, x)
