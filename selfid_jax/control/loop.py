@@ -190,30 +190,40 @@ def waypoint_poses(path, pose0, axes: tuple[int, ...]):
 
 
 class _Task(NamedTuple):
-    """Waypoints in task space: the task's position components and, where it has them, target orientations."""
+    """Waypoints in task space, anchored at the start pose ``(p0, R0)``: the task's position components and, where
+    it has them, target orientations. Each is computed where it is read (one waypoint per step), so the anchor can
+    be the first pose the loop senses."""
 
-    targets: jax.Array  # (W, P) waypoint positions along the task's P position axes [m]
-    vertices: jax.Array  # (W + 1, P) path polyline, start pose first [m]
-    target_R: jax.Array  # (W, 3, 3) waypoint orientations; (W, 0, 0) without rotation in the task
+    offsets: jax.Array  # (W, 6) waypoint offsets [dp (m), rotation vector (rad)], 0 outside the task
+    p0: jax.Array  # (3,) start position [m]
+    R0: jax.Array  # (3, 3) start orientation
     pos_axes: tuple[int, ...]  # static: the task's position components (0-2)
     rot_axes: tuple[int, ...]  # static: the task's rotation-vector components (0-2)
 
     @staticmethod
-    def make(path, pose0, system: System) -> _Task:
-        pos, rot = system.position_axes, system.rotation_axes
-        p_goal, R_goal = waypoint_poses(path, pose0, system.axes)
-        targets = p_goal[:, list(pos)]
-        vertices = jnp.concatenate([pose0[0][None, list(pos)], targets], axis=0)
-        target_R = R_goal if rot else jnp.zeros((path.shape[0], 0, 0), path.dtype)
-        return _Task(targets, vertices, target_R, pos, rot)
+    def offsets_of(path, system: System):
+        """``(W, 6)`` offsets of waypoint rows ``path (W, task_dim)`` along the system's task components."""
+        return jnp.zeros((path.shape[0], 6), path.dtype).at[:, jnp.asarray(system.axes)].set(path)
+
+    @property
+    def targets(self):
+        """``(W, P)`` waypoint positions along the task's P position axes [m]."""
+        return self.positions(self.p0)[None, :] + self.positions(self.offsets[:, :3])
+
+    @property
+    def vertices(self):
+        """``(W + 1, P)`` path polyline, start pose first [m]."""
+        return jnp.concatenate([self.positions(self.p0)[None, :], self.targets], axis=0)
 
     def error(self, pose, w):
         """``(e_p (P,), e_r (R,))`` from ``pose`` to waypoint ``w`` (clamped to the last), task components only."""
         p, R = pose
-        wc = jnp.minimum(w, self.targets.shape[0] - 1)
-        e_p = self.targets[wc] - self.positions(p)
-        e_r = geometry.so3_log(self.target_R[wc] @ R.T)[jnp.asarray(self.rot_axes)] if self.rot_axes else e_p[:0]
-        return e_p, e_r
+        wc = jnp.minimum(w, self.offsets.shape[0] - 1)
+        e_p = (self.positions(self.p0) + self.positions(self.offsets[wc, :3])) - self.positions(p)
+        if not self.rot_axes:
+            return e_p, e_p[:0]
+        target_R = geometry.so3_exp(self.offsets[wc, 3:]) @ self.R0
+        return e_p, geometry.so3_log(target_R @ R.T)[jnp.asarray(self.rot_axes)]
 
     def positions(self, p):
         """The task's position components of ``p (..., 3)``: ``(..., P)``."""
@@ -231,7 +241,8 @@ class _Task(NamedTuple):
         """Distance of position ``p`` to the path polyline along the task's position axes [m] (0 without any)."""
         if not self.pos_axes:
             return jnp.zeros((), p.dtype)
-        return jnp.min(_segment_distance(self.positions(p), self.vertices[:-1], self.vertices[1:]))
+        v = self.vertices
+        return jnp.min(_segment_distance(self.positions(p), v[:-1], v[1:]))
 
 
 # ------------------------------------------------------------------ step laws
@@ -294,12 +305,14 @@ class _Carry(NamedTuple):
     tracker: realism_lib.Tracker | None = None  # with realism: the tracker's history and last good reading
     dropouts: jax.Array | None = None  # with realism: () int32 readings that dropped out over the active steps
     plant: Any = None  # with a plant: its state (e.g. an mjx.Data); q is its measured actuator positions
+    anchor: Any = None  # (p (3,), R (3, 3)) the start pose, which the path's offsets are taken from
+    pose: Any = None  # (p (3,), R (3, 3)) the true pose sensed last
 
 
 def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams, true_pose=None):
     """Mark the current waypoint reached if ``pose`` (what the controller sees) is within tolerance, recording the
     position error of ``true_pose`` (default ``pose``) then; returns ``(carry, active)``."""
-    W = task.targets.shape[0]
+    W = task.offsets.shape[0]
     active = (carry.waypoint < W) & ~carry.failed
     e_p, e_r = task.error(pose, carry.waypoint)
     reached = active & task.reached(e_p, e_r, ctrl)
@@ -405,11 +418,11 @@ def follow_law(
     q0 = jnp.asarray(q0, dtype)
     path = jnp.asarray(path, dtype)
     W = path.shape[0]
-    pose0 = system.pose(q0)
-    task = _Task.make(path, pose0, system)
+    offsets = _Task.offsets_of(path, system)
+    pos_axes, rot_axes = system.position_axes, system.rotation_axes
     ctrl = controller
     if ctrl.diverge_dist is None:
-        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(task.pos_axes)] ** 2, axis=-1)))
+        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(pos_axes)] ** 2, axis=-1)))
         ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
     realism_lib.check_plant(plant, system.n_act)
     if plant is not None and realism is None:
@@ -435,8 +448,24 @@ def follow_law(
         seen, dropped, tr = realism_lib.read(tr, k, r)
         return seen, carry._replace(tracker=tr), dropped
 
-    def step(carry: _Carry, k):
+    def where(c, a, b):
+        return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
+
+    # The pose map is evaluated at one place in the loop (on a closed-chain hand each place is a Newton solve
+    # compiled again): iteration 0 senses the start pose, which anchors the path, and the last iteration
+    # (i = steps) only senses the end pose, for the controller's last reading and the end metrics.
+    def step(carry: _Carry, xs):
+        i, k = xs
         pose, aux = law.sense(carry.law, carry.q)
+        first, last = i == 0, i == steps
+        carry = carry._replace(
+            anchor=where(first, pose, carry.anchor), pose=pose,
+            # an unsolvable start pose: failed from the start, finite metrics
+            failed=carry.failed | (first & ~jnp.all(jnp.isfinite(pose[0]))),
+        )
+        if real:
+            carry = carry._replace(tracker=where(first, realism_lib.tracker(pose, history), carry.tracker))
+        task = _Task(offsets, carry.anchor[0], carry.anchor[1], pos_axes, rot_axes)
         dist = task.path_distance(pose[0])
         seen, carry, dropped = see(carry, pose, k)
         carry, active = _advance(task, carry, seen, ctrl, pose if real else None)
@@ -452,12 +481,13 @@ def follow_law(
             q_new = realism_lib.servo(carry.q, q_new, r)
         # a pose map returns NaN where its solve failed (closed-chain hands): that fails the rollout too
         finite = jnp.all(jnp.isfinite(q_new)) & ok & jnp.all(jnp.isfinite(pose[0]))
+        active = active & ~last
         failed = carry.failed | (active & (~finite | (dist > ctrl.diverge_dist)))
         move = active & ~failed
         counted = jnp.where(active & jnp.isfinite(dist), dist, 0.0)
         carry = carry._replace(
             q=jnp.where(move, q_new, carry.q),
-            law=jax.tree.map(lambda a, b: jnp.where(move, a, b), learned, carry.law),
+            law=where(move, learned, carry.law),
             failed=failed,
             err_sum=carry.err_sum + counted,
             err_max=jnp.maximum(carry.err_max, counted),
@@ -466,32 +496,34 @@ def follow_law(
         if real:
             carry = carry._replace(dropouts=carry.dropouts + (active & dropped).astype(jnp.int32))
         if plant is not None:
-            carry = carry._replace(plant=jax.tree.map(lambda a, b: jnp.where(move, a, b), x_new, carry.plant))
+            carry = carry._replace(plant=where(move, x_new, carry.plant))
         out = None
         if return_trajectory:
             out = (pose, carry.waypoint, seen[0]) if real else (pose, carry.waypoint)
         return carry, out
 
+    law0 = law.init(q0)
+    pose_shape = jax.eval_shape(law.sense, law0, q0)[0]
+    pose_init = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), pose_shape)  # replaced by iteration 0's
     init = _Carry(
         q=q0,
-        law=law.init(q0),
+        law=law0,
         waypoint=jnp.zeros((), jnp.int32),
-        # traced NaN input or an unsolvable start pose: failed from the start, finite metrics
-        failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path)) & jnp.all(jnp.isfinite(pose0[0]))),
+        # traced NaN input: failed from the start, finite metrics
+        failed=~(jnp.all(jnp.isfinite(q0)) & jnp.all(jnp.isfinite(path))),
         err_sum=jnp.zeros((), dtype),
         err_max=jnp.zeros((), dtype),
         used=jnp.zeros((), jnp.int32),
         wp_err=jnp.full((W,), -1.0, dtype),
-        tracker=realism_lib.tracker(pose0, history) if real else None,
+        tracker=realism_lib.tracker(pose_init, history) if real else None,
         dropouts=jnp.zeros((), jnp.int32) if real else None,
         plant=None if plant is None else plant.init(q0),
+        anchor=pose_init,
+        pose=pose_init,
     )
-    carry, traj = jax.lax.scan(step, init, None if keys is None else keys[:-1], length=steps)
-    pose_end = system.pose(carry.q)
-    # the last move may have reached a waypoint (as the controller sees it: one more reading)
-    seen_end, carry, _ = see(carry, pose_end, None if keys is None else keys[-1])
-    carry, _ = _advance(task, carry, seen_end, ctrl, pose_end if real else None)
-    end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(pose_end[0])[None]) ** 2, axis=-1))
+    carry, traj = jax.lax.scan(step, init, (jnp.arange(steps + 1), keys), length=steps + 1)
+    task = _Task(offsets, carry.anchor[0], carry.anchor[1], pos_axes, rot_axes)
+    end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(carry.pose[0])[None]) ** 2, axis=-1))
     wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
     result = FollowResult(
         completion=carry.waypoint.astype(dtype) / W,
@@ -501,11 +533,11 @@ def follow_law(
         steps_used=carry.used,
         failed=carry.failed,
         final_q=carry.q,
-        positions=jnp.concatenate([traj[0][0], pose_end[0][None, :]], axis=0) if return_trajectory else None,
-        orientations=jnp.concatenate([traj[0][1], pose_end[1][None]], axis=0) if return_trajectory else None,
-        targets=jnp.concatenate([traj[1], carry.waypoint[None]]) if return_trajectory else None,
+        positions=traj[0][0] if return_trajectory else None,
+        orientations=traj[0][1] if return_trajectory else None,
+        targets=traj[1] if return_trajectory else None,
         dropouts=carry.dropouts,
-        readings=jnp.concatenate([traj[2], seen_end[0][None, :]], axis=0) if return_trajectory and real else None,
+        readings=traj[2] if return_trajectory and real else None,
     )
     return result, carry.law
 
