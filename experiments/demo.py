@@ -113,17 +113,6 @@ class Outputs(NamedTuple):
     positions_true: jax.Array  # (steps + 1, 3) [m]
 
 
-class _EstimateOrTruth(NamedTuple):
-    """The controller's inverse Jacobian: ``estimate (n, m)``, or the true ``pinv(J(q))`` where ``use_true ()``."""
-
-    estimate: jax.Array
-    use_true: jax.Array
-
-    def pose_and_jinv(self, system: System, q):
-        pose, J = system.pose_and_jacobian(q)
-        return pose, jnp.where(self.use_true, pseudo_inverse(J), self.estimate)
-
-
 def compute(static: Static, p: Params) -> Outputs:
     """Self-ID from ``p.q0``, then the star from where self-ID ended, with the estimate and with the truth."""
     system = static.system
@@ -132,8 +121,8 @@ def compute(static: Static, p: Params) -> Outputs:
     q_start = sid.env  # follow from where self-ID left the arm
     # Both stars in one vmapped rollout, and J and its inverse from one evaluation: on a closed-chain hand each
     # place the pose map is evaluated is a Newton solve compiled again (the Model O program: 5 places, was 10).
-    both = jax.vmap(lambda use_true: control.follow(system, _EstimateOrTruth(sid.estimate, use_true), static.path,
-                                                    q_start, p.controller, steps=static.steps,
+    both = jax.vmap(lambda use_true: control.follow(system, control.estimate_or_true(sid.estimate, use_true),
+                                                    static.path, q_start, p.controller, steps=static.steps,
                                                     return_trajectory=True))(jnp.array([False, True]))
     est, true = (jax.tree.map(lambda x, k=k: x[k], both) for k in (0, 1))
     J = system.jacobian(q_start)

@@ -201,20 +201,21 @@ def compute(static: Static, p: Params) -> Outputs:
         return control.follow(part, src, path, q, ctrl, steps=steps, realism=p.realism, key=key,
                               max_latency=static.max_latency)
 
-    def pipeline(estimated: bool, key):
+    def pipeline(use_true, key):
+        """One of the two lanes (``use_true`` False: the self-ID estimates; True: the true inverse Jacobians),
+        vmapped as one program, so the hand's pose map (a Newton solve) is compiled once for both."""
         k_grasp, k_tilt, k_insert = (jax.random.fold_in(key, i) for i in (1, 2, 3))
-        arm_src = control.fixed(sid_arm.estimate) if estimated else control.true_inverse(arm0)
-        grasp = follow(arm0, arm_src, jnp.concatenate([p.grasp, zeros3])[None], sid_arm.env, p.arm_ctrl,
-                       static.arm_steps, k_grasp)
-        grasp_pose = arm0.pose(grasp.final_q)
+        grasp = follow(arm0, control.estimate_or_true(sid_arm.estimate, use_true),
+                       jnp.concatenate([p.grasp, zeros3])[None], sid_arm.env, p.arm_ctrl, static.arm_steps, k_grasp)
+        grasp_pose = grasp.final_pose
         hand = compose.hand_part(system, grasp.final_q, task_axes=HAND_AXES)
         sid_hand, hand_drop = realistic.self_identify(hand, key, p.q_hand, iters=static.hand_iters, eps=p.hand_eps,
                                                       eps_rel=p.hand_eps_rel, m_a=p.hand_m_a, pose_noise=p.pose_noise,
                                                       rot_noise=p.rot_noise, **real)
-        hand_src = control.fixed(sid_hand.estimate) if estimated else control.true_inverse(hand)
-        tilt = follow(hand, hand_src, static.rotation, sid_hand.env, p.hand_ctrl, static.hand_steps, k_tilt)
-        R_goal = control.waypoint_poses(static.rotation, hand.pose(sid_hand.env), hand.axes)[1][-1]
-        R_now = hand.pose(tilt.final_q)[1]
+        tilt = follow(hand, control.estimate_or_true(sid_hand.estimate, use_true), static.rotation, sid_hand.env,
+                      p.hand_ctrl, static.hand_steps, k_tilt)
+        R_goal = control.waypoint_poses(static.rotation, tilt.start_pose, hand.axes)[1][-1]
+        R_now = tilt.final_pose[1]
         w = geometry.so3_log(R_goal @ R_now.T)[:2]  # the hand task's rotation components (rx, ry)
         hand_rot = jnp.degrees(jnp.sqrt(jnp.sum(w * w)))
         arm1 = compose.arm_part(system, tilt.final_q)
@@ -222,9 +223,9 @@ def compute(static: Static, p: Params) -> Outputs:
         target = grasp_pose[0] + jnp.concatenate([p.hole, zeros3[:1]])  # the hole at the grasp height
         up = jnp.stack([zeros3.at[2].set(p.lift), target - p1 + zeros3.at[2].set(p.lift), target - p1])
         insert_path = jnp.concatenate([up, jnp.zeros_like(up)], axis=1)
-        arm_src1 = control.fixed(sid_arm.estimate) if estimated else control.true_inverse(arm1)
-        insert = follow(arm1, arm_src1, insert_path, grasp.final_q, p.arm_ctrl, static.arm_steps, k_insert)
-        p_end, R_end = arm1.pose(insert.final_q)
+        insert = follow(arm1, control.estimate_or_true(sid_arm.estimate, use_true), insert_path, grasp.final_q,
+                        p.arm_ctrl, static.arm_steps, k_insert)
+        p_end, R_end = insert.final_pose
         pos_mm = 1e3 * jnp.sqrt(jnp.sum((p_end - target) ** 2))
         w_end = geometry.so3_log(R1 @ R_end.T)
         rot_deg = jnp.degrees(jnp.sqrt(jnp.sum(w_end * w_end)))
@@ -233,15 +234,15 @@ def compute(static: Static, p: Params) -> Outputs:
         return (sid_hand.converged_at, grasp.completion, tilt.completion, insert.completion, hand_rot, pos_mm, rot_deg,
                 failed, jnp.stack([grasp_pose[0], p1, p_end])), drops
 
-    (est, est_drops), (true, true_drops) = pipeline(True, k_est), pipeline(False, k_true)
-    (hand_conv, g, h, i, hr, pm, rd, failed, pos) = [jnp.stack([a, b]) for a, b in zip(est, true)]
+    # INVERSES' order: the estimates, then the truth
+    (hand_conv, g, h, i, hr, pm, rd, failed, pos), drops = jax.vmap(pipeline)(jnp.array([False, True]),
+                                                                             jnp.stack([k_est, k_true]))
     safe = lambda x: jnp.where(failed, 0.0, x)  # noqa: E731 - metrics of failed pipelines are not read
     out = Outputs(sid_arm.converged_at, hand_conv, g, h, i, safe(hr), safe(pm), safe(rd),
                   ~failed & (i >= 1.0) & (pm <= static.insert_tol_mm) & (rd <= static.insert_rot_tol_deg), failed, pos)
     if p.realism is None:
         return out
-    return out._replace(arm_selfid_dropouts=arm_drop, hand_selfid_dropouts=jnp.stack([est_drops[0], true_drops[0]]),
-                        dropouts=jnp.stack([est_drops[1], true_drops[1]]))
+    return out._replace(arm_selfid_dropouts=arm_drop, hand_selfid_dropouts=drops[0], dropouts=drops[1])
 
 
 def build(cfg: PegConfig) -> Part:

@@ -107,6 +107,32 @@ def test_steps_and_errors_match_closed_form_on_identity_system():
     assert max_err > 1e-3
 
 
+def test_estimate_or_true_lanes_are_fixed_and_true_inverse_and_the_result_holds_its_poses():
+    """vmapped over ``use_true``, one program gives the fixed-estimate rollout and the true-inverse rollout (each
+    equal to its own source's to round-off); ``start_pose``/``final_pose`` are the pose map at ``q0``/``final_q``."""
+    arm = two_link()
+    q0 = jnp.array([0.4, 1.2])
+    path = paths.star(size=0.05, dim=2)
+    est = 1.1 * arm.true_inverse_jacobian(q0)
+
+    @chex.assert_max_traces(n=1)
+    def both(est, q0):
+        return jax.vmap(lambda t: control.follow(arm, control.estimate_or_true(est, t), path, q0, CTRL,
+                                                 steps=120))(jnp.array([False, True]))
+
+    lanes = jax.jit(both)(est, q0)
+    for lane, src in ((0, control.fixed(est)), (1, control.true_inverse(arm))):
+        alone = control.follow(arm, src, path, q0, CTRL, steps=120)
+        for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(jax.tree.map(lambda x, i=lane: x[i], lanes)),
+                        strict=True):
+            np.testing.assert_allclose(np.asarray(a, float), np.asarray(b, float), rtol=1e-12, atol=1e-12)
+        for got, q in ((alone.start_pose, q0), (alone.final_pose, alone.final_q)):
+            p, R = arm.pose(q)
+            np.testing.assert_allclose(got[0], p, atol=1e-12)
+            np.testing.assert_allclose(got[1], R, atol=1e-12)
+    assert float(lanes.completion[1]) == 1.0 and float(lanes.mean_error[0]) != float(lanes.mean_error[1])
+
+
 @pytest.mark.slow
 def test_divergent_and_singular_cases_fail_with_finite_metrics():
     arm = two_link()

@@ -2,7 +2,7 @@
 
 ``selfid_jax.control`` re-exports the follow loop (:mod:`~selfid_jax.control.loop`):
 ``follow``, ``ControllerParams``, ``FollowResult``, the inverse-Jacobian sources
-(``fixed``, ``true_inverse``, ``scaled_true_inverse``), ``feasible_starts``, and
+(``fixed``, ``true_inverse``, ``scaled_true_inverse``, ``estimate_or_true``), ``feasible_starts``, and
 the one loop under them with a pluggable step law (``follow_law``, ``StepLaw``,
 ``inverse_jacobian_law``; the QP law is :func:`selfid_jax.control.qp.constrained_law`).
 """
@@ -10,6 +10,7 @@ the one loop under them with a pluggable step law (``follow_law``, ``StepLaw``,
 from selfid_jax.control.loop import (
     DEFAULT_STEPS,
     ControllerParams,
+    EstimateOrTrue,
     Fixed,
     FollowResult,
     FromFunction,
@@ -17,6 +18,7 @@ from selfid_jax.control.loop import (
     StepLaw,
     clip_norm,
     completed,
+    estimate_or_true,
     feasible_indices,
     feasible_starts,
     fixed,
@@ -32,6 +34,7 @@ from selfid_jax.control.loop import (
 __all__ = [
     "DEFAULT_STEPS",
     "ControllerParams",
+    "EstimateOrTrue",
     "Fixed",
     "FollowResult",
     "FromFunction",
@@ -39,6 +42,7 @@ __all__ = [
     "StepLaw",
     "clip_norm",
     "completed",
+    "estimate_or_true",
     "feasible_indices",
     "feasible_starts",
     "fixed",

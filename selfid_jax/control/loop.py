@@ -79,6 +79,11 @@ class FollowResult(NamedTuple):
     # with realism and return_trajectory: (steps + 1, 3) tracker positions the controller used at each of those
     # poses [m]; None otherwise
     readings: jax.Array | None = None
+    # the true POM pose (p (3,) [m], R (3, 3)) at the start and at final_q, as the loop sensed them (no second
+    # evaluation of the pose map: on a closed-chain hand each is a Newton solve); None where a caller built the
+    # result without them
+    start_pose: tuple[jax.Array, jax.Array] | None = None
+    final_pose: tuple[jax.Array, jax.Array] | None = None
 
 
 # ------------------------------------------------------------------ inverse-Jacobian sources
@@ -121,6 +126,27 @@ class FromFunction(NamedTuple):
 
     def pose_and_jinv(self, system: System, q):
         return system.pose(q), self.fn(q)
+
+
+class EstimateOrTrue(NamedTuple):
+    """The constant ``estimate (n, m)``, or the true ``pinv(J(q))`` where ``use_true ()`` (a traced bool).
+
+    One program for both: ``vmap`` over ``use_true`` follows with an estimate and with the truth side by side,
+    so the pose map is compiled once for the two (on a closed-chain hand each place it is evaluated is a Newton
+    solve). Pose and Jacobian come from one kinematics pass either way.
+    """
+
+    estimate: jax.Array
+    use_true: jax.Array
+
+    def pose_and_jinv(self, system: System, q):
+        pose, J = system.pose_and_jacobian(q)
+        return pose, jnp.where(self.use_true, pseudo_inverse(J), self.estimate)
+
+
+def estimate_or_true(estimate, use_true) -> EstimateOrTrue:
+    """``estimate (n, m)`` where ``use_true ()`` is False, the system's true inverse Jacobian where it is True."""
+    return EstimateOrTrue(jnp.asarray(estimate), jnp.asarray(use_true, bool))
 
 
 def fixed(J) -> Fixed:
@@ -538,6 +564,8 @@ def follow_law(
         targets=traj[1] if return_trajectory else None,
         dropouts=carry.dropouts,
         readings=traj[2] if return_trajectory and real else None,
+        start_pose=carry.anchor,
+        final_pose=carry.pose,
     )
     return result, carry.law
 
@@ -572,7 +600,8 @@ def follow(
     Args:
       system: the :class:`~selfid_jax.systems.System`.
       jinv: where ``Jinv (n, m)`` comes from: :func:`fixed`,
-        :func:`true_inverse`, :func:`scaled_true_inverse`, any object with
+        :func:`true_inverse`, :func:`scaled_true_inverse`,
+        :func:`estimate_or_true`, any object with
         ``pose_and_jinv(system, q)``, or a plain ``jinv_fn(q) -> (n, m)``.
       path: waypoint offsets from the start pose (:mod:`selfid_jax.control.paths`):
         positions [m] added to the start position, rotation vectors ``r``
