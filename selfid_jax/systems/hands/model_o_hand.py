@@ -347,12 +347,15 @@ def load_model_o_params(path: str = MODEL_O_XML, *, safe_range=MODEL_O_SAFE_RANG
 def _grasp_solution(P, theta0):
     """Unknowns ``(21,)`` at ``P.q_home`` from the keyframe joints ``theta0 (3, 2)``, an ok flag, ``dy/dq (21, 3)``."""
     q = P.q_home
-    y = jnp.concatenate([theta0.ravel(), jnp.zeros(15, theta0.dtype)])  # object at its keyframe pose
-    A = jax.jacfwd(lambda lam: _residual(y.at[12:].set(lam), (P, q))[:12])(jnp.zeros(9, y.dtype))
-    y = y.at[12:].set(jnp.linalg.lstsq(A, -_residual(y, (P, q))[:12])[0])  # multipliers: least-squares balance
+    y = jnp.concatenate([theta0.ravel(), jnp.zeros(15, theta0.dtype)])  # object at its keyframe pose (no forces)
+    # each residual evaluation is compiled again: value and derivative come from one jacfwd each
+    with_value = lambda f: jax.jacfwd(lambda x: (lambda r: (r, r))(f(x)), has_aux=True)  # noqa: E731
+    A, r0 = with_value(lambda lam: _residual(y.at[12:].set(lam), (P, q))[:12])(jnp.zeros(9, y.dtype))
+    y = y.at[12:].set(jnp.linalg.lstsq(A, -r0)[0])  # multipliers: least-squares balance
     y, F_y, ok = newton_root(_residual, y, (P, q), rtol=1e-13, atol=1e-13, max_steps=50)
-    ok = ok & (jnp.max(jnp.abs(_residual(y, (P, q)))) < 1e-9) & _stable(y, F_y)
-    return y, ok, -jnp.linalg.solve(F_y, jax.jacfwd(lambda q_: _residual(y, (P, q_)))(q))
+    F_q, r = with_value(lambda q_: _residual(y, (P, q_)))(q)
+    ok = ok & (jnp.max(jnp.abs(r)) < 1e-9) & _stable(y, F_y)
+    return y, ok, -jnp.linalg.solve(F_y, F_q)
 
 
 # ------------------------------------------------------------------ settled backends
