@@ -3,12 +3,13 @@
 Each config runs as a whole process (:func:`whole_process.measure`) twice: with
 an empty persistent compilation cache, then with the cache the first run left.
 Per config it prints the rows, the cold and warm wall seconds (interpreter
-start to exit), the cold run's seconds per compile stage (JAX's duration
-events: tracing, lowering to MLIR, XLA's backend compile; totals over every
-program) and its longest single XLA compile, against the goals of issue 27:
-no program compiles longer than 30 s, a small config's first result within
-60 s, a second run of a config compiling nothing (every program of the warm
-run read back from the cache).
+start to exit), the cold run's seconds to its first result (the first chunk
+file on disk, from the start of the script's ``main``), the cold run's seconds
+per compile stage (JAX's duration events: tracing, lowering to MLIR, XLA's
+backend compile; totals over every program) and its longest single XLA
+compile, against the goals of issue 27: no program compiles longer than 30 s,
+a config's first result within 60 s, a second run of a config compiling
+nothing (every program of the warm run read back from the cache).
 
     python benchmarks/compile_time.py [--configs NAME ...] [--json out.json]
 
@@ -54,7 +55,7 @@ def row(config: Path, timeout: int) -> dict:
                 trace_s=c["trace"]["total_s"], lower_s=c["lower"]["total_s"], xla_s=c["xla"]["total_s"],
                 xla_max_s=c["xla"]["max_s"], programs=c["xla"]["count"] - cold["cache_hits"],
                 warm_programs=warm["compile"]["xla"]["count"] - warm["cache_hits"],
-                run_s=cold["run_s"])
+                run_s=cold["run_s"], first_result_s=cold["first_chunk_s"])
 
 
 def main():
@@ -70,8 +71,8 @@ def main():
         except Exception as exc:  # noqa: BLE001  (one config's failure is reported, the rest still run)
             rows.append(dict(config=config.stem, error=str(exc).splitlines()[0][:200]))
         print(f"  {config.stem} done", file=sys.stderr, flush=True)
-    head = (f"{'config':<34} {'rows':>7} {'cold s':>7} {'warm s':>7} {'trace s':>8} {'lower s':>8} {'xla s':>7} "
-            f"{'longest':>8} {'progs':>5} {'warm progs':>10}  goals")
+    head = (f"{'config':<34} {'rows':>7} {'cold s':>7} {'first s':>7} {'warm s':>7} {'trace s':>8} {'lower s':>8} "
+            f"{'xla s':>7} {'longest':>8} {'progs':>5} {'warm progs':>10}  goals")
     lines = [head]
     for r in rows:
         if "error" in r:
@@ -80,11 +81,12 @@ def main():
         goals = []
         if r["xla_max_s"] > LONGEST_GOAL_S:
             goals.append(f"longest > {LONGEST_GOAL_S:g} s")
-        if r["cold_wall_s"] > FIRST_RESULT_GOAL_S:
+        if r["first_result_s"] > FIRST_RESULT_GOAL_S:
             goals.append(f"first result > {FIRST_RESULT_GOAL_S:g} s")
         if r["warm_programs"]:
             goals.append("warm run compiles")
-        lines.append(f"{r['config']:<34} {r['rows']:>7} {r['cold_wall_s']:>7.1f} {r['warm_wall_s']:>7.1f} "
+        lines.append(f"{r['config']:<34} {r['rows']:>7} {r['cold_wall_s']:>7.1f} {r['first_result_s']:>7.1f} "
+                     f"{r['warm_wall_s']:>7.1f} "
                      f"{r['trace_s']:>8.1f} {r['lower_s']:>8.1f} {r['xla_s']:>7.1f} {r['xla_max_s']:>8.1f} "
                      f"{r['programs']:>5} {r['warm_programs']:>10}  {'; '.join(goals) or 'met'}")
     lines.append(f"goals: longest XLA compile <= {LONGEST_GOAL_S:g} s; cold first result <= {FIRST_RESULT_GOAL_S:g} s; "

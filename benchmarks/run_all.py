@@ -162,9 +162,9 @@ def table(res: dict) -> list[dict]:
                  c["xla_max_s"] <= 30, f"cold {c['cold_wall_s']:.1f} s, warm {c['warm_wall_s']:.1f} s whole process; "
                  f"trace {c['trace_s']:.1f}, lower {c['lower_s']:.1f}, XLA {c['xla_s']:.1f} s; warm compiles "
                  f"{c['warm_programs']}")
-            _row(rows, "  ... first result, cold (whole process)", c["cold_wall_s"], "s", "<= 60",
-                 c["cold_wall_s"] <= 60, f"of which the sweep (its compile and compute) {c['run_s']:.1f} s"
-                 if c.get("run_s") is not None else "")
+            first = c.get("first_result_s", c["cold_wall_s"])
+            _row(rows, "  ... first result (first chunk on disk), cold", first, "s", "<= 60", first <= 60,
+                 f"whole run {c['cold_wall_s']:.1f} s, of which the sweep (its compile and compute) {c['run_s']:.1f} s")
     if "rollouts" in res:
         r = res["rollouts"]["result"]
         jax_rows = {k: v for k, v in r.items() if k.startswith("JAX")}

@@ -5,7 +5,8 @@ Run as a child process by :func:`measure` (``benchmarks/ablation.py``,
 package, loads the config (with ``--set`` overrides), runs the experiment into
 a temporary directory with JAX's persistent compilation cache in
 ``--cache-dir`` (empty: a cold start; reused: warm), and prints one JSON line:
-rows computed, the seconds spent in import / build / run inside the process,
+rows computed, the seconds spent in import / build / run inside the process and to the first chunk file
+on disk (the sweep's first result),
 the seconds of each compile stage (JAX's own duration events: ``trace`` to a
 jaxpr, ``lower`` to MLIR, ``xla`` backend compile; total, longest single one
 and count; a program read back from the cache has no ``xla`` entry), and the
@@ -48,6 +49,7 @@ def main():
     import argparse
     import resource
     import tempfile
+    import threading
 
     ap = argparse.ArgumentParser()
     ap.add_argument("config")
@@ -89,11 +91,25 @@ def main():
     parts = exp.parts(cfg)
     t_build = time.perf_counter()
     with tempfile.TemporaryDirectory() as out:
+        first_chunk: list[float] = []
+        done = threading.Event()
+
+        def watch():  # the first chunk file on disk: the sweep's first result
+            while not done.wait(0.05):
+                if next(Path(out).glob("**/chunks/chunk_*.parquet"), None) is not None:
+                    first_chunk.append(time.perf_counter())
+                    return
+
+        watcher = threading.Thread(target=watch, daemon=True)
+        watcher.start()
         df, summary = experiment.run(exp, cfg, out, fresh=True, parts=parts)
+        done.set()
+        watcher.join()
     t_run = time.perf_counter()
     print(json.dumps({
         "config": Path(args.config).name, "overrides": args.set, "rows": len(df),
         "import_s": t_import - t0, "build_s": t_build - t_import, "run_s": t_run - t_build,
+        "first_chunk_s": (first_chunk[0] if first_chunk else t_run) - t0,
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "compile": {stage: {"total_s": sum(v), "max_s": max(v, default=0.0), "count": len(v)}
                     for stage, v in compile_s.items()},
