@@ -113,19 +113,42 @@ class Outputs(NamedTuple):
     positions_true: jax.Array  # (steps + 1, 3) [m]
 
 
+def start_jacobian_law(system: System, estimate, use_true) -> control.StepLaw:
+    """:func:`control.inverse_jacobian_law` with :func:`control.estimate_or_true` (``dq = Jinv V``, the same
+    arithmetic), whose state keeps the Jacobian ``J (m, n)`` read at the first step: the true Jacobian where the
+    star starts, with no evaluation of the pose map outside the loop (on a closed-chain hand each place it is
+    evaluated is a Newton solve compiled again). The state is NaN if the rollout never moved."""
+    source = control.estimate_or_true(estimate, use_true)
+    n, m = system.n_act, system.task_dim
+
+    def init(q0):
+        return jnp.full((m, n), jnp.nan, q0.dtype), jnp.zeros((), bool)
+
+    def sense(state, q):
+        pose, J = system.pose_and_jacobian(q)
+        return pose, (J, jnp.where(source.use_true, pseudo_inverse(J), source.estimate))
+
+    def step(state, q, pose, aux, V):
+        J, Jinv = aux
+        J0, seen = state
+        return Jinv @ V, (jnp.where(seen, J0, J), jnp.ones((), bool)), jnp.all(jnp.isfinite(Jinv))
+
+    return control.StepLaw(init=init, sense=sense, step=step)
+
+
 def compute(static: Static, p: Params) -> Outputs:
     """Self-ID from ``p.q0``, then the star from where self-ID ended, with the estimate and with the truth."""
     system = static.system
     sid = selfid.run(system, jax.random.wrap_key_data(jnp.asarray(p.key)), p.q0, iters=static.iters, eps=p.eps,
                      eps_rel=p.eps_rel, m_a=p.m_a)
     q_start = sid.env  # follow from where self-ID left the arm
-    # Both stars in one vmapped rollout, and J and its inverse from one evaluation: on a closed-chain hand each
-    # place the pose map is evaluated is a Newton solve compiled again (the Model O program: 5 places, was 10).
-    both = jax.vmap(lambda use_true: control.follow(system, control.estimate_or_true(sid.estimate, use_true),
-                                                    static.path, q_start, p.controller, steps=static.steps,
-                                                    return_trajectory=True))(jnp.array([False, True]))
+    # Both stars in one vmapped rollout, J and its inverse from one evaluation, J where the star starts from the
+    # loop's first step: the pose map is evaluated at two places in this program (self-ID's and the loop's).
+    both, (J_start, _) = jax.vmap(lambda use_true: control.follow_law(
+        system, start_jacobian_law(system, sid.estimate, use_true), static.path, q_start, p.controller,
+        steps=static.steps, return_trajectory=True))(jnp.array([False, True]))
     est, true = (jax.tree.map(lambda x, k=k: x[k], both) for k in (0, 1))
-    J = system.jacobian(q_start)
+    J = J_start[1]  # the truth's lane (both lanes read the same J at the same start)
     truth = pseudo_inverse(J)
     return Outputs(
         q0=jnp.asarray(p.q0),

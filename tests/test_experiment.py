@@ -182,6 +182,36 @@ def test_demo_takes_any_system_from_a_config(tmp_path, capsys):
     assert (out / "figures" / "demo.png").stat().st_size > 1000
 
 
+def test_demo_law_is_the_inverse_jacobian_law_and_keeps_the_start_jacobian():
+    """The demo's step law moves as control.follow with estimate_or_true does, and its state is the Jacobian at
+    the start (MuJoCo-free closed form: the two-link arm's), read by the loop's first step."""
+    from selfid_jax import control
+    from selfid_jax.control import paths
+    from selfid_jax.experiments import demo
+    from selfid_jax.systems import two_link
+
+    arm, q0, path = two_link(), jnp.array([0.4, 1.2]), paths.star(size=0.05, dim=2)
+    est = 1.1 * arm.true_inverse_jacobian(q0)
+    ctrl = control.ControllerParams(max_step=0.004, tol=0.001)
+    l1, l2 = 1.0, 1.0  # the two-link arm's link lengths
+    s1, c1, s12, c12 = np.sin(0.4), np.cos(0.4), np.sin(1.6), np.cos(1.6)
+    J_closed = np.array([[-l1 * s1 - l2 * s12, -l2 * s12], [l1 * c1 + l2 * c12, l2 * c12]])
+
+    @chex.assert_max_traces(n=1)
+    def run(use_true):
+        return control.follow_law(arm, demo.start_jacobian_law(arm, est, use_true), path, q0, ctrl, steps=120)
+
+    lanes, (J0, seen) = jax.jit(jax.vmap(run))(jnp.array([False, True]))
+    for lane, use_true in enumerate((False, True)):
+        ref = control.follow(arm, control.estimate_or_true(est, use_true), path, q0, ctrl, steps=120)
+        got = jax.tree.map(lambda x, i=lane: x[i], lanes)
+        for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got), strict=True):
+            np.testing.assert_allclose(np.asarray(a, float), np.asarray(b, float), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(J0[lane], J_closed, rtol=1e-12, atol=1e-12)
+        assert bool(seen[lane])
+    assert float(lanes.completion[1]) == 1.0
+
+
 def planar_two_link(params, q):
     """Unit 2-link arm in the plane (for a pose_fn system spec)."""
     a = jnp.cumsum(q)
