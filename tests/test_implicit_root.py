@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selfid_jax.math.linalg import implicit_root, newton_root
+from selfid_jax.math.linalg import implicit_root, jacfwd_with_value, newton_root
 
 A = np.array([[3.0, 1.0, 0.0], [0.5, 2.0, 0.2], [0.0, 0.3, 4.0]])
 
@@ -143,3 +143,13 @@ def test_differentiated_hand_pose_has_no_host_callback(name):
     assert _host_callbacks(jax.jacfwd(pos), q) == 0
     assert _host_callbacks(jax.jacrev(pos), q) == 0
     assert _host_callbacks(lambda q_: jax.grad(lambda x: jnp.sum(pos(x) ** 2))(q_), q) == 0
+
+
+def test_jacfwd_with_value_is_the_closed_form_jacobian_and_value_under_jit_and_vmap():
+    """f(x) = (x0^2, x0 x1, sin x1): value and Jacobian ((2 x0, 0), (x1, x0), (0, cos x1)) from one call."""
+    f = lambda x: jnp.stack([x[0] ** 2, x[0] * x[1], jnp.sin(x[1])])  # noqa: E731
+    xs = jnp.array([[0.3, -1.2], [2.0, 0.5]])
+    J, v = jax.jit(jax.vmap(jacfwd_with_value(f)))(xs)
+    for x, Jx, vx in zip(np.asarray(xs), np.asarray(J), np.asarray(v)):
+        np.testing.assert_allclose(vx, [x[0] ** 2, x[0] * x[1], np.sin(x[1])], rtol=1e-14)
+        np.testing.assert_allclose(Jx, [[2 * x[0], 0.0], [x[1], x[0]], [0.0, np.cos(x[1])]], rtol=1e-14, atol=1e-15)

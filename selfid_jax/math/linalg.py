@@ -20,7 +20,8 @@ import jax.numpy as jnp
 from selfid_jax.math.kernels import ldl, small_matmul
 
 
-__all__ = ["default_rcond", "implicit_root", "newton_root", "pseudo_inverse", "psd_pinv", "small_inverse"]
+__all__ = ["default_rcond", "implicit_root", "jacfwd_with_value", "newton_root", "pseudo_inverse", "psd_pinv",
+           "small_inverse"]
 
 
 def pseudo_inverse(J):
@@ -148,6 +149,12 @@ def _spd_right_solve(B, A):
     return jnp.stack(y, axis=-1)
 
 
+def jacfwd_with_value(f):
+    """``x -> (df/dx (k, n), f(x) (k,))`` for ``f: (n,) -> (k,)``: the value from the same forward-mode pass as the
+    Jacobian, so a compiled program holds one copy of ``f`` where a separate ``f(x)`` would add a second."""
+    return jax.jacfwd(lambda x: (lambda r: (r, r))(f(x)), has_aux=True)
+
+
 def newton_root(residual, y0, args, *, rtol: float, atol: float, max_steps: int):
     """Newton's method for ``residual(y, args) = 0`` from ``y0``: ``(y (k,), F_y (k, k), converged ())``.
 
@@ -177,7 +184,7 @@ def newton_root(residual, y0, args, *, rtol: float, atol: float, max_steps: int)
     y0, args = jax.lax.stop_gradient((jnp.asarray(y0), args))
 
     def evaluate(y):
-        return jax.jacfwd(lambda y_: (lambda r: (r, r))(residual(y_, args)), has_aux=True)(y)
+        return jacfwd_with_value(lambda y_: residual(y_, args))(y)
 
     def body(c):
         k, y, _, passed, _ = c

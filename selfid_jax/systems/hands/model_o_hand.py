@@ -47,7 +47,7 @@ import numpy as np
 
 from selfid_jax.math import geometry
 from selfid_jax.math.kernels import small_matmul, small_sum
-from selfid_jax.math.linalg import implicit_root, newton_root
+from selfid_jax.math.linalg import implicit_root, jacfwd_with_value, newton_root
 from selfid_jax.systems.hands import settle
 from selfid_jax.systems.system import System, make_system
 from selfid_jax.systems.validation import Limits
@@ -349,11 +349,10 @@ def _grasp_solution(P, theta0):
     q = P.q_home
     y = jnp.concatenate([theta0.ravel(), jnp.zeros(15, theta0.dtype)])  # object at its keyframe pose (no forces)
     # each residual evaluation is compiled again: value and derivative come from one jacfwd each
-    with_value = lambda f: jax.jacfwd(lambda x: (lambda r: (r, r))(f(x)), has_aux=True)  # noqa: E731
-    A, r0 = with_value(lambda lam: _residual(y.at[12:].set(lam), (P, q))[:12])(jnp.zeros(9, y.dtype))
+    A, r0 = jacfwd_with_value(lambda lam: _residual(y.at[12:].set(lam), (P, q))[:12])(jnp.zeros(9, y.dtype))
     y = y.at[12:].set(jnp.linalg.lstsq(A, -r0)[0])  # multipliers: least-squares balance
     y, F_y, ok = newton_root(_residual, y, (P, q), rtol=1e-13, atol=1e-13, max_steps=50)
-    F_q, r = with_value(lambda q_: _residual(y, (P, q_)))(q)
+    F_q, r = jacfwd_with_value(lambda q_: _residual(y, (P, q_)))(q)
     ok = ok & (jnp.max(jnp.abs(r)) < 1e-9) & _stable(y, F_y)
     return y, ok, -jnp.linalg.solve(F_y, F_q)
 
