@@ -216,40 +216,39 @@ def waypoint_poses(path, pose0, axes: tuple[int, ...]):
 
 
 class _Task(NamedTuple):
-    """Waypoints in task space, anchored at the start pose ``(p0, R0)``: the task's position components and, where
-    it has them, target orientations. Each is computed where it is read (one waypoint per step), so the anchor can
-    be the first pose the loop senses."""
+    """Waypoints in task space, taken from the start pose ``pose0`` (:func:`waypoint_poses`): the task's position
+    components and, where it has them, target orientations. Each goal is formed where it is read (one waypoint per
+    step), so the start pose can be the first pose the loop senses."""
 
-    offsets: jax.Array  # (W, 6) waypoint offsets [dp (m), rotation vector (rad)], 0 outside the task
-    p0: jax.Array  # (3,) start position [m]
-    R0: jax.Array  # (3, 3) start orientation
+    path: jax.Array  # (W, task_dim) waypoint offsets along the task components `axes`
+    pose0: tuple[jax.Array, jax.Array]  # (p0 (3,), R0 (3, 3)) the start pose [m, rotation matrix]
+    axes: tuple[int, ...]  # static: the task components (indices into [dp, rotation vector])
     pos_axes: tuple[int, ...]  # static: the task's position components (0-2)
     rot_axes: tuple[int, ...]  # static: the task's rotation-vector components (0-2)
 
     @staticmethod
-    def offsets_of(path, system: System):
-        """``(W, 6)`` offsets of waypoint rows ``path (W, task_dim)`` along the system's task components."""
-        return jnp.zeros((path.shape[0], 6), path.dtype).at[:, jnp.asarray(system.axes)].set(path)
+    def make(path, pose0, system: System) -> _Task:
+        return _Task(path, pose0, system.axes, system.position_axes, system.rotation_axes)
 
     @property
     def targets(self):
         """``(W, P)`` waypoint positions along the task's P position axes [m]."""
-        return self.positions(self.p0)[None, :] + self.positions(self.offsets[:, :3])
+        return self.positions(waypoint_poses(self.path, self.pose0, self.axes)[0])
 
     @property
     def vertices(self):
         """``(W + 1, P)`` path polyline, start pose first [m]."""
-        return jnp.concatenate([self.positions(self.p0)[None, :], self.targets], axis=0)
+        return jnp.concatenate([self.positions(self.pose0[0])[None, :], self.targets], axis=0)
 
     def error(self, pose, w):
         """``(e_p (P,), e_r (R,))`` from ``pose`` to waypoint ``w`` (clamped to the last), task components only."""
         p, R = pose
-        wc = jnp.minimum(w, self.offsets.shape[0] - 1)
-        e_p = (self.positions(self.p0) + self.positions(self.offsets[wc, :3])) - self.positions(p)
+        wc = jnp.minimum(w, self.path.shape[0] - 1)
+        p_goal, R_goal = waypoint_poses(self.path[wc][None], self.pose0, self.axes)
+        e_p = self.positions(p_goal[0]) - self.positions(p)
         if not self.rot_axes:
             return e_p, e_p[:0]
-        target_R = geometry.so3_exp(self.offsets[wc, 3:]) @ self.R0
-        return e_p, geometry.so3_log(target_R @ R.T)[jnp.asarray(self.rot_axes)]
+        return e_p, geometry.so3_log(R_goal[0] @ R.T)[jnp.asarray(self.rot_axes)]
 
     def positions(self, p):
         """The task's position components of ``p (..., 3)``: ``(..., P)``."""
@@ -338,7 +337,7 @@ class _Carry(NamedTuple):
 def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams, true_pose=None):
     """Mark the current waypoint reached if ``pose`` (what the controller sees) is within tolerance, recording the
     position error of ``true_pose`` (default ``pose``) then; returns ``(carry, active)``."""
-    W = task.offsets.shape[0]
+    W = task.path.shape[0]
     active = (carry.waypoint < W) & ~carry.failed
     e_p, e_r = task.error(pose, carry.waypoint)
     reached = active & task.reached(e_p, e_r, ctrl)
@@ -444,11 +443,9 @@ def follow_law(
     q0 = jnp.asarray(q0, dtype)
     path = jnp.asarray(path, dtype)
     W = path.shape[0]
-    offsets = _Task.offsets_of(path, system)
-    pos_axes, rot_axes = system.position_axes, system.rotation_axes
     ctrl = controller
     if ctrl.diverge_dist is None:
-        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(pos_axes)] ** 2, axis=-1)))
+        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(system.position_axes)] ** 2, axis=-1)))
         ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
     realism_lib.check_plant(plant, system.n_act)
     if plant is not None and realism is None:
@@ -491,7 +488,7 @@ def follow_law(
         )
         if real:
             carry = carry._replace(tracker=where(first, realism_lib.tracker(pose, history), carry.tracker))
-        task = _Task(offsets, carry.anchor[0], carry.anchor[1], pos_axes, rot_axes)
+        task = _Task.make(path, carry.anchor, system)
         dist = task.path_distance(pose[0])
         seen, carry, dropped = see(carry, pose, k)
         carry, active = _advance(task, carry, seen, ctrl, pose if real else None)
@@ -548,7 +545,7 @@ def follow_law(
         pose=pose_init,
     )
     carry, traj = jax.lax.scan(step, init, (jnp.arange(steps + 1), keys), length=steps + 1)
-    task = _Task(offsets, carry.anchor[0], carry.anchor[1], pos_axes, rot_axes)
+    task = _Task.make(path, carry.anchor, system)
     end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(carry.pose[0])[None]) ** 2, axis=-1))
     wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
     result = FollowResult(
