@@ -24,12 +24,11 @@ from pathlib import Path
 
 from emit import emit
 
-ROOT = Path(__file__).resolve().parents[1]
 GOAL_S = 20.0
 
 
 def one_run(timeout: int) -> dict:
-    """One cold ``selfid-jax demo``: ``{wall_s, cpu_s, peak_rss_mib}``."""
+    """One cold ``selfid-jax demo``: ``{wall_s}`` (the caller adds the child's CPU seconds)."""
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "selfid_jax.cli", "demo", "--out", str(Path(tmp) / "demo")]
         env = {**os.environ, "SELFID_JAX_CACHE_DIR": "off"}
