@@ -19,8 +19,9 @@ JAC_RTOL = 1e-3  # relative: kinematic vs finite-difference settled Jacobians
 # a few commands (m) about the grasp, asymmetric (symmetric ones hide slow modes)
 OFFSETS = np.array([[0.0, 0.0, 0.0], [1e-3, -2e-3, 0.5e-3], [-3e-3, 2.5e-3, 1e-3], [2e-3, 1e-3, -4e-3]])
 ROLL_OVER = np.array([7e-3, -7e-3, 0.0])  # pulls f0, releases f1: past the fold, the object rolls over
-# one compilation per pose-map type, shared by every system and test (the System is a traced argument)
+# one compilation per pose-map type and batch, shared by every system and test (the System is a traced argument)
 POSES = jax.jit(jax.vmap(lambda system, q: system.pose(q), in_axes=(None, 0)))
+MJX_BATCH = 16  # commands per MJX settle in the hands' tests: one MJX program per hand
 
 
 def _native(q, tol=1e-12):
@@ -118,7 +119,8 @@ def test_jacobians_forward_mode_through_solve_and_rotation(hand):
 @pytest.mark.slow
 def test_mjx_matches_kinematic(hand):
     hm = mo.model_o(backend="mjx")
-    Q = jnp.asarray(mo.model_o_home() + OFFSETS[1:3])
+    extra = np.random.default_rng(12).uniform(-0.001, 0.001, (MJX_BATCH - 2, 3))
+    Q = jnp.asarray(mo.model_o_home() + np.concatenate([OFFSETS[1:3], extra]))
     pm, pk = POSES(hm, Q)[0], POSES(hand, Q)[0]
     assert np.all(np.isfinite(pm)) and np.abs(pm - pk).max() < POSE_TOL
 

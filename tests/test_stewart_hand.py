@@ -1,6 +1,8 @@
 """Stewart Hand (selfid_jax.systems.hands): kinematic Newton solve, closed-form inverse Jacobian,
 native MuJoCo and MJX settling, NaN outside the safe range, self-ID and path following (float64)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -18,6 +20,7 @@ from selfid_jax.systems.hands.stewart import (
     stewart_inverse_jacobian,
     stewart_native_batch,
 )
+from test_model_o import MJX_BATCH, POSES  # one compiled MJX settle per hand (tests/ is on the path)
 
 HOME = stewart_home()
 
@@ -131,7 +134,8 @@ def test_mjx_matches_kinematic_pose_and_jacobian(hand):
     bad = HOME.copy()
     bad[2] = 0.0705
     batch = jnp.asarray(np.concatenate([q, q_fd, bad[None]]))
-    p, R = jax.jit(jax.vmap(mjx_hand.pose))(batch)
+    assert batch.shape[0] == MJX_BATCH
+    p, R = POSES(mjx_hand, batch)
     p_k, R_k = jax.vmap(hand.pose)(batch[:3])
     ep, eR = _pose_err(p[:3], R[:3], p_k, R_k)
     assert ep < 1e-6 and eR < 1e-5, (ep, eR)
@@ -217,31 +221,34 @@ def test_three_backends_agree_on_a_short_rollout(hand):
 @pytest.mark.parametrize("name", ["stewart", "model_o"])
 def test_settle_options_keep_the_settled_pose(name):
     """settle.mjx_model's settling options (one Newton iteration and 4 line-search steps a step, sparse mass matrix
-    on CPU; the loop carrying the state only) settle 6 random commands to the pose MJX gives with the MJCF's own
-    options (up to 100 iterations, 50 line-search steps, dense) and to native MuJoCo's."""
+    on CPU; the loop carrying the state only), which the hands' MJX backend uses, settle 16 random commands to the
+    pose MJX gives with the MJCF's own options (up to 100 iterations, 50 line-search steps, dense) and to native
+    MuJoCo's."""
     from selfid_jax.systems.hands import model_o_hand as mo
     from selfid_jax.systems.hands.stewart import STEWART_SETTLE_TOL
 
     if name == "stewart":
         mj, qpos0 = mujoco.MjModel.from_xml_path(STEWART_XML), None
         steps, tol = STEWART_SETTLE_STEPS, STEWART_SETTLE_TOL
-        q = _box(11, 6)
+        q = _box(11, MJX_BATCH)
+        fast = stewart_hand(backend="mjx")
+        inner = fast.params
+        with_model = lambda model: fast.replace(params=dataclasses.replace(inner, model=model))  # noqa: E731
     else:
         mj, steps, tol = mo.model_o_mjmodel(), mo.MODEL_O_SETTLE_STEPS, mo.MODEL_O_SETTLE_TOL
         qpos0, home = mo.model_o_keyframe()
-        q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (6, 3))
-    fast = settle.mjx_model(mj)
+        q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (MJX_BATCH, 3))
+        fast = mo.model_o(backend="mjx")
+        inner, max_tilt = fast.params
+        with_model = lambda model: fast.replace(params=(dataclasses.replace(inner, model=model), max_tilt))  # noqa: E731
     mjcf = settle.mjx_model(mj, iterations=None, ls_iterations=None, sparse=False)
-    assert (int(fast.opt.iterations), int(fast.opt.ls_iterations)) == (1, 4)
+    assert (int(inner.model.opt.iterations), int(inner.model.opt.ls_iterations)) == (1, 4)
     assert (int(mjcf.opt.iterations), int(mjcf.opt.ls_iterations)) == (mj.opt.iterations, mj.opt.ls_iterations)
-    sid = int(mj.site("pom").id)
-    pose = settle.MjxSettlePose(sid, steps, tol)
-    inf = jnp.full(mj.nu, jnp.inf)
-    start = None if qpos0 is None else jnp.asarray(qpos0)
-    run = jax.jit(jax.vmap(pose, in_axes=(None, 0)))
-    p_f, R_f = run(settle.SettleParams(fast, -inf, inf, start), jnp.asarray(q))
-    p_m, R_m = run(settle.SettleParams(mjcf, -inf, inf, start), jnp.asarray(q))
-    p_n, R_n, ok_n = settle.native_settle(mj, sid, q, qpos0=qpos0, max_steps=steps, tol=tol)
+    settle_pose = fast.pose_fn if name == "stewart" else fast.pose_fn.inner
+    assert (settle_pose.max_steps, settle_pose.tol) == (steps, tol)
+    p_f, R_f = POSES(fast, jnp.asarray(q))
+    p_m, R_m = POSES(with_model(mjcf), jnp.asarray(q))
+    p_n, R_n, ok_n = settle.native_settle(mj, int(mj.site("pom").id), q, qpos0=qpos0, max_steps=steps, tol=tol)
     assert ok_n.all() and np.all(np.isfinite(p_f)) and np.all(np.isfinite(p_m))
     e_fm, eR_fm = _pose_err(p_f, R_f, p_m, R_m)
     e_fn, eR_fn = _pose_err(p_f, R_f, p_n, R_n)
