@@ -32,10 +32,13 @@ def numpy_reference(dthetas, Vs, v_tol):
     return signed, mag, signed * mag  # Eq. 13
 
 
-def fold(state, dthetas, Vs):
+def fold(state, dthetas, Vs, update=E.update):
     for d, v in zip(dthetas, Vs):
-        state = E.update(state, d, v)
+        state = update(state, d, v)
     return state
+
+
+jit_update = jax.jit(E.update)
 
 
 def test_matches_numpy_reference():
@@ -45,7 +48,7 @@ def test_matches_numpy_reference():
     V = d @ rng.normal(size=(n, m)) + 1e-3 * rng.normal(size=(K, m))
     V[3, 1] = 1e-12  # below v_tol: skipped by the magnitude mean only
     d[5, 2] = 0.0  # a zero actuation adds no sign weight
-    state = fold(E.init(n, m, capacity=8, v_tol=1e-9), d, V)
+    state = fold(E.init(n, m, capacity=8, v_tol=1e-9), d, V, jit_update)
     signed, mag, guess = numpy_reference(d, V, 1e-9)
     np.testing.assert_array_equal(sj.signed_inverse_jacobian(state), signed)
     np.testing.assert_allclose(sj.magnitude_inverse_jacobian(state), mag, rtol=1e-12)
@@ -80,7 +83,7 @@ def test_sign_recovery_on_sign_unambiguous_system(n):
     rng = np.random.default_rng(n)
     Q = random_orthogonal(rng, n)
     d = rng.uniform(-0.05, 0.05, (400, n))
-    state = fold(E.init(n, n, capacity=4), d, d @ Q.T)
+    state = fold(E.init(n, n, capacity=4), d, d @ Q.T, jit_update)
     np.testing.assert_array_equal(sj.signed_inverse_jacobian(state), np.sign(np.linalg.inv(Q)))
 
 
@@ -96,7 +99,6 @@ def test_rejects_bad_samples_without_nan():
         (good_d, jnp.zeros(2)),
         (good_d, jnp.array([-jnp.inf, jnp.nan])),
     ]
-    jit_update = jax.jit(E.update)
     for d, v in bad:
         before = state
         state = jit_update(state, d, v)

@@ -124,10 +124,11 @@ def test_inverse_jacobian_law_in_the_loop_is_control_follow(source):
             "scaled": control.scaled_true_inverse(ARM, jnp.array([[1.2, 0.9], [1.5, 0.7]])),
             "function": lambda q: 0.8 * ARM.true_inverse_jacobian(q)}[source]
     q0s = _q0s()
-    old = jax.jit(jax.vmap(lambda q: control.follow(ARM, jinv, PATH, q, CTRL, steps=300, return_trajectory=True)))
-    new = jax.jit(jax.vmap(lambda q: control.follow_law(ARM, control.inverse_jacobian_law(ARM, jinv), PATH, q, CTRL,
-                                                        steps=300, return_trajectory=True)))
-    a, (b, state) = old(q0s), new(q0s)
+    both = jax.jit(jax.vmap(lambda q: (  # one program for the two loops
+        control.follow(ARM, jinv, PATH, q, CTRL, steps=300, return_trajectory=True),
+        control.follow_law(ARM, control.inverse_jacobian_law(ARM, jinv), PATH, q, CTRL, steps=300,
+                           return_trajectory=True))))
+    a, (b, state) = both(q0s)
     _assert_same(a, b)
     assert state == ()
     one, _ = control.follow_law(ARM, control.inverse_jacobian_law(ARM, jinv), PATH, q0s[1], CTRL, steps=300,
@@ -145,13 +146,12 @@ def test_constrained_qp_law_in_the_loop_is_qp_follow_and_the_old_qp_loop(online)
     else:
         kw, lin, model = {}, _true_model, ()
     w = jnp.array([1.0, 3.0])
-    run_qp = jax.jit(jax.vmap(lambda q: qp.follow(ARM, lin, model, PATH, q, CTRL, weights=w, steps=300, qp_iters=12,
-                                                  **kw)))
-    run_law = jax.jit(jax.vmap(lambda q: control.follow_law(
-        ARM, qp.constrained_law(ARM, lin, model, weights=w, iters=12, **kw), PATH, q, CTRL, steps=300)))
-    run_ref = jax.jit(jax.vmap(lambda q: _reference_qp_follow(ARM, lin, model, PATH, q, CTRL, weights=w, steps=300,
-                                                              qp_iters=12, **kw)))
-    a, b, ref = run_qp(q0s), run_law(q0s), run_ref(q0s)
+    run_all = jax.jit(jax.vmap(lambda q: (  # one program for the three loops
+        qp.follow(ARM, lin, model, PATH, q, CTRL, weights=w, steps=300, qp_iters=12, **kw),
+        control.follow_law(ARM, qp.constrained_law(ARM, lin, model, weights=w, iters=12, **kw), PATH, q, CTRL,
+                           steps=300),
+        _reference_qp_follow(ARM, lin, model, PATH, q, CTRL, weights=w, steps=300, qp_iters=12, **kw))))
+    a, b, ref = run_all(q0s)
     _assert_same(a, b)
     _assert_same(a, ref)
     assert np.sum(np.asarray(a[0].completion) == 1.0) >= 3  # mostly completed: the comparison is of real runs
@@ -165,8 +165,8 @@ def test_qp_loop_fails_like_the_old_loop_on_a_divergent_model():
         return -ARM.jacobian(q), jnp.zeros(2)
 
     q0s = _q0s()
-    a = jax.jit(jax.vmap(lambda q: qp.follow(ARM, wrong, (), PATH, q, CTRL, steps=200)))(q0s)
-    ref = jax.jit(jax.vmap(lambda q: _reference_qp_follow(ARM, wrong, (), PATH, q, CTRL, steps=200)))(q0s)
+    a, ref = jax.jit(jax.vmap(lambda q: (qp.follow(ARM, wrong, (), PATH, q, CTRL, steps=200),
+                                         _reference_qp_follow(ARM, wrong, (), PATH, q, CTRL, steps=200))))(q0s)
     _assert_same(a, ref)
     assert np.all(a[0].failed)
 
@@ -184,11 +184,12 @@ def test_a_stateful_law_updates_its_state_only_on_steps_that_move():
                                step=step)
 
     q0 = jnp.array([0.3, 1.4])
-    res, count = jax.jit(lambda q: control.follow_law(ARM, counting(1.0), PATH, q, CTRL, steps=300))(q0)
-    assert float(res.completion) == 1.0 and int(count) == int(res.steps_used)
     near = CTRL._replace(diverge_dist=0.05)  # moving away from the path: fails once 5 cm off it
-    res, count = jax.jit(lambda q: control.follow_law(ARM, counting(-1.0), PATH, q, near, steps=300))(q0)
-    assert bool(res.failed) and int(count) == int(res.steps_used) - 1  # the failing step does not move
+    (res, count), (away, away_count) = jax.jit(lambda q: (  # one program for the two rollouts
+        control.follow_law(ARM, counting(1.0), PATH, q, CTRL, steps=300),
+        control.follow_law(ARM, counting(-1.0), PATH, q, near, steps=300)))(q0)
+    assert float(res.completion) == 1.0 and int(count) == int(res.steps_used)
+    assert bool(away.failed) and int(away_count) == int(away.steps_used) - 1  # the failing step does not move
 
 
 def test_qp_follow_rejects_rotation_tasks():
@@ -256,7 +257,8 @@ def test_follow_gradient_is_finite_where_the_rotation_error_is_exactly_zero():
     g = jax.jit(jax.grad(loss))(1.1)
     assert np.isfinite(float(g)) and float(g) != 0.0
     h = 1e-6
-    np.testing.assert_allclose(float(g), (float(loss(1.1 + h)) - float(loss(1.1 - h))) / (2 * h), rtol=1e-5)
+    value = jax.jit(loss)  # one program for the two evaluations
+    np.testing.assert_allclose(float(g), (float(value(1.1 + h)) - float(value(1.1 - h))) / (2 * h), rtol=1e-5)
 
 
 # ------------------------------------------------------------------ one feasible-start selection

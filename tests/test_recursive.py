@@ -1,6 +1,8 @@
 """identify.recursive: the rank-one self-ID step against numpy least squares, the batch closed form and MuJoCo-free
 closed forms; the rank-deficient start, forgetting, the sample screen, vmap, grad, the packed state."""
 
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -12,6 +14,7 @@ from selfid_jax.identify import estimator as E
 from selfid_jax.identify import recursive as R
 
 N, M = 4, 3
+T = 40  # one data length: the tests of the same loop share its compiled program
 
 
 def data(T, n=N, m=M, seed=0, noise=1e-4, dead=None):
@@ -48,11 +51,17 @@ def numpy_estimates(d, V, forget=1.0, v_tol=1e-9):
     return np.stack(out)
 
 
-def step_loop(d, V, *, forget=1.0, eps=1e-3, **kw):
+def step_loop(d, V, *, forget=1.0, eps=1e-3, resolve_every=0):
+    """``R.step`` over the samples: ``(state, rec, estimates, full)``."""
+    return _step_loop(d, V, forget, eps, resolve_every)
+
+
+@functools.partial(jax.jit, static_argnums=4)
+def _step_loop(d, V, forget, eps, resolve_every):
     s, r = E.init(d.shape[1], V.shape[1], capacity=0, forget=forget), R.init(V.shape[1])
 
     def body(c, x):
-        c = R.step(*c, x[0], x[1], eps, **kw)
+        c = R.step(*c, x[0], x[1], eps, resolve_every=resolve_every)
         return c, (c[0].estimate, c[1].full)
 
     (s, r), (Js, full) = jax.lax.scan(body, (s, r), (jnp.asarray(d), jnp.asarray(V)))
@@ -61,6 +70,11 @@ def step_loop(d, V, *, forget=1.0, eps=1e-3, **kw):
 
 def batch_loop(d, V, *, forget=1.0, eps=1e-3):
     """The closed-form path of self_identify before this module: update, initial guess, batch closed form, record."""
+    return _batch_loop(d, V, forget, eps)
+
+
+@jax.jit
+def _batch_loop(d, V, forget, eps):
     s = E.init(d.shape[1], V.shape[1], capacity=0, forget=forget)
 
     def body(s, x):
@@ -71,14 +85,21 @@ def batch_loop(d, V, *, forget=1.0, eps=1e-3):
     return jax.lax.scan(body, s, (jnp.asarray(d), jnp.asarray(V)))
 
 
+@functools.cache
+def run_from_empty(warmup=None, history=True):
+    """Jitted ``R.run`` from a concrete empty state (so the default warm-up applies), one per option set."""
+    s0, r0 = E.init(N, M, capacity=0), R.init(M)
+    return jax.jit(lambda d, V: R.run(s0, r0, d, V, 1e-3, warmup=warmup, history=history))
+
+
 def rel(a, b):
     return float(np.max(np.abs(np.asarray(a) - b)) / np.max(np.abs(b)))
 
 
 @pytest.mark.parametrize("forget", [1.0, 0.9])
 def test_step_equals_numpy_least_squares_from_the_rank_deficient_start(forget):
-    d, V = data(40)
-    s, r, Js, full = jax.jit(lambda d, V: step_loop(d, V, forget=forget))(d, V)
+    d, V = data(T)
+    s, r, Js, full = step_loop(d, V, forget=forget)
     ref = numpy_estimates(d, V, forget)
     assert rel(Js, ref) < 1e-9
     assert not bool(full[1]) and bool(full[-1])  # 2 samples cannot span 3-D; the rank-one steps take over
@@ -90,37 +111,36 @@ def test_step_equals_numpy_least_squares_from_the_rank_deficient_start(forget):
 
 
 def test_rank_deficient_forever_keeps_the_batch_form():
-    d, V = data(30, dead=2)
+    d, V = data(T, dead=2)
     _, _, Js, full = step_loop(d, V)
     assert not np.any(full)
     assert rel(Js, numpy_estimates(d, V)) < 1e-9
 
 
 def test_sample_screen_rejects_and_keeps_the_estimate():
-    d, V = data(20)
+    d, V = data(T)
     d[7], V[12] = np.nan, 0.0  # a non-finite actuation and an all-zero pose change
     s, _, Js, _ = step_loop(d, V)
-    assert int(s.rejected) == 2 and int(s.count) == 18
+    assert int(s.rejected) == 2 and int(s.count) == T - 2
     np.testing.assert_array_equal(Js[7], Js[6])
     np.testing.assert_array_equal(Js[12], Js[11])
-    keep = np.ones(20, bool)
+    keep = np.ones(T, bool)
     keep[[7, 12]] = False
     ref = numpy_estimates(d[keep], V[keep])
     assert rel(np.asarray(Js)[keep], ref) < 1e-9
 
 
 def test_resolve_every_and_run_equal_the_per_sample_step():
-    d, V = data(60, seed=3)
+    d, V = data(T, seed=3)
     _, _, Js, _ = step_loop(d, V)
     _, _, Jr, _ = step_loop(d, V, resolve_every=7)
     assert rel(Jr, np.asarray(Js)) < 1e-9
-    s0, r0 = E.init(N, M, capacity=0), R.init(M)
-    s, r, Jb, deltas = jax.jit(lambda d, V: R.run(s0, r0, d, V, 1e-3))(d, V)
+    s, r, Jb, deltas = run_from_empty()(d, V)
     assert rel(Jb, np.asarray(Js)) < 1e-9
     np.testing.assert_allclose(deltas[1:], np.linalg.norm(np.diff(np.asarray(Js), axis=0), axis=(1, 2)),
                                rtol=1e-6, atol=1e-12)
     # a block whose rank-one steps are not all exact (starts rank-deficient, no warm-up) is re-run by the batch form
-    _, _, Jc, _ = R.run(s0, r0, d, V, 1e-3, warmup=0)
+    _, _, Jc, _ = run_from_empty(warmup=0)(d, V)
     assert rel(Jc, np.asarray(Js)) < 1e-9
 
 
@@ -201,8 +221,9 @@ def test_packed_step_equals_step():
     s, r = E.init(N, M, capacity=0), R.init(M)
     f, i = R.pack(s, r)
     step = jax.jit(lambda f, i, x, v: R.packed_step(f, i, x, v, 1e-3, n=N, m=M))
+    ref = jax.jit(lambda s, r, x, v: R.step(s, r, x, v, 1e-3))
     for t in range(8):
-        s, r = R.step(s, r, d[t], V[t], 1e-3)
+        s, r = ref(s, r, d[t], V[t])
         f, i = step(f, i, d[t], V[t])
     s2, r2 = R.unpack(f, i, N, M)
     chex.assert_trees_all_close((s2, r2), (s, r), rtol=1e-12)
@@ -229,7 +250,7 @@ def test_bad_input_names_the_problem():
 def test_self_identify_closed_form_equals_the_batch_path():
     J_true = jnp.array([[1.0, 0.5, 0.0], [-0.3, 2.0, 0.4], [0.2, -0.1, 1.5], [0.3, 0.0, -0.7]]).T  # (m, n)
     obs = sj.stateless(lambda key, dt: J_true @ dt + 1e-4 * jax.random.normal(key, (3,)))
-    res = sj.self_identify(obs, jax.random.key(0), 0.05, 1e-9, n_act=4, task_dim=3, iters=40,
+    res = sj.self_identify(obs, jax.random.key(0), 0.05, 1e-9, n_act=4, task_dim=3, iters=T,
                            stop_at_convergence=False, recursive=True)
     d, V = np.asarray(res.dtheta), np.asarray(res.V)
     assert rel(res.estimates, numpy_estimates(d, V)) < 1e-9
@@ -240,10 +261,9 @@ def test_self_identify_closed_form_equals_the_batch_path():
 
 
 def test_run_without_history_ends_in_the_same_state():
-    d, V = data(25, seed=8)
-    s0, r0 = E.init(N, M, capacity=0), R.init(M)
-    s, r, Js, deltas = R.run(s0, r0, d, V, 1e-3)
-    s2, r2, none_J, none_d = R.run(s0, r0, d, V, 1e-3, history=False)
+    d, V = data(T, seed=8)
+    s, r, Js, deltas = run_from_empty()(d, V)
+    s2, r2, none_J, none_d = run_from_empty(history=False)(d, V)
     assert none_J is None and none_d is None
     chex.assert_trees_all_close((s2, r2), (s, r), rtol=1e-12)
     np.testing.assert_allclose(s.estimate, Js[-1])

@@ -154,11 +154,12 @@ class RefineJitVmapTest(chex.TestCase):
         def run(states, ridge):
             return jax.vmap(lambda s: sj.refine(s, sj.initial_guess(s), method="optax", ridge=ridge))(states)
 
+        one = jax.jit(lambda s, ridge: sj.refine(s, sj.initial_guess(s), method="optax", ridge=ridge),
+                      static_argnames="ridge")  # the loop's ridge stays a Python number, as in an eager call
         for ridge in (0.0, 1e-4, 1e-2):
             out = run(batched, ridge)
             for b, s in enumerate(states):
-                np.testing.assert_allclose(out[b], sj.refine(s, sj.initial_guess(s), method="optax", ridge=ridge),
-                                           rtol=1e-9)
+                np.testing.assert_allclose(out[b], one(s, ridge=ridge), rtol=1e-9)
 
 
 def test_negative_huber_delta_and_ridge_raise():
