@@ -18,6 +18,7 @@ from selfid_jax.robot.log import LogError, samples_from_table
 from selfid_jax.systems.ur5e import UR5E_HOME
 
 TOL = 1e-9
+T = 15  # one log length for the pair tables, so their fits share one compiled scan
 
 
 @pytest.fixture(autouse=True)
@@ -25,7 +26,7 @@ def _no_disk_cache(monkeypatch):
     monkeypatch.setenv("SELFID_JAX_CACHE_DIR", "off")
 
 
-def _linear(n=5, m=3, T=25, seed=0):
+def _linear(n=5, m=3, T=T, seed=0):
     rng = np.random.default_rng(seed)
     Jinv = rng.normal(size=(n, m))
     V = rng.normal(scale=0.01, size=(T, m))
@@ -64,7 +65,7 @@ def test_pairs_recover_the_inverse_jacobian():
     Jinv, V, dtheta = _linear()
     result = sj.fit(_pairs_table(dtheta, V))
     np.testing.assert_allclose(result.estimate, Jinv, atol=TOL)
-    assert result.estimates.shape == (25, 5, 3) and result.deltas.shape == (25,)
+    assert result.estimates.shape == (T, 5, 3) and result.deltas.shape == (T,)
     assert result.samples.axes == (0, 1, 2) and result.samples.rejected == ()
     assert 3 < result.converged_at <= 6  # exact once V spans the task (3 samples), twice in a row
 
@@ -102,6 +103,10 @@ def test_time_series_task_axes_select_components():
 
 
 # ------------------------------------------------------------------ convergence: an independent loop
+_update, _record = jax.jit(estimator.update), jax.jit(estimator.record)
+_guess = jax.jit(lambda s: refine(s, estimator.initial_guess(s), method="closed_form"))
+
+
 @pytest.mark.parametrize("eps,eps_rel", [(0.0, 0.05), (0.5, 0.0), (0.1, 0.02)])
 def test_convergence_iteration_equals_a_python_loop(eps, eps_rel):
     Jinv, V, dtheta = _linear(n=6, m=3, T=60, seed=4)
@@ -109,13 +114,11 @@ def test_convergence_iteration_equals_a_python_loop(eps, eps_rel):
     V_noisy = V + rng.normal(scale=2e-4, size=V.shape)  # tracker noise: the estimate keeps moving
     result = sj.fit(_pairs_table(dtheta, V_noisy), eps=eps, eps_rel=eps_rel)
     state = estimator.init(6, 3, capacity=0, dtype=jnp.float64)
-    update, record = jax.jit(estimator.update), jax.jit(estimator.record)
-    guess = jax.jit(lambda s: refine(s, estimator.initial_guess(s), method="closed_form"))
     estimates = []
     for k in range(60):  # one Python iteration per sample, each a separate call
-        state = update(state, dtheta[k], V_noisy[k])
-        J = guess(state)
-        state = record(state, J, eps, eps_rel)
+        state = _update(state, dtheta[k], V_noisy[k])
+        J = _guess(state)
+        state = _record(state, J, eps, eps_rel)
         estimates.append(np.asarray(J))
     assert result.converged_at == int(state.converged_at)
     assert result.converged_at == int(estimator.convergence_iteration(jnp.asarray(estimates), eps, eps_rel))
@@ -186,7 +189,7 @@ def _write_csv(path, table):
 def test_csv_parquet_and_npz_give_the_same_fit(tmp_path):
     import pandas as pd
 
-    Jinv, V, dtheta = _linear(T=12, seed=9)
+    Jinv, V, dtheta = _linear(seed=9)
     table = _pairs_table(dtheta, V)
     csv = _write_csv(tmp_path / "log.csv", table)
     pd.DataFrame(table).to_parquet(tmp_path / "log.parquet")
@@ -266,14 +269,14 @@ def test_step_is_traced_once_across_thresholds_and_data(monkeypatch):
     monkeypatch.setattr(fit_mod, "step", chex.assert_max_traces(fit_mod.step, n=1))
     fit_mod._scan.clear_cache()
     for seed, (eps, eps_rel) in enumerate([(0.0, 0.05), (0.3, 0.0), (0.1, 0.2)]):
-        Jinv, V, dtheta = _linear(T=15, seed=seed)
+        Jinv, V, dtheta = _linear(seed=seed)
         trace = fit_mod.fit_samples(dtheta, V, eps, eps_rel)
         np.testing.assert_allclose(trace.estimate, Jinv, atol=TOL)
     fit_mod._scan.clear_cache()
 
 
 def test_vmap_over_logs_equals_a_loop():
-    data = [_linear(T=15, seed=s) for s in range(3)]
+    data = [_linear(seed=s) for s in range(3)]
     rng = np.random.default_rng(0)
     dtheta = jnp.stack([d[2] for d in data])
     V = jnp.stack([d[1] + rng.normal(scale=1e-4, size=d[1].shape) for d in data])
@@ -286,7 +289,7 @@ def test_vmap_over_logs_equals_a_loop():
 
 
 def test_refine_methods():
-    Jinv, V, dtheta = _linear(T=15, seed=11)
+    Jinv, V, dtheta = _linear(seed=11)
     table = _pairs_table(dtheta, V)
     for method in ("optax", "slsqp"):
         np.testing.assert_allclose(sj.fit(table, method=method).estimate, Jinv, atol=1e-4)  # SLSQP: ftol 1e-12

@@ -76,6 +76,7 @@ def random_q(n, k, seed, low=-2 * np.pi, high=2 * np.pi):
 # compilation per task_dim), so the whole module compiles only a handful of
 # programs on a 2-core CPU.
 UR_B = 12
+TL_B = 64  # the same for every two-link call
 
 
 def _evaluate(system, qs):
@@ -206,7 +207,7 @@ def test_ur5e_inverse_jacobian_and_sampling(ur6, ur_samples):
 
 # ----------------------------------------------------------------- two-link
 def test_two_link_closed_form(arm2):
-    qs = random_q(2, 20, seed=5, low=-np.pi, high=np.pi)
+    qs = random_q(2, TL_B, seed=5, low=-np.pi, high=np.pi)
     p, R, J, _, _ = evaluate(arm2, qs)
     q1, q12 = qs[:, 0], qs[:, 0] + qs[:, 1]
     np.testing.assert_allclose(p[:, 0], np.cos(q1) + np.cos(q12), atol=1e-12)
@@ -222,15 +223,15 @@ def test_two_link_closed_form(arm2):
         axis=1,
     )
     np.testing.assert_allclose(J, J_ref, atol=1e-12)
-    q = np.asarray(sample(arm2, jax.random.key(2), k=20))
+    q = np.asarray(sample(arm2, jax.random.key(2), k=TL_B))
     _, _, Jq, Jinv, _ = evaluate(arm2, q)
-    np.testing.assert_allclose(Jinv @ Jq, np.broadcast_to(np.eye(2), (20, 2, 2)), atol=1e-10)
-    np.testing.assert_allclose(Jq @ Jinv, np.broadcast_to(np.eye(2), (20, 2, 2)), atol=1e-10)
+    np.testing.assert_allclose(Jinv @ Jq, np.broadcast_to(np.eye(2), (TL_B, 2, 2)), atol=1e-10)
+    np.testing.assert_allclose(Jq @ Jinv, np.broadcast_to(np.eye(2), (TL_B, 2, 2)), atol=1e-10)
 
 
 def test_two_link_sample_configs_and_mask(arm2):
-    q = sample(arm2, jax.random.key(3), k=64)
-    assert q.shape == (64, 2)
+    q = sample(arm2, jax.random.key(3), k=TL_B)
+    assert q.shape == (TL_B, 2)
     sig = np.asarray(evaluate(arm2, q)[4])
     assert np.all(sig > arm2.min_sigma)
     # A box straddling the straight elbow (det J = l1 l2 sin q2 = 0 at q2 = 0) with
@@ -259,7 +260,7 @@ def test_three_link_from_pose_fn_closed_form(arm3):
     s = arm3
     assert (s.n_act, s.task_dim, s.has_rotation) == (3, 2, False)
     lengths = np.array([1.0, 0.8, 0.5])
-    qs = random_q(3, 6, seed=6, low=-np.pi, high=np.pi)
+    qs = random_q(3, UR_B, seed=6, low=-np.pi, high=np.pi)
     _, _, J, Jinv, _ = evaluate(s, qs)
     J, Jinv = np.asarray(J), np.asarray(Jinv)
     c = np.cumsum(qs, axis=1)
@@ -267,7 +268,7 @@ def test_three_link_from_pose_fn_closed_form(arm3):
     tail_s = np.cumsum((lengths * np.sin(c))[:, ::-1], axis=1)[:, ::-1]
     tail_c = np.cumsum((lengths * np.cos(c))[:, ::-1], axis=1)[:, ::-1]
     np.testing.assert_allclose(J, np.stack([-tail_s, tail_c], axis=1), atol=1e-12)
-    assert Jinv.shape == (6, 3, 2)
+    assert Jinv.shape == (UR_B, 3, 2)
     np.testing.assert_allclose(Jinv, np.linalg.pinv(J), atol=1e-10)
 
 
@@ -435,7 +436,7 @@ def test_vmap_inverse_jacobian_equals_loop(which, ur6, ur_samples, arm2, arm3):
         s, qs = ur6, ur_samples[0]
     else:
         s = {"two_link": arm2, "three_link": arm3}[which]
-        qs = sample(s, jax.random.key(5), k=UR_B)
+        qs = sample(s, jax.random.key(5), k=TL_B if which == "two_link" else UR_B)
     batched = evaluate(s, qs)[3]  # jit(vmap(...)) of true_inverse_jacobian (among others)
     single = jax.jit(System.true_inverse_jacobian)
     for i in range(4):
@@ -494,8 +495,9 @@ def test_vmap_over_chain_model_field(ur6):
 
 
 def test_small_inverse_matches_numpy_and_flags_singular_matrices():
-    from selfid_jax.math.linalg import small_inverse
+    from selfid_jax.math import linalg
 
+    small_inverse = jax.jit(linalg.small_inverse)
     rng = np.random.default_rng(3)
     for k in (1, 2, 3):
         A = rng.normal(size=(k, k))
