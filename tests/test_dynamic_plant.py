@@ -4,7 +4,8 @@ A plant whose actuators reach every target reproduces the kinematic loop bit
 for bit through the hook (fast); the UR5e's MJX servos in the follow loop
 agree with a closed loop written here on native ``mj_step`` (slow: one
 program, jitted and vmapped over two starts); a ``realism: {plant: dynamic}``
-section is checked before any compute. x64 is on (conftest).
+section is checked before any compute and builds the file's servos with its
+gains (slow: one MJX step). x64 is on (conftest).
 """
 
 import chex
@@ -174,6 +175,7 @@ def test_dynamic_section_validated_before_compute():
         realistic.plant(odd.realism, odd.system, ur5e())
 
 
+@pytest.mark.slow  # one MJX step compile (5-10 s), as every MJX test
 def test_dynamic_section_builds_the_files_servos():
     cfg = TrackingConfig(**BASE, realism={"plant": "dynamic", "period": 0.01, "kp": 2000.0, "kv": 100.0,
                                           "gravcomp": 0.5})
