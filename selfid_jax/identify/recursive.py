@@ -372,7 +372,9 @@ def run(
 
     ``estimates (T, n, m)``: the refined estimate after each sample;
     ``deltas (T,)``: its ``||J_t - J_{t-1}||_F``. The first ``warmup``
-    samples (static; default ``m + 5`` for a state with no sample yet, else 0)
+    samples (static; default ``m + 5`` for a state with no sample yet, else 0;
+    a traced ``state`` counts as one with samples, so pass ``warmup`` when
+    ``state`` is a ``jit`` argument: the estimates agree to round-off, the speed does not)
     run the batch closed form (:func:`exact_step`), the rest the rank-one step
     (:func:`fast_step`) in blocks of ``block`` (static; default one block), a block re-run by the
     batch form if any of its steps was not exact (:func:`fallback_scan`). Equal to ``T`` calls of :func:`step` up to
