@@ -63,7 +63,10 @@ def test_unreachable_steps_give_the_box_least_squares_step(n, m):
     np.testing.assert_allclose(0.5 * np.asarray(out.residual) ** 2, best, rtol=1e-6, atol=1e-9)
     if n <= m:  # the least-squares step is unique
         ref = np.stack([lsq_linear(a, b, bounds=(lb, ub), tol=1e-14).x for a, b, lb, ub in zip(J, v, lo, hi)])
-        np.testing.assert_allclose(out.da, ref, atol=1e-6)
+        # Round-off of the dual form: a free actuator's da = J^T lam / w cancels terms J_ij lam_i / w_j of up
+        # to 5e11 on the worst problem (|lam| ~ residual / ridge ~ 1e12), an error of up to 5.5e-5 at float64's
+        # 1.1e-16; measured 1.0e-6 at XLA's shipped level and 5.5e-6 at LLVM level 0 (tests/conftest.py).
+        np.testing.assert_allclose(out.da, ref, atol=2e-5)
 
 
 def test_vmap_equals_one_by_one_and_checks():

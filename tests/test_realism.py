@@ -203,6 +203,7 @@ VR = {"experiment": "valid_region", "seed": 0, "systems": ["two_link"], "eps_lim
 
 
 @pytest.mark.slow  # end to end through the CLI
+@pytest.mark.shipped_xla  # bit for bit holds for the shipped build (at LLVM level 0: within 1 ulp)
 def test_a_realism_sweep_runs_through_the_cli_and_its_ideal_level_is_the_run_without_realism(tmp_path):
     """One compiled program per system serves every level; the level with every value 0 (IDEAL) reproduces the
     study without a realism section bit for bit (its rows come first, so they draw the same keys)."""
