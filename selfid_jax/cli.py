@@ -32,12 +32,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     (:mod:`selfid_jax.app.fit`); the exit code.
 
     As the console script (``argv`` None) it first takes over SIGINT and SIGTERM
-    (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported.
+    (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported; for ``demo`` it also asks XLA for quick
+    compiles (:func:`selfid_jax._xla.request_quick_compile`: LLVM level 0, unless ``XLA_FLAGS`` sets a level).
     """
     from selfid_jax.runner import signals
 
     if argv is None:
         signals.install()
+        if sys.argv[1:2] == ["demo"]:  # compile-bound: each of its programs runs once, on small batches
+            from selfid_jax._xla import request_quick_compile
+
+            request_quick_compile()
     from selfid_jax.runner import cli
 
     return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None,

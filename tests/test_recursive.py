@@ -184,6 +184,7 @@ def test_gradient_matches_finite_differences():
     np.testing.assert_allclose(gv[1], g, rtol=1e-9)
 
 
+@pytest.mark.shipped_xla  # float32 round-off, so the bound is checked on the shipped build
 def test_float32_over_10000_samples_within_1e_4_of_float64_least_squares():
     B, T = 4, 10_000
     rng = np.random.default_rng(6)

@@ -7,7 +7,8 @@ import sys
 
 import pytest
 
-from selfid_jax._xla import DEFAULT_XLA_FLAGS, MIN_JAXLIB, defaults_for, jaxlib_version, merged_xla_flags, release_tuple
+from selfid_jax._xla import (DEFAULT_XLA_FLAGS, MIN_JAXLIB, defaults_for, jaxlib_version, merged_xla_flags,
+                             release_tuple, request_quick_compile)
 
 ALL = {flag: value for flag, value in DEFAULT_XLA_FLAGS.items()}
 
@@ -54,3 +55,27 @@ def test_import_sets_flags_and_opt_out_leaves_them():
     for flag, value in defaults_for(jaxlib_version()).items():
         assert f"{flag}={value}" in flags
     assert _flags_after_import({"XLA_FLAGS": "--foo=1", "SELFID_JAX_NO_XLA_FLAGS": "1"}) == "--foo=1"
+
+
+def test_quick_compile_adds_level_0_unless_a_level_is_set(monkeypatch):
+    monkeypatch.delenv("SELFID_JAX_NO_XLA_FLAGS", raising=False)
+    for given, want in [("--foo=1", "--foo=1 --xla_backend_optimization_level=0"),
+                        ("--xla_backend_optimization_level=2", "--xla_backend_optimization_level=2")]:
+        monkeypatch.setenv("XLA_FLAGS", given)
+        request_quick_compile()
+        assert os.environ["XLA_FLAGS"] == want
+    monkeypatch.setenv("SELFID_JAX_NO_XLA_FLAGS", "1")
+    monkeypatch.setenv("XLA_FLAGS", "--foo=1")
+    request_quick_compile()
+    assert os.environ["XLA_FLAGS"] == "--foo=1"
+
+
+@pytest.mark.slow
+def test_console_script_asks_for_quick_compiles_for_the_demo_only():
+    code = ("import os, sys\nfrom selfid_jax.cli import main\nsys.argv = ['selfid-jax', *sys.argv[1:], '--help']\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('FLAGS', os.environ.get('XLA_FLAGS', ''))")
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "SELFID_JAX_NO_XLA_FLAGS")}
+    for command, quick in (("demo", True), ("sweep", False)):
+        out = subprocess.run([sys.executable, "-c", code, command], env=env, capture_output=True, text=True,
+                             check=True).stdout
+        assert ("--xla_backend_optimization_level=0" in out.split("FLAGS", 1)[1]) == quick, out
