@@ -6,7 +6,8 @@ prints one table: the measured value, the issue-14 goal and whether this run
 met it, and writes everything (the table and each script's full record) to
 ``--out``. Timings are medians of a few repetitions but still move with the
 load of the machine; ratios measured in one process (``x RLS``, ``x SLSQP``)
-are the robust numbers. About 12 minutes on 2 CPU cores at load 1.5, most of it ``compile_time``.
+are the robust numbers. About 22 minutes on 2 CPU cores at load 1.5, most of it ``compile_time`` and
+``test_suite`` (the test suite's two tiers, and its fast tier at the shipped LLVM level, as the README runs them).
 
     python benchmarks/run_all.py [--out benchmarks/results.json] [--markdown] [--skip ablation ...]
 
@@ -30,7 +31,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BENCHMARKS = ("estimator", "estimator_2dev", "rls_floor", "rollouts", "refine", "valid_region", "ablation",
-              "articulated", "scaling", "demo_cold", "compile_time", "mjx_profile")
+              "articulated", "scaling", "demo_cold", "compile_time", "mjx_profile", "test_suite")
 
 
 def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 900) -> tuple[dict, float]:
@@ -68,6 +69,7 @@ def collect(skip=(), gpu_scale=False) -> dict:
         "articulated": ("articulated", ["--batch", "200" if gpu_scale else "8", "--steps", "100"], None),
         "mjx_profile": ("mjx_profile", ["--scenes", "stewart", "--no-stages", "--native", "16", "--native-steps", "10",
                                         "--batch", "10000" if gpu_scale else "500"], None),
+        "test_suite": ("test_suite", ["--tiers", "fast", "whole", "--shipped"], None),
     }
     if gpu_scale:
         plans.pop("estimator_2dev")
@@ -76,7 +78,7 @@ def collect(skip=(), gpu_scale=False) -> dict:
         if key in skip:
             continue
         print(f"== {key}", flush=True)
-        data, wall = _script(script, args, env, timeout=3600 if key == "compile_time" else 900)
+        data, wall = _script(script, args, env, timeout=3600 if key in ("compile_time", "test_suite") else 900)
         res[key] = {"result": data, "script_wall_s": wall}
     return res
 
@@ -224,6 +226,17 @@ def table(res: dict) -> list[dict]:
                      st["mjx_time_x_native"], "x native", "<= 3", st["mjx_time_x_native"] <= 3,
                      f"mjx {st['mjx_poses_per_s']:.0f}, native {st['native_poses_per_s']:.0f} poses/s; one step "
                      f"{s['mjx_step_us']:.0f} us/pose, native rollout {s['native_rollout_us']:.0f}")
+    if "test_suite" in res:
+        r = res["test_suite"]["result"]
+        ratio = r.get("fast_vs_shipped_level")
+        for t in r["rows"]:
+            if t["level"] is not None:
+                continue
+            note = f"{t['passed']} passed, wall {t['wall_s']:.0f} s, load {t['load_before']:.1f} before"
+            if t["tier"] == "fast" and ratio is not None:
+                note += f"; {ratio:.2f}x the same tier at LLVM level 3 in this run"
+            _row(rows, f"test suite, {t['tier']} tier (pytest -n 2, LLVM level 0)", t["pytest_s"], "s pytest",
+                 f"<= {r['goals_s'][t['tier']]:g}", t["pytest_s"] <= r["goals_s"][t["tier"]], note)
     return rows
 
 
