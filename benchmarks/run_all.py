@@ -9,7 +9,10 @@ load of the machine; ratios measured in one process (``x RLS``, ``x SLSQP``)
 are the robust numbers. About 22 minutes on 2 CPU cores at load 1.5, most of it ``compile_time`` and
 ``test_suite`` (the test suite's two tiers, and its fast tier at the shipped LLVM level, as the README runs them).
 
-    python benchmarks/run_all.py [--out benchmarks/results.json] [--markdown] [--skip ablation ...]
+    python benchmarks/run_all.py [--out benchmarks/results.json] [--markdown] [--skip ablation ...] [--resume]
+
+The record is rewritten after each benchmark (so a stopped or failed run keeps what finished; a failed script
+is a row of its own and the others still run); ``--resume`` runs only those the record lacks.
 
 On a machine with a GPU the same command measures there (the scripts use
 JAX's default device); ``--gpu-scale`` raises the sizes to 100,000 rollouts,
@@ -48,7 +51,10 @@ def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 
         return json.loads(out.read_text()), wall
 
 
-def collect(skip=(), gpu_scale=False) -> dict:
+def collect(skip=(), gpu_scale=False, done: dict | None = None, save=None) -> dict:
+    """Run each benchmark not in ``skip`` nor already in ``done`` (a previous run's records, kept); ``save(res)``
+    after each, so an interrupted or failed run keeps what finished. A script that fails is recorded with its
+    error and the rest still run."""
     batch_est, batch_roll = (1_000_000, 100_000) if gpu_scale else (10_000, 10_000)
     plans = {
         "estimator": ("estimator", ["--batch", str(batch_est), "--steps", "50", "--reps", "3", "--rounds", "2"], None),
@@ -73,13 +79,20 @@ def collect(skip=(), gpu_scale=False) -> dict:
     }
     if gpu_scale:
         plans.pop("estimator_2dev")
-    res = {}
+    res = dict(done or {})
     for key, (script, args, env) in plans.items():
-        if key in skip:
+        if key in skip or key in res:
             continue
         print(f"== {key}", flush=True)
-        data, wall = _script(script, args, env, timeout=3600 if key in ("compile_time", "test_suite") else 900)
-        res[key] = {"result": data, "script_wall_s": wall}
+        t0 = time.perf_counter()
+        try:
+            data, wall = _script(script, args, env, timeout=3600 if key in ("compile_time", "test_suite") else 900)
+            res[key] = {"result": data, "script_wall_s": wall}
+        except (RuntimeError, subprocess.TimeoutExpired) as err:
+            print(f"== {key} FAILED: {str(err)[-2000:]}", flush=True)
+            res[key] = {"error": str(err)[-4000:], "script_wall_s": time.perf_counter() - t0}
+        if save is not None:
+            save(res)
     return res
 
 
@@ -89,6 +102,10 @@ def _row(rows, what, value, unit, goal, met, note=""):
 
 def table(res: dict) -> list[dict]:
     rows: list[dict] = []
+    for key, r in res.items():
+        if "error" in r:
+            _row(rows, f"{key}: the script failed", None, "", "", False, r["error"].strip().splitlines()[-1][:200])
+    res = {k: r for k, r in res.items() if "error" not in r}
     for key in ("estimator", "estimator_2dev"):
         if key not in res:
             continue
@@ -265,27 +282,41 @@ def main():
     ap.add_argument("--skip", nargs="*", default=[], choices=BENCHMARKS)
     ap.add_argument("--markdown", action="store_true", help="also print the table as Markdown (the README table)")
     ap.add_argument("--gpu-scale", action="store_true", help="100,000 rollouts and 1,000,000 estimators")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the benchmarks --out already holds (those that did not fail) and run the others")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    res = collect(set(args.skip), args.gpu_scale)
+    out = Path(args.out)
+    done = {}
+    if args.resume and out.exists():
+        done = {k: r for k, r in json.loads(out.read_text())["benchmarks"].items() if "error" not in r}
+        print(f"resuming: {', '.join(done) or 'nothing'} kept from {out}", flush=True)
+    started = time.strftime("%Y-%m-%d %H:%M:%S")
+
+    def save(res):
+        import jax
+
+        record = {
+            "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+                        "python": platform.python_version(), "jax": jax.__version__,
+                        "device": str(jax.devices()[0]), "load_avg_at_end": os.getloadavg()},
+            "started": started, "date": time.strftime("%Y-%m-%d %H:%M:%S"), "total_s": time.perf_counter() - t0,
+            "table": table(res), "benchmarks": res,
+        }
+        tmp = out.with_name(out.name + ".tmp")
+        tmp.write_text(json.dumps(record, indent=2, default=str))
+        os.replace(tmp, out)  # whole or not at all
+
+    res = collect(set(args.skip), args.gpu_scale, done, save)
+    save(res)
     rows = table(res)
     print()
     print(render(rows))
     if args.markdown:
         print()
         print(render(rows, markdown=True))
-    total = time.perf_counter() - t0
-    print(f"\nall benchmarks: {total:.0f} s")
-    import jax
-
-    record = {
-        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
-                    "python": platform.python_version(), "jax": jax.__version__,
-                    "device": str(jax.devices()[0]), "load_avg_at_end": os.getloadavg()},
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"), "total_s": total, "table": rows, "benchmarks": res,
-    }
-    Path(args.out).write_text(json.dumps(record, indent=2, default=str))
-    print(f"wrote {args.out}")
+    print(f"\nall benchmarks: {time.perf_counter() - t0:.0f} s")
+    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

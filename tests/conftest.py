@@ -15,9 +15,9 @@ from pathlib import Path
 # multiply-adds); tests marked `shipped_xla` re-run in a subprocess at the shipped level. A level set in
 # XLA_FLAGS by the user wins (XLA_FLAGS=--xla_backend_optimization_level=3 runs every test as shipped).
 _OPT_FLAG = "--xla_backend_optimization_level"
-_TEST_OPT = _OPT_FLAG not in os.environ.get("XLA_FLAGS", "")
-if _TEST_OPT:
+if _OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_OPT_FLAG}=0".strip()
+_LEVEL_0 = f"{_OPT_FLAG}=0" in os.environ["XLA_FLAGS"].split()  # also in pytest-xdist workers, which inherit it
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
@@ -48,7 +48,7 @@ def pytest_configure(config):
 
 def pytest_pyfunc_call(pyfuncitem):
     """A test marked ``shipped_xla`` runs at XLA's shipped optimisation level: in a subprocess when this one is at 0."""
-    if not (_TEST_OPT and pyfuncitem.get_closest_marker("shipped_xla")):
+    if not (_LEVEL_0 and pyfuncitem.get_closest_marker("shipped_xla")):
         return None
     flags = os.environ["XLA_FLAGS"].replace(f"{_OPT_FLAG}=0", f"{_OPT_FLAG}=3")
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", pyfuncitem.nodeid],
