@@ -101,8 +101,8 @@ def apply_default_xla_flags() -> None:
 
 QUICK_COMPILE_FLAGS: dict[str, str] = {"--xla_backend_optimization_level": "0"}
 """LLVM's optimisation level 0 for XLA's CPU code: XLA's graph passes (fusion, simplification) are unchanged, only
-the machine code is less optimised. Compiles in about 0.6x the time; the code runs slower (up to 4.4x for the hands'
-pose solve), and the results differ from level 3's by round-off."""
+the machine code is less optimised. XLA compiles the hands' pose programs in about half the time; the code runs slower
+(up to 4.4x for the hands' pose solve), and the results differ from level 3's by round-off."""
 
 
 def request_quick_compile() -> None:
