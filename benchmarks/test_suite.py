@@ -35,6 +35,7 @@ def one_tier(tier: str, level: int | None, timeout: int) -> dict:
     env.pop("SELFID_JAX_TEST_CACHE_DIR", None)  # each run makes (and removes) its own empty cache
     if level is not None:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_backend_optimization_level={level}".strip()
+    load = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
     wall = time.perf_counter() - t0
@@ -43,7 +44,7 @@ def one_tier(tier: str, level: int | None, timeout: int) -> dict:
     if proc.returncode != 0 or not found:
         raise RuntimeError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout[-3000:]}{proc.stderr[-2000:]}")
     return {"tier": tier, "level": level, "passed": int(found[1]), "pytest_s": float(found[2]), "wall_s": wall,
-            "load_before": None}
+            "load_before": load}
 
 
 def main():
@@ -56,13 +57,11 @@ def main():
     plan = [(t, None) for t in args.tiers] + ([("fast", 3)] if args.shipped else [])
     rows, lines = [], []
     for tier, level in plan:
-        load = os.getloadavg()[0]
         r = one_tier(tier, level, args.timeout)
-        r["load_before"] = load
         rows.append(r)
         what = f"{tier} tier" + (f", LLVM level {level}" if level is not None else "")
         lines.append(f"{what:28s} {r['passed']:4d} passed, pytest {r['pytest_s']:6.1f} s, wall {r['wall_s']:6.1f} s "
-                     f"(goal <= {GOALS_S[tier]:g} s), load {load:.1f} before")
+                     f"(goal <= {GOALS_S[tier]:g} s), load {r['load_before']:.1f} before")
     record = {"rows": rows, "goals_s": GOALS_S, "cpus": os.cpu_count()}
     base = [r for r in rows if r["tier"] == "fast" and r["level"] == 3]
     ours = [r for r in rows if r["tier"] == "fast" and r["level"] is None]

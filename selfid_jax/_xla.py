@@ -92,11 +92,14 @@ def merged_xla_flags(existing: str | None, defaults: dict[str, str] | None = Non
     return " ".join(tokens)
 
 
-def apply_default_xla_flags() -> None:
-    """Write the merged flags into ``os.environ['XLA_FLAGS']`` (opt out: ``SELFID_JAX_NO_XLA_FLAGS=1``)."""
+def apply_default_xla_flags(defaults: dict[str, str] | None = None) -> None:
+    """Write the merged flags into ``os.environ['XLA_FLAGS']`` (opt out: ``SELFID_JAX_NO_XLA_FLAGS=1``).
+
+    ``defaults``: as :func:`merged_xla_flags` (default: the installed jaxlib's).
+    """
     if os.environ.get("SELFID_JAX_NO_XLA_FLAGS", "") not in ("", "0"):
         return
-    os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS"))
+    os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS"), defaults)
 
 
 QUICK_COMPILE_FLAGS: dict[str, str] = {"--xla_backend_optimization_level": "0"}
@@ -109,9 +112,7 @@ def request_quick_compile() -> None:
     """Merge :data:`QUICK_COMPILE_FLAGS` into ``os.environ['XLA_FLAGS']`` (a level the user set there wins).
 
     For a process whose programs each run once on small data, where compile time is most of the wall time
-    (``selfid-jax demo``: 20.2 against 26.6 s wall, CPU 24 against 38 s, two runs each on 2 cores). Takes
-    effect only before JAX's first computation, as the default flags.
+    (``selfid-jax demo``: 20.3-20.6 against 25.8-26.1 s wall, CPU 24 against 38 s, two interleaved pairs on 2
+    cores). Takes effect only before JAX's first computation, as the default flags; the same opt-out.
     """
-    if os.environ.get("SELFID_JAX_NO_XLA_FLAGS", "") not in ("", "0"):
-        return
-    os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS"), QUICK_COMPILE_FLAGS)
+    apply_default_xla_flags(QUICK_COMPILE_FLAGS)

@@ -8,21 +8,22 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import pytest
+
+import selfid_jax  # noqa: F401  (sets the CPU XLA flags before JAX initialises)
+from selfid_jax._xla import QUICK_COMPILE_FLAGS, merged_xla_flags
+
 # The tests compile with LLVM's optimisation level 0: XLA's graph passes (fusion, simplification) are those of
 # the shipped build, only the machine code is less optimised. Most test programs run once on small shapes, so
 # compile time is most of the suite's time: level 0 takes the whole suite from 616 to 427 s and its fast tier
 # from 102 to 75 s (2 cores, same hour). The results differ from level 3's by round-off (LLVM contracts other
 # multiply-adds); tests marked `shipped_xla` re-run in a subprocess at the shipped level. A level set in
 # XLA_FLAGS by the user wins (XLA_FLAGS=--xla_backend_optimization_level=3 runs every test as shipped).
+# Set here, before JAX's first computation; pytest-xdist workers and subprocesses inherit it.
+os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS"), QUICK_COMPILE_FLAGS)
 _OPT_FLAG = "--xla_backend_optimization_level"
-if _OPT_FLAG not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_OPT_FLAG}=0".strip()
-_LEVEL_0 = f"{_OPT_FLAG}=0" in os.environ["XLA_FLAGS"].split()  # also in pytest-xdist workers, which inherit it
-
-import jax  # noqa: E402
-import pytest  # noqa: E402
-
-import selfid_jax  # noqa: E402, F401  (sets the CPU XLA flags before JAX initialises)
+_LEVEL_0 = f"{_OPT_FLAG}=0" in os.environ["XLA_FLAGS"].split()
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
