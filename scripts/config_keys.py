@@ -37,7 +37,10 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "config_reference.md"
 GROUP = "selfid_jax.experiments"
 # Commands that read a YAML config of their own (not an experiment): (command, "module:model").
-COMMANDS = (("online", "selfid_jax.app.online:OnlineConfig"), ("robot-sim", "selfid_jax.app.robot_sim:RobotSimConfig"))
+COMMANDS = (
+    ("online", "selfid_jax.commands.online:OnlineConfig"),
+    ("robot-sim", "selfid_jax.commands.robot_sim:RobotSimConfig"),
+)
 
 HEADER = """# Config reference
 

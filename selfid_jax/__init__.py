@@ -11,7 +11,7 @@ on first use). docs/api_guide.md has runnable examples.
 
 Layers, bottom to top (import-linter contracts in ``pyproject.toml``):
 ``math`` < ``systems`` < ``identify`` | ``control`` < ``baselines`` <
-``design`` | ``articulated`` | ``robot`` < ``experiments`` < ``app`` < ``cli``; ``runner`` knows none of them.
+``design`` | ``articulated`` | ``robot`` < ``experiments`` < ``commands`` < ``cli``; ``runner`` knows none of them.
 
 Importing the package appends CPU XLA flags to ``XLA_FLAGS`` (see
 ``selfid_jax._xla``); import it before running any JAX computation.

@@ -21,15 +21,15 @@ def _config_dirs() -> tuple[tuple[str, Path], ...]:
 
 
 def commands() -> dict:
-    """The package's subcommands beside the runner's: ``fit``, ``online`` and ``robot-sim`` (:mod:`selfid_jax.app`)."""
-    from selfid_jax.app import fit, online, robot_sim
+    """The package's own subcommands ``fit``, ``online`` and ``robot-sim`` (:mod:`selfid_jax.commands`)."""
+    from selfid_jax.commands import fit, online, robot_sim
 
     return {"fit": fit.command(), "online": online.command(), "robot-sim": robot_sim.command()}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.cli.main` with the built-in systems and ``fit``
-    (:mod:`selfid_jax.app.fit`); the exit code.
+    (:mod:`selfid_jax.commands.fit`); the exit code.
 
     As the console script (``argv`` None) it first takes over SIGINT and SIGTERM
     (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported; for ``demo`` it also asks XLA for quick

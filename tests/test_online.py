@@ -374,7 +374,7 @@ def test_robot_protocol_fake_is_a_robot():
 
 
 def test_example_config_validates():
-    from selfid_jax.app.online import OnlineConfig, options
+    from selfid_jax.commands.online import OnlineConfig, options
     from selfid_jax.runner.config import read_config, validate
 
     path = Path(__file__).resolve().parents[1] / "configs" / "online_ur5e.yaml"
