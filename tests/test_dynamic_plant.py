@@ -16,6 +16,7 @@ import numpy as np
 import pydantic
 import pytest
 
+from selfid_jax import control
 from selfid_jax.control import loop
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.experiments.common import realism as realistic
@@ -52,8 +53,8 @@ def test_exact_plant_reproduces_the_ideal_loop():
     q0 = jnp.asarray([0.3, 1.2])
     path = jnp.asarray([[0.05, 0.0], [0.05, 0.05], [0.0, 0.05]])
     plant = realism_lib.dynamic_plant(ExactArm(), 1)
-    ideal = loop.follow(system, loop.true_inverse(system), path, q0, steps=80, return_trajectory=True)
-    hooked = loop.follow(system, loop.true_inverse(system), path, q0, steps=80, return_trajectory=True, plant=plant)
+    ideal = loop.follow(system, control.true_inverse(system), path, q0, steps=80, return_trajectory=True)
+    hooked = loop.follow(system, control.true_inverse(system), path, q0, steps=80, return_trajectory=True, plant=plant)
     assert float(ideal.completion) == 1.0
     for name in ("completion", "mean_error", "max_error", "waypoint_error", "steps_used", "final_q", "positions"):
         np.testing.assert_array_equal(np.asarray(getattr(hooked, name)), np.asarray(getattr(ideal, name)), err_msg=name)
@@ -79,7 +80,7 @@ def test_plant_arguments_are_checked():
     with pytest.raises(TypeError, match="has no init"):
         realism_lib.dynamic_plant(object(), 1)
     with pytest.raises(TypeError, match="plant must be a realism.Plant"):
-        loop.follow(two_link(), loop.true_inverse(two_link()), jnp.zeros((1, 2)), jnp.zeros(2), plant=ExactArm())
+        loop.follow(two_link(), control.true_inverse(two_link()), jnp.zeros((1, 2)), jnp.zeros(2), plant=ExactArm())
 
 
 def native_follow(J, q0, path, steps, tol=0.0005, max_step=0.0025, gain=1.0):
@@ -137,7 +138,7 @@ def test_dynamic_follow_agrees_with_native_mujoco():
 
     @chex.assert_max_traces(n=1)
     def one(J, q0):
-        return loop.follow(system, loop.fixed(J), jnp.asarray(PATH), q0, steps=STEPS, return_trajectory=True,
+        return loop.follow(system, control.fixed(J), jnp.asarray(PATH), q0, steps=STEPS, return_trajectory=True,
                            plant=plant)
 
     res = jax.jit(jax.vmap(one))(jnp.asarray(Js), jnp.asarray(starts))
@@ -148,7 +149,7 @@ def test_dynamic_follow_agrees_with_native_mujoco():
         k = len(seen)
         np.testing.assert_allclose(np.asarray(res.positions[i, :k]), seen, atol=1e-9, rtol=0)
         # the servos lag: the dynamic arm needs more control steps than the kinematic one
-        kinematic = loop.follow(system, loop.fixed(jnp.asarray(Js[i])), jnp.asarray(PATH), jnp.asarray(starts[i]),
+        kinematic = loop.follow(system, control.fixed(jnp.asarray(Js[i])), jnp.asarray(PATH), jnp.asarray(starts[i]),
                                 steps=STEPS)
         assert int(kinematic.steps_used) < int(res.steps_used[i])
 

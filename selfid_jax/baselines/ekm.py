@@ -66,7 +66,8 @@ from selfid_jax.control import qp as qp_control
 from selfid_jax.math.checks import check_array, check_positive_int
 from selfid_jax.baselines import sogp
 from selfid_jax.baselines.base import Estimator, assemble, check_bool, check_choice, check_number
-from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult
+from selfid_jax.control.loop import FollowResult
+from selfid_jax.control.task import DEFAULT_STEPS, ControllerParams
 from selfid_jax.identify.estimator import guarded_update
 from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.kinematics import ChainModel

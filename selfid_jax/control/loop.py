@@ -1,64 +1,44 @@
 """Path following under ``lax.scan``: one loop (:func:`follow_law`) whose per-step actuator law is pluggable.
 
-Each step the desired twist ``V`` points from the current pose to the current
-waypoint (scaled by ``gain``, clipped to ``max_step`` metres and
-``max_rot_step`` radians), a :class:`StepLaw` turns it into an actuator step
-(``Jinv(q) @ V`` for :func:`follow`, the E-KM's constrained QP for
-:func:`selfid_jax.control.qp.follow`), the actuators move by it (clipped to the
-system's actuator limits), and the waypoint advances once it is within ``tol``
-(and ``rot_tol`` for 6-D tasks). Metrics per rollout are returned in
-:class:`FollowResult`; a rollout whose state turns non-finite or which strays
-farther than ``diverge_dist`` from the path is frozen and flagged ``failed``,
-so every metric stays finite. Completion and failure have one definition here
-for every law (:func:`completed`, :func:`feasible_indices`).
+Each step is :func:`selfid_jax.control.law.command`, the control step the live
+robot runs too: the waypoint advances once the pose is within ``tol`` (and
+``rot_tol`` for tasks with rotation), the desired twist ``V`` points from the
+pose to the current waypoint (scaled by ``gain``, clipped to ``max_step``
+metres and ``max_rot_step`` radians), a :class:`~selfid_jax.control.law.StepLaw`
+turns it into an actuator step (``Jinv(q) @ V`` for :func:`follow`, the
+E-KM's constrained QP for :func:`selfid_jax.control.qp.follow`), capped per
+actuator (``max_dq``), and the actuators move by it (clipped to the system's
+actuator limits). Metrics per rollout are returned in :class:`FollowResult`;
+a rollout whose state turns non-finite or which strays farther than
+``diverge_dist`` from the path is frozen and flagged ``failed``, so every
+metric stays finite. Completion and failure have one definition here for
+every law (:func:`completed`, :func:`feasible_indices`).
+
+The inverse-Jacobian sources are in :mod:`selfid_jax.control.sources`, the
+task geometry (waypoints, twist, path distance) in
+:mod:`selfid_jax.control.task`, the law and the control step in
+:mod:`selfid_jax.control.law`.
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.typing import ArrayLike
 import numpy as np
+from jax.typing import ArrayLike
 
 from selfid_jax.control import realism as realism_lib
-from selfid_jax.math import geometry
+from selfid_jax.control.law import StepLaw, command, inverse_jacobian_law
+from selfid_jax.control.sources import JinvFn, JinvSource, true_inverse
+from selfid_jax.control.task import DEFAULT_STEPS, ControllerParams, Task, safe_norm
 from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, is_traced
-from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.system import System
 
-JinvFn = Callable[[jax.Array], jax.Array]
-"""``jinv_fn(q (n,)) -> (n, m)``: the inverse Jacobian the controller uses at ``q``."""
-
-
-class JinvSource(Protocol):
-    """Anything with ``pose_and_jinv(system, q (n,)) -> ((p (3,), R (3, 3)), Jinv (n, m))``: the controller's one
-    call per step (:class:`Fixed`, :class:`JacobianInverse`, :class:`FromFunction` or a user's own)."""
-
-    def pose_and_jinv(self, system: System, q) -> tuple[tuple[jax.Array, jax.Array], jax.Array]: ...
-
-
-class ControllerParams(NamedTuple):
-    """Traced controller settings of :func:`follow` (sweepable: any field may carry a batch axis under ``vmap``).
-
-    The defaults are the shipped configs' UR5e protocol
-    (:class:`selfid_jax.experiments.common.schema.ControllerConfig` reads its defaults from here).
-    """
-
-    max_step: ArrayLike = 0.0025  # () largest POM position step per control step [m]
-    tol: ArrayLike = 0.0005  # () waypoint reached within this distance [m]
-    gain: ArrayLike = 1.0  # () fraction of the error commanded per step (before clipping)
-    max_rot_step: ArrayLike = 0.05  # () largest rotation step per control step [rad] (6-D tasks)
-    rot_tol: ArrayLike = 0.01  # () waypoint orientation reached within this angle [rad] (6-D tasks)
-    # () failed beyond this distance to the path [m]; None: 2 max|path| + 10 tol
-    diverge_dist: ArrayLike | None = None
-
-
-DEFAULT_STEPS = 435
-"""Default step budget of :func:`follow`: 3x the full-speed step count of the shipped star protocols."""
+__all__ = ["DEFAULT_STEPS", "ControllerParams", "FollowResult", "completed", "feasible_indices", "feasible_starts",
+           "follow", "follow_law"]
 
 
 class FollowResult(NamedTuple):
@@ -86,238 +66,6 @@ class FollowResult(NamedTuple):
     final_pose: tuple[jax.Array, jax.Array] | None = None
 
 
-# ------------------------------------------------------------------ inverse-Jacobian sources
-# Each has ``pose_and_jinv(system, q) -> ((p (3,), R (3, 3)), Jinv (n, m))``, the one call the controller makes per
-# step.
-
-class Fixed(NamedTuple):
-    """A constant inverse Jacobian ``J (n, m)`` (e.g. a self-ID estimate)."""
-
-    J: jax.Array
-
-    def __call__(self, q):
-        return self.J
-
-    def pose_and_jinv(self, system: System, q):
-        return system.pose(q), self.J
-
-
-class JacobianInverse(NamedTuple):
-    """``scale * pinv(J(q))`` from the system's Jacobian, pose and Jacobian from one kinematics pass."""
-
-    system: System
-    scale: jax.Array | float = 1.0  # () or (n, m), elementwise
-
-    def __call__(self, q):
-        return self.scale * pseudo_inverse(self.system.jacobian(q))
-
-    def pose_and_jinv(self, system: System, q):
-        pose, J = system.pose_and_jacobian(q)
-        return pose, self.scale * pseudo_inverse(J)
-
-
-class FromFunction(NamedTuple):
-    """Any ``jinv_fn(q) -> (n, m)``; the pose is read separately."""
-
-    fn: JinvFn
-
-    def __call__(self, q):
-        return self.fn(q)
-
-    def pose_and_jinv(self, system: System, q):
-        return system.pose(q), self.fn(q)
-
-
-class EstimateOrTrue(NamedTuple):
-    """The constant ``estimate (n, m)``, or the true ``pinv(J(q))`` where ``use_true ()`` (a traced bool).
-
-    One program for both: ``vmap`` over ``use_true`` follows with an estimate and with the truth side by side,
-    so the pose map is compiled once for the two (on a closed-chain hand each place it is evaluated is a Newton
-    solve). Pose and Jacobian come from one kinematics pass either way.
-    """
-
-    estimate: jax.Array
-    use_true: jax.Array
-
-    def pose_and_jinv(self, system: System, q):
-        pose, J = system.pose_and_jacobian(q)
-        return pose, jnp.where(self.use_true, pseudo_inverse(J), self.estimate)
-
-
-def estimate_or_true(estimate, use_true) -> EstimateOrTrue:
-    """``estimate (n, m)`` where ``use_true ()`` is False, the system's true inverse Jacobian where it is True."""
-    return EstimateOrTrue(jnp.asarray(estimate), jnp.asarray(use_true, bool))
-
-
-def fixed(J) -> Fixed:
-    """A constant inverse Jacobian ``J (n, m)`` (e.g. a self-ID estimate)."""
-    return Fixed(J)
-
-
-def true_inverse(system: System) -> JacobianInverse:
-    """The system's true inverse Jacobian at every step."""
-    return JacobianInverse(system)
-
-
-def scaled_true_inverse(system: System, m_eps) -> JacobianInverse:
-    """``m_eps * true_inverse_jacobian(q)`` elementwise, ``m_eps (n, m)`` (the valid-region study, Sec. III-C)."""
-    return JacobianInverse(system, m_eps)
-
-
-# ------------------------------------------------------------------ task space
-
-def safe_norm(v):
-    """Euclidean norm of ``v (d,)``, ``()``, whose reverse-mode derivative is 0 (not NaN) at ``v = 0``.
-
-    The square root's derivative is infinite at 0; the double ``where`` keeps
-    it off the traced path there (``0 * inf`` would be NaN). Forward value:
-    ``sqrt(sum(v * v))`` exactly, NaN included.
-    """
-    sq = jnp.sum(v * v)
-    pos = sq > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), sq)  # sq: 0 at 0, and NaN stays NaN
-
-
-def clip_norm(v, limit):
-    """``v (d,)`` scaled down to norm ``limit ()`` if longer, NaN-safe: finite reverse derivative at ``v = 0``.
-
-    Forward value: ``v * min(1, limit / |v|)`` (``v`` itself at 0), the same
-    number as the single-``where`` form; its derivative at ``v = 0`` is
-    ``min(1, limit)`` times the identity instead of NaN.
-    """
-    sq = jnp.sum(v * v)
-    pos = sq > 0
-    # the outer where also keeps XLA from rewriting limit / sqrt as limit * rsqrt (not correctly rounded: the
-    # rollouts would move in the last bit)
-    norm = jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 1.0)
-    return v * jnp.minimum(1.0, limit / norm)
-
-
-
-def _segment_distance(p, a, b):
-    """Distance from points ``p (d,)`` to segments ``a (S, d) -> b (S, d)``: ``(S,)``."""
-    ab = b - a
-    denom = jnp.sum(ab * ab, axis=-1)
-    t = jnp.clip(jnp.sum((p[None, :] - a) * ab, axis=-1) / jnp.where(denom > 0, denom, 1.0), 0.0, 1.0)
-    closest = a + t[:, None] * ab
-    return jnp.sqrt(jnp.sum((p[None, :] - closest) ** 2, axis=-1))
-
-
-def waypoint_poses(path, pose0, axes: tuple[int, ...]):
-    """Goal poses of waypoint offsets ``path (W, len(axes))`` taken from ``pose0 = (p0 (3,), R0 (3, 3))``.
-
-    The offsets are the task components ``axes`` (indices into ``[dp, rotation
-    vector]``) of each waypoint; the others are 0 (held). Returns ``(p (W, 3),
-    R (W, 3, 3))``: ``p0 + dp`` and ``exp(r) R0`` [m, rotation matrices].
-    """
-    full = jnp.zeros((path.shape[0], 6), path.dtype).at[:, jnp.asarray(axes)].set(path)
-    p0, R0 = pose0
-    return p0[None, :] + full[:, :3], jnp.einsum("wij,jk->wik", geometry.so3_exp(full[:, 3:]), R0)
-
-
-class _Task(NamedTuple):
-    """Waypoints in task space, taken from the start pose ``pose0`` (:func:`waypoint_poses`): the task's position
-    components and, where it has them, target orientations. Each goal is formed where it is read (one waypoint per
-    step), so the start pose can be the first pose the loop senses."""
-
-    path: jax.Array  # (W, task_dim) waypoint offsets along the task components `axes`
-    pose0: tuple[jax.Array, jax.Array]  # (p0 (3,), R0 (3, 3)) the start pose [m, rotation matrix]
-    axes: tuple[int, ...]  # static: the task components (indices into [dp, rotation vector])
-    pos_axes: tuple[int, ...]  # static: the task's position components (0-2)
-    rot_axes: tuple[int, ...]  # static: the task's rotation-vector components (0-2)
-
-    @staticmethod
-    def make(path, pose0, system: System) -> _Task:
-        return _Task(path, pose0, system.axes, system.position_axes, system.rotation_axes)
-
-    @property
-    def targets(self):
-        """``(W, P)`` waypoint positions along the task's P position axes [m]."""
-        return self.positions(waypoint_poses(self.path, self.pose0, self.axes)[0])
-
-    @property
-    def vertices(self):
-        """``(W + 1, P)`` path polyline, start pose first [m]."""
-        return jnp.concatenate([self.positions(self.pose0[0])[None, :], self.targets], axis=0)
-
-    def error(self, pose, w):
-        """``(e_p (P,), e_r (R,))`` from ``pose`` to waypoint ``w`` (clamped to the last), task components only."""
-        p, R = pose
-        wc = jnp.minimum(w, self.path.shape[0] - 1)
-        p_goal, R_goal = waypoint_poses(self.path[wc][None], self.pose0, self.axes)
-        e_p = self.positions(p_goal[0]) - self.positions(p)
-        if not self.rot_axes:
-            return e_p, e_p[:0]
-        return e_p, geometry.so3_log(R_goal[0] @ R.T)[jnp.asarray(self.rot_axes)]
-
-    def positions(self, p):
-        """The task's position components of ``p (..., 3)``: ``(..., P)``."""
-        return p[..., list(self.pos_axes)]
-
-    def reached(self, e_p, e_r, ctrl: ControllerParams):
-        return (safe_norm(e_p) <= ctrl.tol) & (safe_norm(e_r) <= ctrl.rot_tol)
-
-    def twist(self, e_p, e_r, ctrl: ControllerParams):
-        """Commanded pose change ``V (m,)``: the gained error, position and rotation parts clipped separately."""
-        return jnp.concatenate([clip_norm(ctrl.gain * e_p, ctrl.max_step),
-                                clip_norm(ctrl.gain * e_r, ctrl.max_rot_step)])
-
-    def path_distance(self, p):
-        """Distance of position ``p`` to the path polyline along the task's position axes [m] (0 without any)."""
-        if not self.pos_axes:
-            return jnp.zeros((), p.dtype)
-        v = self.vertices
-        return jnp.min(_segment_distance(self.positions(p), v[:-1], v[1:]))
-
-
-# ------------------------------------------------------------------ step laws
-
-class StepLaw(NamedTuple):
-    """A per-step actuator law of :func:`follow_law`: three pure functions over the law's own state (optax-style).
-
-    ``init(q0 (n,)) -> state``: the law's state at the start (a pytree of
-    fixed-shape arrays; ``()`` for a memoryless law).
-
-    ``sense(state, q (n,)) -> (pose, aux)``: the POM pose ``(p (3,), R (3, 3))``
-    at ``q`` and whatever the law computed with it (e.g. the Jacobian from the
-    same kinematics pass), handed back to ``step``.
-
-    ``step(state, q, pose, aux, V (m,)) -> (dq (n,), state, ok ())``: the
-    actuator step for the commanded twist ``V`` (before ``system.apply``
-    clips it), the state after a move, and a bool that is False where the
-    law's own quantities are unusable (a non-finite Jacobian), which fails
-    the rollout. The loop keeps the new state only on steps that move.
-    """
-
-    init: Callable[[jax.Array], Any]
-    sense: Callable[[Any, jax.Array], tuple[tuple[jax.Array, jax.Array], Any]]
-    step: Callable[[Any, jax.Array, tuple[jax.Array, jax.Array], Any, jax.Array], tuple[jax.Array, Any, jax.Array]]
-
-
-def inverse_jacobian_law(system: System, jinv) -> StepLaw:
-    """``dq = Jinv(q) @ V``, ``Jinv (n, m)`` from :func:`fixed`, :func:`true_inverse`, :func:`scaled_true_inverse`,
-    any object with ``pose_and_jinv(system, q)`` or a plain ``jinv_fn(q) -> (n, m)``; stateless.
-
-    A non-finite ``Jinv`` fails the rollout; one of the wrong shape raises
-    ``ValueError`` while tracing.
-    """
-    source = jinv if hasattr(jinv, "pose_and_jinv") else FromFunction(jinv)
-    n, m = system.n_act, system.task_dim
-
-    def sense(state, q):
-        pose, J = source.pose_and_jinv(system, q)
-        if J.shape != (n, m):  # static: raised while tracing, before any compute
-            raise ValueError(f"jinv: the inverse Jacobian has shape {J.shape}, expected ({n}, {m}) = (n_act, task_dim)")
-        return pose, J
-
-    def step(state, q, pose, J, V):
-        return J @ V, state, jnp.all(jnp.isfinite(J))
-
-    return StepLaw(init=lambda q0: (), sense=sense, step=step)
-
-
-# ------------------------------------------------------------------ the loop
-
 class _Carry(NamedTuple):
     q: jax.Array  # (n,) actuator positions
     law: Any  # the step law's state (pytree; () for a stateless law)
@@ -332,26 +80,6 @@ class _Carry(NamedTuple):
     plant: Any = None  # with a plant: its state (e.g. an mjx.Data); q is its measured actuator positions
     anchor: Any = None  # (p (3,), R (3, 3)) the start pose, which the path's offsets are taken from
     pose: Any = None  # (p (3,), R (3, 3)) the true pose sensed last
-
-
-def _advance(task: _Task, carry: _Carry, pose, ctrl: ControllerParams, true_pose=None):
-    """Mark the current waypoint reached if ``pose`` (what the controller sees) is within tolerance, recording the
-    position error of ``true_pose`` (default ``pose``) then; returns ``(carry, active)``."""
-    W = task.path.shape[0]
-    active = (carry.waypoint < W) & ~carry.failed
-    e_p, e_r = task.error(pose, carry.waypoint)
-    reached = active & task.reached(e_p, e_r, ctrl)
-    wc = jnp.minimum(carry.waypoint, W - 1)
-    if true_pose is None:
-        e_true = e_p
-    else:  # the seen error itself where the reading is the pose (no latency, no noise): the ideal loop's number
-        same = jnp.all(pose[0] == true_pose[0])
-        e_true = jnp.where(same, e_p, task.error(true_pose, carry.waypoint)[0])
-    carry = carry._replace(
-        wp_err=jnp.where(reached, carry.wp_err.at[wc].set(safe_norm(e_true)), carry.wp_err),
-        waypoint=carry.waypoint + reached.astype(carry.waypoint.dtype),
-    )
-    return carry, active & (carry.waypoint < W)
 
 
 def _check_inputs(system: System, path, q0, controller, steps):
@@ -370,6 +98,13 @@ def _check_inputs(system: System, path, q0, controller, steps):
             raise ValueError(f"{name} holds non-finite values: {np.asarray(value)}")
     for name in ("max_step", "tol", "max_rot_step", "rot_tol", "gain"):
         check_scalar(f"controller.{name}", getattr(controller, name), gt=0.0)
+    cap = controller.max_dq
+    if cap is not None:
+        if np.shape(cap) not in ((), (system.n_act,)):
+            raise ValueError(f"controller.max_dq: expected one number or {system.n_act} (one per actuator), got shape "
+                             f"{np.shape(cap)}")
+        if not is_traced(cap) and not np.all(np.asarray(cap, np.float64) > 0):
+            raise ValueError(f"controller.max_dq: every value must be > 0, got {np.asarray(cap).tolist()}")
     return steps
 
 
@@ -443,10 +178,7 @@ def follow_law(
     q0 = jnp.asarray(q0, dtype)
     path = jnp.asarray(path, dtype)
     W = path.shape[0]
-    ctrl = controller
-    if ctrl.diverge_dist is None:
-        reach = jnp.max(jnp.sqrt(jnp.sum(path[:, : len(system.position_axes)] ** 2, axis=-1)))
-        ctrl = ctrl._replace(diverge_dist=2.0 * reach + 10.0 * ctrl.tol)
+    ctrl = controller._replace(diverge_dist=Task.make(path, None, system).default_diverge_dist(controller))
     realism_lib.check_plant(plant, system.n_act)
     if plant is not None and realism is None:
         realism = realism_lib.IDEAL
@@ -488,13 +220,26 @@ def follow_law(
         )
         if real:
             carry = carry._replace(tracker=where(first, realism_lib.tracker(pose, history), carry.tracker))
-        task = _Task.make(path, carry.anchor, system)
+        task = Task.make(path, carry.anchor, system)
         dist = task.path_distance(pose[0])
         seen, carry, dropped = see(carry, pose, k)
-        carry, active = _advance(task, carry, seen, ctrl, pose if real else None)
-        e_p, e_r = task.error(seen, carry.waypoint)
-        V = task.twist(e_p, e_r, ctrl)
-        dq, learned, ok = law.step(carry.law, carry.q, seen, aux, V)
+        # a reading that dropped out is no new information: no waypoint test and no new command this step (the
+        # target is the measured q), as the live runner waits for a fresh pose; time passes, the step counts
+        fresh = ~dropped if real else True
+        active = (carry.waypoint < W) & ~carry.failed
+        cmd = command(law, task, ctrl, carry.law, carry.waypoint, carry.q, seen, aux, active & fresh)
+        e_true = cmd.error
+        if real:  # the seen error itself where the reading is the pose (no latency, no noise): the ideal loop's number
+            e_true = jnp.where(jnp.all(seen[0] == pose[0]), cmd.error, task.error(pose, carry.waypoint)[0])
+        wc = jnp.minimum(carry.waypoint, W - 1)
+        carry = carry._replace(
+            wp_err=jnp.where(cmd.reached, carry.wp_err.at[wc].set(safe_norm(e_true)), carry.wp_err),
+            waypoint=cmd.waypoint,
+        )
+        active = active & (carry.waypoint < W)
+        dq, learned, ok = cmd.dq, cmd.law, cmd.ok
+        if real:
+            dq, learned = jnp.where(fresh, dq, 0.0), where(fresh, learned, carry.law)
         q_new = system.apply(carry.q, dq)
         x_new = None
         if plant is not None:
@@ -545,7 +290,7 @@ def follow_law(
         pose=pose_init,
     )
     carry, traj = jax.lax.scan(step, init, (jnp.arange(steps + 1), keys), length=steps + 1)
-    task = _Task.make(path, carry.anchor, system)
+    task = Task.make(path, carry.anchor, system)
     end_dist = jnp.sqrt(jnp.sum((task.targets - task.positions(carry.pose[0])[None]) ** 2, axis=-1))
     wp_err = jnp.where(carry.wp_err >= 0, carry.wp_err, jnp.where(jnp.isfinite(end_dist), end_dist, 0.0))
     result = FollowResult(

@@ -27,14 +27,10 @@ def closest_points(points, vertices):
     points, vertices = jnp.asarray(points), jnp.asarray(vertices)
     if vertices.shape[0] < 2:
         raise ValueError(f"vertices: need at least 2 (one segment), got shape {vertices.shape}")
-    a, b = vertices[:-1], vertices[1:]  # (S, d)
-    ab = b - a
-    denom = jnp.sum(ab * ab, axis=-1)  # (S,)
 
     def one(p):
-        t = jnp.clip(jnp.sum((p[None, :] - a) * ab, axis=-1) / jnp.where(denom > 0, denom, 1.0), 0.0, 1.0)
-        candidates = a + t[:, None] * ab  # (S, d)
-        return candidates[jnp.argmin(jnp.sum((candidates - p[None, :]) ** 2, axis=-1))]
+        candidates, dist = geometry.closest_on_polyline(p, vertices)
+        return candidates[jnp.argmin(dist)]
 
     return jax.vmap(one)(points)
 

@@ -50,7 +50,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
-from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult, StepLaw, follow_law
+from selfid_jax.control.law import StepLaw
+from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult, follow_law
 from selfid_jax.systems.system import System
 
 __all__ = ["QPResult", "solve", "step_box", "constrained_law", "follow"]
@@ -149,7 +150,7 @@ Observe = Callable[[Any, jax.Array, jax.Array, jax.Array], Any]
 
 def constrained_law(system: System, linearise: Linearise, model_state, *, observe: Observe | None = None,
                     weights=1.0, iters: int = 20) -> StepLaw:
-    """The Eq. 10-11 controller as a :class:`~selfid_jax.control.loop.StepLaw` of the one follow loop; position tasks.
+    """The Eq. 10-11 controller as a :class:`~selfid_jax.control.law.StepLaw` of the one follow loop; position tasks.
 
     Law state: the model's state, starting at ``model_state``. Each step:
     ``J, offset = linearise(model, q)``; ``da = solve(J, V - offset,

@@ -17,7 +17,8 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 
-__all__ = ["hat", "so3_exp", "so3_log", "rotation_to_quaternion", "pose_difference", "noisy_pose"]
+__all__ = ["hat", "so3_exp", "so3_log", "rotation_to_quaternion", "quaternion_to_rotation", "pose_difference",
+           "noisy_pose", "closest_on_polyline"]
 
 
 def _as_float(x):
@@ -78,6 +79,20 @@ def rotation_to_quaternion(R):
     return jaxlie.SO3.from_matrix(_as_float(R)).wxyz
 
 
+def quaternion_to_rotation(quaternion):
+    """Rotation matrix of a quaternion ``(w, x, y, z)``, normalised here (``jaxlie.SO3``).
+
+    Args:
+      quaternion: ``(..., 4)`` quaternion ``(w, x, y, z)``, any non-zero norm.
+
+    Returns:
+      ``(..., 3, 3)`` rotation matrix. A zero quaternion gives NaN (callers
+      that read poses from outside, a tracker or a log, refuse it first).
+    """
+    v = _as_float(quaternion)
+    return jaxlie.SO3(v / jnp.linalg.norm(v, axis=-1, keepdims=True)).as_matrix()
+
+
 def so3_log(R):
     """Rotation vector of a rotation matrix (inverse of :func:`so3_exp`; ``jaxlie.SO3.log``).
 
@@ -133,3 +148,22 @@ def noisy_pose(key, pose, pose_noise, rot_noise):
     p = p + pose_noise * jax.random.normal(kp, p.shape, p.dtype)
     R = so3_exp(rot_noise * jax.random.normal(kr, (3,), R.dtype)) @ R
     return p, R
+
+
+def closest_on_polyline(p, vertices):
+    """The points of the segments of the polyline ``vertices (V, d)`` closest to ``p (d,)`` and their distances:
+    ``(c (S, d), dist (S,))``, ``S = V - 1``; the polyline's closest point is ``c[argmin(dist)]``, its distance
+    ``min(dist)``.
+
+    The polyline runs ``vertices[0] -> vertices[1] -> ... -> vertices[-1]``
+    (``V >= 2``; a zero-length segment is its start point). The one segment
+    distance of the package: the follow loop's path distance and divergence
+    test (:class:`selfid_jax.control.task.Task`) and the per-axis path errors
+    of :mod:`selfid_jax.control.metrics`. NaN in ``p`` gives NaN.
+    """
+    a, b = vertices[:-1], vertices[1:]  # (S, d)
+    ab = b - a
+    denom = jnp.sum(ab * ab, axis=-1)  # (S,)
+    t = jnp.clip(jnp.sum((p[None, :] - a) * ab, axis=-1) / jnp.where(denom > 0, denom, 1.0), 0.0, 1.0)
+    candidates = a + t[:, None] * ab  # (S, d)
+    return candidates, jnp.sqrt(jnp.sum((p[None, :] - candidates) ** 2, axis=-1))
