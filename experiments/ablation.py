@@ -36,9 +36,8 @@ from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.control import paths
 
-from selfid_jax.experiments.common import figures as plots
-from selfid_jax.experiments.common.schema import (ControllerConfig, Magnitude, PathConfig, StudyConfig,
-                                                  check_noise_pairs, m_a_summary, resolve_m_a)
+from selfid_jax.experiments.common.schema import (ControllerConfig, Magnitude, PathConfig, PoseNoise, RotNoise,
+                                                  StudyConfig, check_noise_pairs, m_a_summary, resolve_m_a)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
@@ -49,6 +48,7 @@ from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_
 
 from selfid_jax.experiments.common import ekm as ablation_ekm
 from selfid_jax.experiments.common.ekm import METHOD_CHOICES, MethodName, NominalSpec, is_model_based
+from selfid_jax.experiments.common.lazy_figures import figures_plot
 
 
 class MethodSpec(BaseModel):
@@ -75,8 +75,8 @@ class AblationConfig(StudyConfig, StartsConfig):
     iterations: Annotated[list[Annotated[int, Field(ge=1, le=10**5)]], Field(min_length=1)]
     n_configs: int = Field(ge=1, le=10**5)
     n_trials: int = Field(ge=1, le=10**5)
-    pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)]  # m
-    rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)]  # rad
+    pose_noise: PoseNoise  # m
+    rot_noise: RotNoise  # rad
     m_a: Annotated[list[Magnitude], Field(min_length=1)] | None = Field(
         None, description="self-ID magnitude levels, each one number or one per actuator [rad or m] (default: one "
         "level, the system's own m_a; the rule of common.schema.resolve_m_a)")
@@ -325,6 +325,10 @@ def report(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+plot = figures_plot("ablation")
+"""The figures, :mod:`selfid_jax.experiments.figures.ablation` (imported, with matplotlib, when called)."""
+
+
 COLUMNS = {
     "method": "the method's name (methods[].name of the config) [label]",
     "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
@@ -353,7 +357,7 @@ EXPERIMENT = Experiment(
     summarize=summarize,
     columns=COLUMNS,
     tabulate=tabulate,
-    plot=plots.ablation_figures,
+    plot=plot,
     report=report,
     description="estimation ablation: completion vs self-ID iterations per estimation method (Fig. 5)",
 )

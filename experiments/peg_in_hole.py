@@ -32,7 +32,6 @@ the hand tilts the peg by ``rotation.angle`` (0.15 rad by default).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated, Any, Literal, NamedTuple
 
 import jax
@@ -48,13 +47,12 @@ from selfid_jax.identify import estimator
 from selfid_jax.math import geometry
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, SelfIdRealismConfig, StudyConfig,
-                                                  add_m_a_columns, check_noise_pairs, check_realism_noise, format_m_a,
-                                                  m_a_columns, m_a_summary, realism_columns)
+from selfid_jax.experiments.common.schema import (ControllerConfig, HostOrDevice, SelfIdConfig, StudyConfig,
+                                                  TrackerNoiseConfig, add_m_a_columns, controller_rows, m_a_columns,
+                                                  m_a_summary, realism_columns)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
-from selfid_jax.runner.figures import save_figure
+from selfid_jax.experiments.common.lazy_figures import figures_plot
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System, compose, hands
 from selfid_jax.systems.ur5e import ur5e
@@ -98,7 +96,7 @@ class Rotation(BaseModel):
     steps: int = Field(10, ge=1, le=1000, description="waypoints along the rotation")
 
 
-class PegConfig(StudyConfig):
+class PegConfig(StudyConfig, TrackerNoiseConfig):
     """Peg-in-hole with a Model O on a UR5e, both self-identified (Table III)."""
 
     experiment: Literal["peg_in_hole"] = "peg_in_hole"
@@ -113,15 +111,9 @@ class PegConfig(StudyConfig):
     hand: PartSettings
     insert_tol: float = Field(0.002, gt=0, le=0.1, description="insertion accepted within this position error [m]")
     insert_rot_tol_deg: float = Field(1.0, gt=0, le=90, description="... and this orientation error [deg]")
-    pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)] = [0.0]  # m
-    rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)] = [0.0]  # rad
-    realism: SelfIdRealismConfig | None = Field(
-        None, description="the real loop's non-idealities, on both self-IDs and every phase (default: the ideal loop)")
 
     @model_validator(mode="after")
     def _consistent(self):
-        check_noise_pairs(self.pose_noise, self.rot_noise)
-        check_realism_noise(self.realism, self.pose_noise, self.rot_noise)
         if self.realism is not None and self.realism.plant != "servo":
             raise ValueError("realism.plant: peg_in_hole runs the kinematic servo only (plant 'servo'); the "
                              "dynamic plant serves tracking and valid_region, whose system is one arm")
@@ -335,7 +327,7 @@ def summarize(table: pd.DataFrame, cfg: PegConfig) -> dict[str, Any]:
     out: dict[str, Any] = {}
     labels = realistic.level_labels(table)
     levels: dict[str, Any] = {}
-    level_of = table["realism_level"] if labels else pd.Series(0, index=table.index, name="realism_level")
+    level_of = realistic.level_of(table)
     for (noise, lvl, inverse), g in table.groupby(["pose_noise", level_of, "inverse"], sort=False):
         key = f"{1e3 * noise:g}" + (f" ({labels[int(lvl)]})" if labels else "")
         if labels:
@@ -383,33 +375,8 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
-    """Table III as bars per layout (estimated vs analytical, noise-free rows; with a realism section those of its
-    first level), protocol in the title."""
-    from matplotlib.figure import Figure
-
-    clean = table[(table["noise_level"] == 0) & (table["realism_level"] == 0 if "realism_level" in table else True)]
-    fig = Figure(figsize=(11, 3.6), layout="constrained")
-    labels = {"arm_pos_mm": "UR5e position error [mm]", "arm_rot_deg": "UR5e rotation error [deg]",
-              "hand_rot_deg": "Model O rotation error [deg]"}
-    for k, col in enumerate(TABLE):
-        ax = fig.add_subplot(1, 3, k + 1)
-        for j, inverse in enumerate(INVERSES):
-            g = clean[(clean["inverse"] == inverse) & ~clean["failed"]].groupby("layout")[col]
-            mean, sd = g.mean(), g.std(ddof=0).fillna(0.0)
-            ax.bar(mean.index + (j - 0.5) * 0.38, mean.to_numpy(), 0.38, yerr=sd.to_numpy(), label=inverse,
-                   color="C0" if inverse == "estimated" else "C2")
-        layouts = np.sort(clean["layout"].unique())
-        ax.set_xticks(layouts, [f"{int(v)}" for v in layouts])  # one tick per layout, not a continuous axis
-        ax.set_xlabel("layout")
-        ax.set_ylabel(labels[col])
-        ax.legend(fontsize=7)
-    pr = summary["protocol"]
-    fig.suptitle(f"peg-in-hole, UR5e + Model O; arm m_a {format_m_a(pr['arm']['m_a'])} rad, eps {pr['arm']['eps']:g}, "
-                 f"step {1e3 * pr['arm']['controller']['max_step']:g} mm, tol {1e3 * pr['arm']['controller']['tol']:g}"
-                 f" mm; hand m_a {format_m_a(pr['hand']['m_a'])} m, eps_rel {pr['hand']['eps_rel']:g}, tilt "
-                 f"{pr['rotation']['angle']:g} rad about {pr['rotation']['about']}; noise-free rows", fontsize=8)
-    return save_figure(fig, out_dir, "peg_in_hole")
+plot = figures_plot("peg_in_hole")
+"""The figures, :mod:`selfid_jax.experiments.figures.peg_in_hole` (imported, with matplotlib, when called)."""
 
 
 COLUMNS = {

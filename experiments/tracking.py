@@ -17,8 +17,7 @@ task's rotation components. All of it is one compiled function per system.
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Annotated, Any, Literal, NamedTuple, cast
+from typing import Annotated, Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,17 +34,15 @@ from selfid_jax.math import geometry
 from selfid_jax.control import metrics, paths
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.schema import (ControllerConfig, SelfIdConfig, SelfIdRealismConfig, StudyConfig,
-                                                  add_m_a_columns, check_noise_pairs, check_realism_noise, format_m_a,
+from selfid_jax.experiments.common.schema import (ControllerConfig, HostOrDevice, SelfIdConfig, StartsConfig,
+                                                  StudyConfig, TrackerNoiseConfig, add_m_a_columns, controller_rows,
                                                   m_a_columns, m_a_summary, realism_columns)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
-from selfid_jax.experiments.common.schema import StartsConfig
-from selfid_jax.runner.figures import save_figure
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
+from selfid_jax.experiments.common.lazy_figures import figures_plot
 from selfid_jax.systems.validation import AXIS_NAMES
 
 INVERSES = ("estimated", "analytical")
@@ -110,7 +107,7 @@ class TrackingPath(BaseModel):
                 "rotation": float("inf")}[self.kind]
 
 
-class TrackingConfig(StudyConfig, SelfIdConfig, StartsConfig):
+class TrackingConfig(StudyConfig, SelfIdConfig, StartsConfig, TrackerNoiseConfig):
     """Self-ID then path tracking with the estimate and the truth, over configs x trials x tracker noise."""
 
     experiment: Literal["tracking"] = "tracking"
@@ -125,15 +122,9 @@ class TrackingConfig(StudyConfig, SelfIdConfig, StartsConfig):
     iters: int = Field(30, ge=2, le=10**4, description="self-ID iterations (Algorithm 1)")
     eps: float = Field(0.5, ge=0, le=1e6, description="Sec. IV-D threshold on ||J_t - J_{t-1}||_F")
     eps_rel: float = Field(0.0, ge=0, le=10, description="relative Sec. IV-D threshold (times ||J_t||_F)")
-    pose_noise: Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)] = [0.0]  # m
-    rot_noise: Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)] = [0.0]  # rad
-    realism: SelfIdRealismConfig | None = Field(
-        None, description="the real loop's non-idealities, on self-ID and path following (default: the ideal loop)")
 
     @model_validator(mode="after")
     def _consistent(self):
-        check_noise_pairs(self.pose_noise, self.rot_noise)
-        check_realism_noise(self.realism, self.pose_noise, self.rot_noise)
         estimator.check_thresholds(self.eps, self.eps_rel)
         if self.path.kind == "rotation" and (self.task_axes is None or
                                              not {f"r{a}" for a in self.path.about} <= set(self.task_axes)):
@@ -336,13 +327,6 @@ def _stats(g: pd.DataFrame) -> dict[str, Any]:
     return level
 
 
-def _level(table: pd.DataFrame) -> pd.Series:
-    """Each row's realism level (0 everywhere without a realism section)."""
-    if "realism_level" in table.columns:
-        return table["realism_level"]
-    return pd.Series(np.zeros(len(table), int), index=table.index, name="realism_level")
-
-
 def summarize(table: pd.DataFrame, cfg: TrackingConfig) -> dict[str, Any]:
     """Mean +- sd per system, tracker-noise level and inverse Jacobian (and per letter / rotation axis).
 
@@ -353,7 +337,7 @@ def summarize(table: pd.DataFrame, cfg: TrackingConfig) -> dict[str, Any]:
     """
     systems: dict[str, Any] = {}
     labels = realistic.level_labels(table)
-    for (system, level, noise), g in table.groupby(["system", _level(table), "pose_noise"], sort=False):
+    for (system, level, noise), g in table.groupby(["system", realistic.level_of(table), "pose_noise"], sort=False):
         name = str(system) if not labels else f"{system} ({labels[int(level)]})"
         entry = systems.setdefault(name, {"self_id": m_a_summary(g), "pose_noise_mm": {}})
         if labels:
@@ -391,171 +375,8 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-PLANE_AXES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
-"""The (horizontal, vertical) position components of each drawing plane."""
-
-
-def commanded_paths(path: dict) -> list[np.ndarray]:
-    """The commanded position path of each of the ``L`` paths of a saved ``summary["path"]``.
-
-    Returns:
-      ``L`` arrays ``(W + 1, 3)`` [mm]: the start (the origin) then the
-      waypoints' position offsets, as :meth:`TrackingPath.waypoints` commands
-      them (a rotation path's are all zero).
-    """
-    spec = TrackingPath(**path)
-    return [1e3 * np.concatenate([np.zeros((1, 3)), np.asarray(w, float)[:, :3]]) for w in spec._paths()]
-
-
-def tracked_position_axes(table: pd.DataFrame, task_axes: list[str] | None) -> list[int]:
-    """The position components (0, 1, 2 for x, y, z) the task controls, whose error traces mean something.
-
-    From ``task_axes`` when the config named them; otherwise the components
-    whose ``error_trace_mm`` is not zero at every step of every row (the
-    simulation writes exactly 0 for a component outside the task).
-    """
-    if task_axes is not None:
-        return [j for j, a in enumerate("xyz") if a in task_axes]
-    err = np.concatenate([np.asarray(e, float).reshape(-1, 3) for e in table["error_trace_mm"]])
-    return [j for j in range(3) if np.any(err[:, j] != 0)]
-
-
-def plot(table: pd.DataFrame, summary: dict, out_dir: Path) -> list[Path]:
-    """Executed and commanded paths and per-step error traces, estimated vs analytical (Fig. 6-9 style).
-
-    One figure per system, ``tracking_<system>.png|pdf``, from the noise-free
-    rows of the first start configuration (with a realism section one per
-    system and realism level, ``tracking_<system>_realism<level>``, the
-    level's values in the title). Top row: the executed paths [mm] relative to
-    where each path started, in the path's plane (3-D for a cube), under the
-    commanded path (black, dashed); letters are placed side by side on a
-    baseline, each shifted by the same amount as its commanded path (each
-    letter starts from where its own self-ID ended). For
-    a rotation path: the orientation error along each rotation [deg]. Bottom
-    row: the per-step distance to the path [mm] along the position components
-    the task controls (:func:`tracked_position_axes`; untracked ones are not
-    drawn) and, where the task has rotation, the orientation error [deg], the
-    paths (letters) one after another, each labelled where it begins. The protocol is in the title.
-    """
-    from matplotlib.figure import Figure
-
-    written: list[Path] = []
-    kind = summary["path"]["kind"]
-    three_d = kind == "cube"
-    h_ax, v_ax = PLANE_AXES[summary["path"].get("plane", "xy")]
-    commanded = commanded_paths(summary["path"])
-    shifts = _letter_shifts(summary["path"], len(commanded))
-    rotates = "rot_trace_deg" in table and bool(np.any(np.concatenate(table["rot_trace_deg"].to_list()) != 0))
-    labels = realistic.level_labels(table)
-    for (system, level), g in table.groupby(["system", _level(table)], sort=False):
-        first = g[(g["noise_level"] == 0) & (g["config_id"] == 0) & (g["trial"] == 0)]
-        tracked = tracked_position_axes(g, summary.get("task_axes")) if "error_trace_mm" in g else []
-        fig = Figure(figsize=(max(10.0, 3.0 + 1.3 * len(commanded)) if kind == "letters" else 10.0, 8),
-                     layout="constrained")
-        for k, inverse in enumerate(INVERSES):
-            rows = first[first["inverse"] == inverse].sort_values("letter_id")  # one row per letter / rotation
-            color = "C0" if inverse == "estimated" else "C2"
-            ax = fig.add_subplot(2, 2, k + 1, projection="3d" if three_d else None)
-            if kind == "rotation":
-                for _, row in rows.iterrows():
-                    used = int(row["steps_used"]) + 1
-                    ax.plot(np.asarray(row["rot_trace_deg"])[:used], lw=1, label=str(row["path"]))
-                ax.set_xlabel("control step")
-                ax.set_ylabel("orientation error to the pursued waypoint [deg]")
-                ax.legend(fontsize=7)
-            else:
-                for _, row in rows.iterrows():
-                    used = int(row["steps_used"]) + 1
-                    pts = 1e3 * np.asarray(row["positions"]).reshape(-1, 3)[:used]
-                    pts = pts - pts[0]
-                    i = int(row["letter_id"])
-                    pts[:, [h_ax, v_ax]] += shifts[i] if i < len(shifts) else 0.0
-                    _draw(ax, pts, three_d, h_ax, v_ax, color=color, lw=1.2, gid=f"executed:{i}",
-                          label="executed" if i == 0 else None)
-                for i, cmd in enumerate(commanded):  # on top, thin and dashed: visible where tracking is exact
-                    c = cmd.copy()
-                    c[:, [h_ax, v_ax]] += shifts[i]
-                    _draw(ax, c, three_d, h_ax, v_ax, color="k", alpha=0.7, ls="--", lw=0.8, gid=f"commanded:{i}",
-                          label="commanded" if i == 0 else None)
-                ax.legend(fontsize=7, loc="best")
-                if three_d:
-                    ax.set_xlabel("x [mm]")
-                    ax.set_ylabel("y [mm]")
-                    cast(Any, ax).set_zlabel("z [mm]")  # a 3-D Axes; mpl_toolkits.mplot3d ships no types
-                    ax.set_aspect("equal")
-                else:
-                    ax.set_aspect("equal", adjustable="datalim")
-                    ax.set_xlabel(f"{'xyz'[h_ax]} [mm]" + (" (letters side by side)" if len(commanded) > 1 else ""))
-                    ax.set_ylabel(f"{'xyz'[v_ax]} [mm]")
-            ax.set_title(f"{system}: {inverse} inverse Jacobian", fontsize=9)
-            tr = fig.add_subplot(2, 2, k + 3)
-            if "error_trace_mm" not in rows:  # a run directory written before the traces were recorded
-                tr.set_axis_off()
-                continue
-            traces = [np.asarray(r["error_trace_mm"]).reshape(-1, 3)[: int(r["steps_used"]) + 1]
-                      for _, r in rows.iterrows()]
-            err = np.concatenate(traces) if traces else np.zeros((0, 3))
-            for j in tracked:
-                tr.plot(err[:, j], lw=0.8, color=f"C{j}", label=f"|e_{'xyz'[j]}|", gid=f"error:{'xyz'[j]}")
-            if len(traces) > 1:  # where each path (letter, rotation) begins, labelled at the top
-                starts = np.cumsum([0] + [len(t) for t in traces[:-1]])
-                for x0 in starts:
-                    tr.axvline(x0, color="0.7", lw=0.6, ls=":")
-                top = tr.secondary_xaxis("top")
-                top.set_xticks(starts, [f"{r['path']}" for _, r in rows.iterrows()], fontsize=7, ha="left")
-                top.tick_params(length=0, pad=1)
-            tr.set_xlabel("control step" + (" (paths one after another)" if len(traces) > 1 else ""))
-            tr.set_ylabel("distance to the path [mm]")
-            if rotates:
-                rot = np.concatenate([np.asarray(r["rot_trace_deg"])[: int(r["steps_used"]) + 1]
-                                      for _, r in rows.iterrows()])
-                tw = tr.twinx()
-                tw.plot(rot, lw=0.8, color="k", alpha=0.6, label="rotation")
-                tw.set_ylabel("orientation error [deg]")
-                tw.legend(fontsize=7, loc="upper right")
-            if tracked:
-                tr.legend(fontsize=7, loc="upper left")
-            untracked = [a for j, a in enumerate("xyz") if j not in tracked]
-            tr.set_title(f"per-step error, {inverse}" + (f" ({', '.join(untracked)} not in the task)"
-                                                         if untracked else ""), fontsize=9)
-        c, s = summary["controller"], summary["self_id"]
-        axes = summary.get("task_axes")
-        fig.suptitle(f"path {kind}{'' if axes is None else f', task {axes}'}; step {1e3 * c['max_step']:g} mm "
-                     f"({c['max_rot_step']:g} rad), tol {1e3 * c['tol']:g} mm ({c['rot_tol']:g} rad), "
-                     f"{c['steps']} steps, gain {c['gain']:g};\nself-ID m_a {format_m_a(s['m_a'])}, "
-                     f"eps {s['eps']:g}, eps_rel {s['eps_rel']:g}; noise-free rows, first configuration"
-                     + (f"\nrealism: {labels[int(level)]}" if labels else ""), fontsize=8)
-        written += save_figure(fig, out_dir, f"tracking_{system}" + (f"_realism{int(level)}" if labels else ""))
-    return written
-
-
-def _letter_shifts(path: dict, n: int) -> np.ndarray:
-    """``(n, 2)`` shift [mm] along the plane's (horizontal, vertical) axes of each of the ``n`` paths.
-
-    For letters (kind ``letters``): each letter's box (``paths.text_box``)
-    is moved so that its lower-left corner sits on the baseline, right of the
-    letter before with a gap of 0.4 letter heights, so the letters read as a
-    word; each path starts at its own first stroke point, so without the shift
-    they would all be drawn on top of each other. Other kinds: zeros.
-    """
-    shifts = np.zeros((n, 2))
-    if path["kind"] != "letters":
-        return shifts
-    height = float(path["height"])
-    left = 0.0
-    for i, char in enumerate(path["text"]):
-        box = paths.text_box(char, height=height)
-        shifts[i] = 1e3 * (np.array([left, 0.0]) - np.asarray(box.origin, float))
-        left += box.width + 0.4 * height
-    return shifts
-
-
-def _draw(ax, pts: np.ndarray, three_d: bool, h_ax: int, v_ax: int, **kw) -> None:
-    """``pts`` (N, 3) [mm]: a 3-D line, or its (h_ax, v_ax) components on a 2-D axes."""
-    if three_d:
-        ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], **kw)
-    else:
-        ax.plot(pts[:, h_ax], pts[:, v_ax], **kw)
+plot = figures_plot("tracking")
+"""The figures, :mod:`selfid_jax.experiments.figures.tracking` (imported, with matplotlib, when called)."""
 
 
 COLUMNS = {

@@ -33,6 +33,7 @@ from selfid_jax import control
 from selfid_jax.control import paths
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.common.region import valid_region_summary
 from selfid_jax.experiments.common.schema import (ControllerConfig, EpsLimits, HostOrDevice, PathConfig, RealismConfig,
                                                   StudyConfig, realism_columns)
 from selfid_jax.runner import Experiment, Part, precision
@@ -42,6 +43,7 @@ from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, ro
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
                                                  unique_system_names)
+from selfid_jax.experiments.common.lazy_figures import figures_plot
 
 
 class SystemRun(BaseModel):
@@ -251,9 +253,7 @@ def summarize(table: pd.DataFrame, cfg: ValidRegionConfig) -> dict:
     ``"<system> (<values>)"`` (:func:`series`), its entry holding the level's
     values (``realism``) and the mean tracker dropouts per rollout.
     """
-    from selfid_jax.experiments.common import figures as plots  # matplotlib only when needed (0.3 s of import)
-
-    summary = plots.valid_region_summary(
+    summary = valid_region_summary(
         series(table),
         cfg.completion_threshold,
         controller=cfg.controller.model_dump(),
@@ -287,11 +287,8 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(table: pd.DataFrame, summary: dict, out_dir):
-    """Fig. 2 from the saved table (:func:`selfid_jax.experiments.common.figures.valid_region_figure`)."""
-    from selfid_jax.experiments.common import figures as plots
-
-    return plots.valid_region_figure(series(table), summary, out_dir)
+plot = figures_plot("valid_region")
+"""The figures, :mod:`selfid_jax.experiments.figures.valid_region` (imported, with matplotlib, when called)."""
 
 
 COLUMNS = {

@@ -251,7 +251,8 @@ def _overlaps(boxes):
 def test_metrics_figure_tick_labels_do_not_overlap():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    from selfid_jax.experiments.articulated import METRICS, metrics_figure
+    from selfid_jax.experiments.articulated import METRICS
+    from selfid_jax.experiments.figures.articulated import metrics_figure
 
     fig = metrics_figure(_fake_table())
     FigureCanvasAgg(fig)
@@ -269,7 +270,7 @@ def test_metrics_figure_tick_labels_do_not_overlap():
 def test_plane_figure_shows_every_cell():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    from selfid_jax.experiments.articulated import plane_figure
+    from selfid_jax.experiments.figures.articulated import plane_figure
 
     plane = [{"grasp_k": k, "resistance": res, "controller": c, "success_rate": 1.0 if k > 1e5 else 0.0,
               "time_s": {"mean": 8.0 if k > 1e5 else None, "sd": 0.0}}

@@ -25,10 +25,12 @@ from matplotlib.colors import to_rgba
 from selfid_jax.control import paths
 from selfid_jax.experiments import ablation, demo, tracking, valid_region
 from selfid_jax.experiments.common import figures
+from selfid_jax.experiments.figures import demo as demo_figures
+from selfid_jax.experiments.figures import tracking as tracking_figures
 from selfid_jax.experiments.common.specs import system_name
 from selfid_jax.runner import registry
 
-CONFIGS = Path(__file__).resolve().parents[1] / "selfid_jax" / "configs"
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def _capture(monkeypatch, module):
@@ -104,7 +106,7 @@ def test_demo_labels_do_not_overlap_and_each_convergence_panel_has_its_threshold
     table = _demo_table(np.random.default_rng(0))
     cfg = demo.DemoConfig()
     summary = demo.summarize(table, cfg)
-    drawn = _capture(monkeypatch, demo)
+    drawn = _capture(monkeypatch, demo_figures)
     demo.plot(table, summary, tmp_path)
     fig = drawn["demo"]
     _assert_no_overlap(fig)
@@ -274,7 +276,7 @@ def _tracking_figure(monkeypatch, tmp_path, config, tracked, steps=None):
     commanded = [np.concatenate([np.zeros((1, 3)), np.asarray(w, float)[:, :3]]) for w in cfg.path._paths()]
     table = _tracking_table(cfg, commanded, tracked=tracked, rng=np.random.default_rng(3), steps=steps)
     summary = tracking.summarize(table, cfg)
-    drawn = _capture(monkeypatch, tracking)
+    drawn = _capture(monkeypatch, tracking_figures)
     tracking.plot(table, summary, tmp_path)
     (fig,) = drawn.values()
     return fig, cfg, table
@@ -316,8 +318,8 @@ def test_rotation_tracking_draws_no_zeros_for_untracked_axes(monkeypatch, tmp_pa
 
 def test_tracked_axes_without_task_axes_come_from_the_traces():
     table = pd.DataFrame({"error_trace_mm": [np.array([[0.1, 0.0, 0.0], [0.2, 0.3, 0.0]]).ravel()]})
-    assert tracking.tracked_position_axes(table, None) == [0, 1]
-    assert tracking.tracked_position_axes(table, ["z", "rx"]) == [2]
+    assert tracking_figures.tracked_position_axes(table, None) == [0, 1]
+    assert tracking_figures.tracked_position_axes(table, ["z", "rx"]) == [2]
 
 
 def test_cube_figure_draws_the_commanded_path(monkeypatch, tmp_path):
@@ -369,13 +371,14 @@ def test_ekm_study_figure_shows_completion_and_path_error(monkeypatch, tmp_path)
 
 def test_peg_in_hole_bars_have_one_tick_per_layout(monkeypatch, tmp_path):
     from selfid_jax.experiments import peg_in_hole
+    from selfid_jax.experiments.figures import peg_in_hole as peg_figures
 
     rows = [dict(noise_level=0, inverse=inv, failed=False, layout=layout, arm_pos_mm=0.1 + layout,
                  arm_rot_deg=0.01, hand_rot_deg=0.02) for inv in peg_in_hole.INVERSES for layout in (0, 1, 2)]
     ctrl = {"max_step": 0.0025, "tol": 0.0005}
     summary = {"protocol": {"arm": {"m_a": 0.03, "eps": 0.5, "controller": ctrl},
                             "hand": {"m_a": 0.0003, "eps_rel": 0.05}, "rotation": {"angle": 0.1, "about": "y"}}}
-    drawn = _capture(monkeypatch, peg_in_hole)
+    drawn = _capture(monkeypatch, peg_figures)
     peg_in_hole.plot(pd.DataFrame(rows), summary, tmp_path)
     fig = drawn["peg_in_hole"]
     _assert_no_overlap(fig)
@@ -386,6 +389,7 @@ def test_peg_in_hole_bars_have_one_tick_per_layout(monkeypatch, tmp_path):
 
 def test_valid_region_workspace_cells_are_centred_and_the_threshold_outlined(monkeypatch, tmp_path):
     from selfid_jax.experiments import valid_region_workspace as vrw
+    from selfid_jax.experiments.figures import valid_region_workspace as vrw_figures
 
     eps = np.array([0.0, 0.5, 1.0, 1.5, 2.0])
     comp = np.array([[0.2, 1.0, 1.0, 0.5, 0.1], [1.0, 1.0, 1.0, 1.0, 0.3], [0.9, 1.0, 0.97, 0.2, 0.0]])  # (bins, eps)
@@ -395,7 +399,7 @@ def test_valid_region_workspace_cells_are_centred_and_the_threshold_outlined(mon
                for k in range(3)]
     summary = dict(configs=configs, system="arm5", fail_with_exact_inverse=0, n_configs=3, completion_threshold=0.95,
                    controller=dict(max_step=0.0025, tol=0.0005, gain=1.0, steps=435), path=dict(size=0.05))
-    drawn = _capture(monkeypatch, vrw)
+    drawn = _capture(monkeypatch, vrw_figures)
     vrw.plot(pd.DataFrame(rows), summary, tmp_path)
     fig = drawn["valid_region_workspace"]
     _assert_no_overlap(fig)

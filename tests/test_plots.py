@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from selfid_jax.experiments.common.figures import (VALID_REGION_COLUMNS, valid_region_bounds, valid_region_figure,
-                                                   valid_region_summary)
+from selfid_jax.experiments.common.figures import valid_region_figure
+from selfid_jax.experiments.common.region import VALID_REGION_COLUMNS, valid_region_bounds, valid_region_summary
 
 EPS = np.round(np.arange(0.0, 2.75, 0.25), 2)  # 0.0 .. 2.5, contains 1.0
 

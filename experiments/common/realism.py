@@ -20,7 +20,7 @@ from selfid_jax.experiments.common.schema import REALISM_FIELDS, RealismConfig
 from selfid_jax.experiments.common.specs import build_dynamic_arm
 from selfid_jax.identify import algorithm as selfid
 
-__all__ = ["add_realism_axis", "level_labels", "plant", "realism_summary", "self_identify"]
+__all__ = ["add_realism_axis", "level_labels", "level_of", "plant", "realism_summary", "self_identify"]
 
 
 def self_identify(system, key, q0, *, iters: int, eps, eps_rel, m_a, pose_noise, rot_noise,
@@ -68,6 +68,13 @@ def add_realism_axis(axes: dict[str, Any], realism: RealismConfig | None, before
 
 def _fields(table: pd.DataFrame) -> list[str]:
     return [f for f in (*REALISM_FIELDS, "settle") if f in table.columns]
+
+
+def level_of(table: pd.DataFrame) -> pd.Series:
+    """Each row's ``realism_level`` (0 everywhere without a realism section), to group a results table by."""
+    if "realism_level" in table.columns:
+        return table["realism_level"]
+    return pd.Series(np.zeros(len(table), int), index=table.index, name="realism_level")
 
 
 def level_labels(table: pd.DataFrame) -> dict[int, str]:

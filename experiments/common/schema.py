@@ -19,10 +19,11 @@ from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams
 from selfid_jax.control.realism import Realism
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
-__all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig",
-           "REALISM_FIELDS", "RealismConfig", "RealismRows", "SelfIdConfig", "SelfIdMagnitude", "SelfIdRealismConfig",
-           "StartsConfig", "StudyConfig", "add_m_a_columns", "check_noise_pairs", "check_realism_noise",
-           "controller_rows", "format_m_a", "m_a_columns", "m_a_summary", "realism_columns", "resolve_m_a"]
+__all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig", "PoseNoise",
+           "REALISM_FIELDS", "RealismConfig", "RealismRows", "RotNoise", "SelfIdConfig", "SelfIdMagnitude",
+           "SelfIdRealismConfig", "StartsConfig", "StudyConfig", "TrackerNoiseConfig", "add_m_a_columns",
+           "check_noise_pairs", "check_realism_noise", "controller_rows", "format_m_a", "m_a_columns", "m_a_summary",
+           "realism_columns", "resolve_m_a"]
 
 
 HostOrDevice: TypeAlias = jax.Array | np.ndarray
@@ -355,6 +356,37 @@ def check_realism_noise(realism: RealismConfig | None, pose_noise: list, rot_noi
             name = "pose_noise" if own == "noise_pos" else "rot_noise"
             raise ValueError(f"{where}realism.{own} is the tracker noise of every reading (self-ID and path "
                              f"following); leave {where}{name} (self-ID readings only) at [0.0] when it is set")
+
+
+PoseNoise = Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)]
+"""Tracker position noise sd per level [m], on self-ID readings: one or more values in [0, 0.1]."""
+
+RotNoise = Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)]
+"""Tracker rotation noise sd per level [rad], on self-ID readings: one or more values in [0, 1]."""
+
+
+class TrackerNoiseConfig(BaseModel):
+    """The tracker's noise on self-ID readings, level by level, and the real loop's non-idealities.
+
+    ``pose_noise[i]`` and ``rot_noise[i]`` form noise level ``i`` (the lists
+    pair up); a ``realism`` section adds the real loop on every self-ID and
+    motion, whose own tracker noise then replaces these
+    (:func:`check_realism_noise`). A base of the configs of the experiments
+    that self-identify and then move (``tracking``, ``peg_in_hole``).
+    """
+
+    model_config = STRICT
+
+    pose_noise: PoseNoise = Field([0.0], description="tracker position noise sd per level, self-ID readings [m]")
+    rot_noise: RotNoise = Field([0.0], description="tracker rotation noise sd per level, self-ID readings [rad]")
+    realism: SelfIdRealismConfig | None = Field(
+        None, description="the real loop's non-idealities, on every self-ID and motion (default: the ideal loop)")
+
+    @model_validator(mode="after")
+    def _noise_levels(self):
+        check_noise_pairs(self.pose_noise, self.rot_noise)
+        check_realism_noise(self.realism, self.pose_noise, self.rot_noise)
+        return self
 
 
 def realism_columns(self_id: bool = True) -> dict[str, str]:
