@@ -2,7 +2,7 @@
 
 The step is what :func:`selfid_jax.robot.online.run_online` runs after each
 accepted sample: :func:`selfid_jax.robot.online.host_step`, i.e. the jitted
-:func:`selfid_jax.robot.fit.step` (``update`` Eq. 6-12, ``initial_guess``
+:func:`selfid_jax.identify.step.sample_step` (``update`` Eq. 6-12, ``initial_guess``
 Eq. 13, the closed-form refinement Eq. 14, ``record`` Sec. IV-D) and the
 host read of the step's info and ``converged_at`` the loop needs to decide
 whether to move again: one sample at a time, batch 1, as a robot feeds it.

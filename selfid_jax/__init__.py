@@ -47,7 +47,7 @@ _LAZY: dict[str, tuple[str, str | None]] = {
         "signed_inverse_jacobian", "update")},
     "refine": ("selfid_jax.identify.refine", "refine"),
     "robot": ("selfid_jax.robot", None),
-    "fit": ("selfid_jax.robot.fit", "fit"),
+    "fit": ("selfid_jax.robot.offline", "fit"),
     **{name: ("selfid_jax.systems", name) for name in (
         "System", "arm5", "from_ets", "from_mjcf", "from_pose_fn", "model_o", "stewart_hand", "two_link", "ur5e")},
 }
@@ -74,7 +74,7 @@ if TYPE_CHECKING:
     )
     from selfid_jax.identify.refine import refine
     from selfid_jax import robot
-    from selfid_jax.robot.fit import fit
+    from selfid_jax.robot.offline import fit
     from selfid_jax.math import geometry
     from selfid_jax.systems import (
         System, arm5, from_ets, from_mjcf, from_pose_fn, manipulability, model_o, stewart_hand, two_link, ur5e,

@@ -13,7 +13,7 @@ import selfid_jax as sj
 from selfid_jax.cli import main
 from selfid_jax.identify import estimator
 from selfid_jax.identify.refine import refine
-from selfid_jax.robot import fit as fit_mod
+from selfid_jax.robot import offline as fit_mod
 from selfid_jax.robot.log import LogError, samples_from_table
 from selfid_jax.systems.ur5e import UR5E_HOME
 
@@ -266,7 +266,7 @@ def test_example_converges_and_writes_every_file(tmp_path, capsys):
 # ------------------------------------------------------------------ jit / vmap
 def test_step_is_traced_once_across_thresholds_and_data(monkeypatch):
     chex.clear_trace_counter()
-    monkeypatch.setattr(fit_mod, "step", chex.assert_max_traces(fit_mod.step, n=1))
+    monkeypatch.setattr(fit_mod, "sample_step", chex.assert_max_traces(fit_mod.sample_step, n=1))
     fit_mod._scan.clear_cache()
     for seed, (eps, eps_rel) in enumerate([(0.0, 0.05), (0.3, 0.0), (0.1, 0.2)]):
         Jinv, V, dtheta = _linear(seed=seed)

@@ -14,7 +14,7 @@ import jax
 import numpy as np
 import pytest
 
-from selfid_jax.robot import fit as fit_mod
+from selfid_jax.robot import offline as fit_mod
 from selfid_jax.robot import online
 from selfid_jax.robot.journal import Journal, JournalError, floats, read_journal
 from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, RobotLimits

@@ -6,7 +6,7 @@ Usage::
                        [--start S] [--stop S] [--max-gap S] [--out DIR]
     selfid-jax fit --example
 
-Runs :func:`selfid_jax.robot.fit.fit` (float64) and writes, each file whole
+Runs :func:`selfid_jax.robot.offline.fit` (float64) and writes, each file whole
 (:mod:`selfid_jax.runner.files`), under the run directory's lock:
 
 * ``estimates.npz``: ``estimates (T, n, m)`` after every sample, ``deltas (T,)``
@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from selfid_jax.robot.fit import FitResult
+    from selfid_jax.robot.offline import FitResult
 
 __all__ = ["EXAMPLE_LOG", "add_arguments", "command", "draw", "example_log", "run", "summary", "write_run"]
 
@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # an offline fit is small: float64 everywhere
-    from selfid_jax.robot.fit import fit
+    from selfid_jax.robot.offline import fit
     from selfid_jax.runner import signals
     from selfid_jax.runner.lock import hold
 

@@ -3,7 +3,9 @@
 Each iteration draws a random actuation ``dtheta ~ uniform(-m_a, m_a)``, lets
 an ``observe`` step move the actuators and report the pose change ``V``, folds
 the sample into the estimator (Eq. 6-12), forms the initial guess (Eq. 13),
-refines it (Eq. 14) and records it for the convergence test (Sec. IV-D).
+refines it (Eq. 14) and records it for the convergence test (Sec. IV-D): the
+one per-sample step :func:`selfid_jax.identify.step.sample_step` (or, with
+``recursive``, its rank-one form in :mod:`~selfid_jax.identify.recursive`).
 """
 
 from __future__ import annotations
@@ -18,9 +20,10 @@ import numpy as np
 
 from selfid_jax.identify import estimator
 from selfid_jax.identify import recursive as rec_mod
-from selfid_jax.math.geometry import noisy_pose  # noqa: F401 - re-exported: algorithm.noisy_pose
+from selfid_jax.math.geometry import noisy_pose
 from selfid_jax.math.checks import check_positive_int, check_scalar, float_dtype
-from selfid_jax.identify.refine import needs_samples, refine
+from selfid_jax.identify.refine import needs_samples
+from selfid_jax.identify.step import sample_step
 
 Observe = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array]]
 """``observe(env, key, dtheta (n,)) -> (env, V (m,))``: apply an actuation, return the pose change."""
@@ -125,6 +128,7 @@ def self_identify(
     recursive = _recursive_closed_form(method, options) and (iters >= RECURSIVE_MIN_ITERS if recursive is None
                                                              else bool(recursive))
     rec0 = rec_mod.init(task_dim, dtype)
+    step_options = tuple(sorted(options.items()))
 
     def make_body(fast: bool):
         def body(carry, k):
@@ -134,9 +138,8 @@ def self_identify(
             env_new, V = observe(env, k_obs, dtheta)
             V = jnp.asarray(V, dtype)
             if not recursive:
-                new = estimator.update(state, dtheta, V)
-                J = refine(new, estimator.initial_guess(new), method=method, **options)
-                new, rec_new = estimator.record(new, J, eps, eps_rel), rec
+                new, _ = sample_step(state, dtheta, V, eps, eps_rel, method=method, options=step_options)
+                rec_new = rec
             elif fast:
                 new, rec_new = rec_mod.fast_step(state, rec, dtheta, V, eps, eps_rel, rcond=options.get("rcond"))
             else:

@@ -69,6 +69,7 @@ from jax.typing import ArrayLike
 
 from selfid_jax.identify import estimator as E
 from selfid_jax.identify.refine import statistics_closed_form
+from selfid_jax.identify.step import sample_step
 from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
 from selfid_jax.math.kernels import small_sum
 from selfid_jax.math.linalg import default_rcond, psd_pinv
@@ -185,12 +186,17 @@ def _rank_one(J, P, dtheta, V, lam):
 def _resolve(S_vv, S_tv, J0, rcond):
     """Batch closed form (Eq. 14) and the inverse Gram matrix: ``(J (n, m), P (m, m), full ())``."""
     J = statistics_closed_form(S_vv, S_tv, J0, rcond=rcond)
+    return (J, *_inverse_gram(S_vv, J, rcond))
+
+
+def _inverse_gram(S_vv, J, rcond):
+    """``(P (m, m), full ())`` for the rank-one steps after the batch closed form ``J (n, m)`` of ``S_vv``."""
     P, N = psd_pinv(S_vv, rcond=rcond)
     # Enter the rank-one steps only from a well-posed solve: their error is that of the solve they start
     # from, decaying as later samples outweigh it (eps cond(S_vv) <= eps tr(P) tr(S_vv) < ENTER_TOL).
     entry = _trace(P) * _trace(S_vv) * jnp.finfo(S_vv.dtype).eps < ENTER_TOL
     full = jnp.all(N == 0) & _conditioned(P, S_vv, rcond) & entry & jnp.all(jnp.isfinite(J))
-    return J, P, full
+    return P, full
 
 
 def _conditioned(P, S, rcond):
@@ -268,17 +274,17 @@ def step(
 def exact_step(state, rec, dtheta, V, eps, eps_rel=0.0, *, rcond=None):
     """The step of :func:`step` by the batch closed form, branch-free: ``(state, rec)``.
 
-    ``update``, then ``statistics_closed_form(S_vv, S_tv, initial_guess, rcond)``
-    (the very operations of the closed-form path of
+    :func:`selfid_jax.identify.step.sample_step` with the closed form (the
+    step of the closed-form path of
     :func:`selfid_jax.identify.algorithm.self_identify`, so bit for bit its
-    estimate), ``record``, and the :class:`Recursion` for the next sample
+    estimate) and the :class:`Recursion` for the next sample
     (``P = S_vv^+``, ``full`` per the rank test).
     """
     m = state.S_vv.shape[-1]
-    new = E.update(state, dtheta, V)
-    rc = default_rcond(m, new.S_vv.dtype) if rcond is None else rcond
-    J, P, full = _resolve(new.S_vv, new.S_tv, E.initial_guess(new), rc)
-    return E.record(new, J, eps, eps_rel), Recursion(P=P, full=full)
+    rc = default_rcond(m, state.S_vv.dtype) if rcond is None else rcond
+    new, _ = sample_step(state, dtheta, V, eps, eps_rel, method="closed_form", options=(("rcond", rc),))
+    P, full = _inverse_gram(new.S_vv, new.estimate, rc)
+    return new, Recursion(P=P, full=full)
 
 
 def fast_step(state, rec, dtheta, V, eps, eps_rel=0.0, *, rcond=None, resolve_every: int = 0):

@@ -1,9 +1,9 @@
 """Self-ID from recorded data: the estimator of Eq. 6-14 over a log's sample pairs, with the Sec. IV-D test.
 
-:func:`fit_samples` is the pure core: one ``lax.scan`` of the jitted
-per-sample :func:`step` (``estimator.update`` -> ``initial_guess`` (Eq. 13)
--> ``refine`` (Eq. 14) -> ``record`` (Sec. IV-D)) over ``(dtheta (T, n), V (T,
-m))``, the same step Algorithm 1 takes after each random actuation
+:func:`fit_samples` is the pure core: one ``lax.scan`` of the per-sample
+:func:`selfid_jax.identify.step.sample_step` (``estimator.update`` ->
+``initial_guess`` (Eq. 13) -> ``refine`` (Eq. 14) -> ``record`` (Sec. IV-D))
+over ``(dtheta (T, n), V (T, m))``, the same step Algorithm 1 takes after each random actuation
 (:func:`selfid_jax.identify.algorithm.self_identify`), without the actuation.
 ``eps``, ``eps_rel`` and ``v_tol`` are traced, so one compilation serves
 every threshold and every log of the same length, and it vmaps over a batch
@@ -28,19 +28,13 @@ import numpy as np
 
 from selfid_jax.identify import estimator
 from selfid_jax.identify.refine import METHODS, needs_samples, refine
+from selfid_jax.identify.step import sample_step
+# re-exported for robot.online until it imports identify.step
+from selfid_jax.identify.step import StepInfo, sample_step as step  # noqa: F401
 from selfid_jax.math.checks import check_array, float_dtype
 from selfid_jax.robot.log import Samples, load_log, samples_from_table
 
-__all__ = ["FitResult", "FitTrace", "StepInfo", "fit", "fit_samples", "step"]
-
-
-class StepInfo(NamedTuple):
-    """Per-sample diagnostics of :func:`step` (not carried forward)."""
-
-    estimate: jax.Array  # (n, m) refined estimate J_t after the sample (Eq. 14)
-    delta: jax.Array  # () ||J_t - J_{t-1}||_F, with J_0 = 0 (Sec. IV-D)
-    threshold: jax.Array  # () eps + eps_rel ||J_t||_F: the bound delta is tested against
-    accepted: jax.Array  # () bool: the estimator took the sample (not non-finite, all-zero or overflowing)
+__all__ = ["FitResult", "FitTrace", "fit", "fit_samples"]
 
 
 class FitTrace(NamedTuple):
@@ -85,21 +79,6 @@ class FitResult(NamedTuple):
         return t if np.isfinite(t) else None
 
 
-def step(state: estimator.EstimatorState, dtheta: jax.Array, V: jax.Array, eps, eps_rel, *, method: str,
-         options: tuple = ()) -> tuple[estimator.EstimatorState, StepInfo]:
-    """One sample ``(dtheta (n,), V (m,))``: update (Eq. 6-12), guess (Eq. 13), refine (Eq. 14), record (Sec. IV-D).
-
-    ``method`` (``"closed_form"`` or ``"optax"``) and ``options`` (sorted
-    ``(key, value)`` pairs for :func:`~selfid_jax.identify.refine.refine`)
-    are static; ``eps`` and ``eps_rel`` may be traced.
-    """
-    new = estimator.update(state, dtheta, V)
-    J = refine(new, estimator.initial_guess(new), method=method, **dict(options))
-    new = estimator.record(new, J, eps, eps_rel)
-    return new, StepInfo(estimate=new.estimate, delta=new.last_deltas[1],
-                         threshold=eps + eps_rel * new.last_norms[1], accepted=new.count > state.count)
-
-
 @functools.partial(jax.jit, static_argnames=("method", "options", "capacity"))
 def _scan(dtheta, V, eps, eps_rel, v_tol, *, method: str, options: tuple, capacity: int) -> FitTrace:
     n, m = dtheta.shape[-1], V.shape[-1]
@@ -107,7 +86,7 @@ def _scan(dtheta, V, eps, eps_rel, v_tol, *, method: str, options: tuple, capaci
     state0 = estimator.init(n, m, capacity=capacity, v_tol=v_tol, dtype=dtype)
 
     def body(state, sample):
-        return step(state, sample[0], sample[1], eps, eps_rel, method=method, options=options)
+        return sample_step(state, sample[0], sample[1], eps, eps_rel, method=method, options=options)
 
     state, info = jax.lax.scan(body, state0, (dtheta, V))
     return FitTrace(state=state, estimate=state.estimate, initial_guess=estimator.initial_guess(state),

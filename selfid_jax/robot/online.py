@@ -68,7 +68,7 @@ from selfid_jax.control import paths
 from selfid_jax.identify import estimator
 from selfid_jax.identify.refine import needs_samples
 from selfid_jax.math.checks import float_dtype
-from selfid_jax.robot import fit
+from selfid_jax.robot import offline as fit
 from selfid_jax.robot.journal import Journal, JournalContents, JournalError, floats, read_journal
 from selfid_jax.robot.log import pairs_from_time_series, parse_task
 from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, RobotError, RobotLimits, check_limits
