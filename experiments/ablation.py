@@ -36,12 +36,11 @@ from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.control import paths
 
-from selfid_jax.experiments.common.schema import (ControllerConfig, Magnitude, PathConfig, PoseNoise, RotNoise,
-                                                  StudyConfig, check_noise_pairs, m_a_summary, resolve_m_a)
+from selfid_jax.experiments.common.schema import (M_A_LABEL, ControllerConfig, HostOrDevice, Magnitude, PathConfig,
+                                                  PoseNoise, RotNoise, StartsConfig, StudyConfig, check_noise_pairs,
+                                                  controller_rows, m_a_label, m_a_summary, resolve_m_a)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
-from selfid_jax.experiments.common.schema import StartsConfig
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
@@ -220,10 +219,7 @@ def _build(cfg: AblationConfig) -> Part:
     meta.insert(1, "pose_noise", np.asarray(cfg.pose_noise)[meta["noise_level"]])
     meta.insert(2, "rot_noise", np.asarray(cfg.rot_noise)[meta["noise_level"]])
     level = meta["m_a_level"].to_numpy()
-    # the m_a column labels a level by one number: its value, or the geometric mean of a per-actuator level
-    label = [lv.value[0] if np.all(lv.value == lv.value[0]) else float(np.exp(np.log(lv.value).mean()))
-             for lv in levels]
-    meta.insert(4, "m_a", np.asarray(label, float)[level])
+    meta.insert(4, "m_a", np.asarray([m_a_label(lv.value) for lv in levels], float)[level])  # one number a level
     meta["m_a_vec"] = [tuple(levels[i].value.tolist()) for i in level]  # tuples: the run manifest hashes meta
     meta["m_a_source"] = levels[0].source
     path = paths.star(size=cfg.path.size, dim=system.task_dim)
@@ -335,7 +331,7 @@ COLUMNS = {
     "pose_noise": "tracker position noise sd [m]",
     "rot_noise": "tracker rotation noise sd [rad]",
     "m_a_level": "index of the self-ID magnitude level (m_a list of the config) [id]",
-    "m_a": "the level's self-ID magnitude (geometric mean over actuators if per actuator) [rad or m]",
+    "m_a": f"the level's self-ID magnitude: {M_A_LABEL} (per actuator: m_a_vec) [rad or m]",
     "config_id": "feasible start configuration index [id]",
     "trial": "self-ID stream index [id]",
     "m_a_vec": "(n_act,) the level's self-ID magnitude per actuator [rad or m: the actuator's unit]",

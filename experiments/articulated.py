@@ -31,7 +31,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.articulated import scenes, sim, tactile
-from selfid_jax.experiments.common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_summary
+from selfid_jax.experiments.common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_columns, m_a_summary
 from selfid_jax.experiments.common.lazy_figures import figures_plot
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
@@ -426,8 +426,7 @@ COLUMNS = {
     "arm": "arm inverse Jacobian: 'true' or 'selfid' (the fixed self-ID estimate) [label]",
     "order": "Bezier order of the track, 0 for other kinds [-]",
     "fit_error_mm": "Bezier: max distance of the track to its Bezier curve, 0 when exact [mm]",
-    "m_a": "(n_act,) self-ID actuation magnitude per actuator [rad]",
-    "m_a_source": "where m_a came from: 'system' (the system's own) or 'config' (the m_a key) [label]",
+    **m_a_columns(),
     "success": "reached the kind's success progress (revolute/helical > 60 deg, prismatic > 250 mm, Bezier 98 % "
                "of the track) [bool]",
     "failed": "slipped or non-finite [bool]",

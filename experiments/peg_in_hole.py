@@ -291,7 +291,7 @@ def _build(cfg: PegConfig) -> Part:
 def tabulate(wide: pd.DataFrame, part: Part, cfg: PegConfig) -> pd.DataFrame:
     """One row per (layout, trial, noise level, inverse Jacobian)."""
     base = ["system", "layout", "noise_level", "pose_noise", "rot_noise", "trial", "arm_converged_at", "arm_m_a",
-            "arm_m_a_source", "hand_m_a", "hand_m_a_source"]
+            "arm_m_a_vec", "arm_m_a_source", "hand_m_a", "hand_m_a_vec", "hand_m_a_source"]
     base += [c for c in (*realism_columns(), "arm_selfid_dropouts") if c in wide.columns]
     per_inverse = [c for c in ("hand_selfid_dropouts", "dropouts") if c in wide.columns]
     frames = []

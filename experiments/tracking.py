@@ -281,7 +281,7 @@ def _build(cfg: TrackingConfig) -> Part:
 def tabulate(wide: pd.DataFrame, part: Part, cfg: TrackingConfig) -> pd.DataFrame:
     """One row per (rollout, inverse Jacobian) with scalar metric columns; trajectories stay as list columns."""
     base = ["system", "letter_id", "path", "noise_level", "pose_noise", "rot_noise", "config_id", "trial",
-            "converged_at", "m_a", "m_a_source"]
+            "converged_at", "m_a", "m_a_vec", "m_a_source"]
     realism = [c for c in (*realism_columns(), "selfid_dropouts", "selfid_rejected") if c in wide.columns]
     base += realism
     frames = []

@@ -19,11 +19,11 @@ from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams
 from selfid_jax.control.realism import Realism
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
-__all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "Magnitude", "MagnitudeSource", "PathConfig", "PoseNoise",
-           "REALISM_FIELDS", "RealismConfig", "RealismRows", "RotNoise", "SelfIdConfig", "SelfIdMagnitude",
-           "SelfIdRealismConfig", "StartsConfig", "StudyConfig", "TrackerNoiseConfig", "add_m_a_columns",
-           "check_noise_pairs", "check_realism_noise", "controller_rows", "format_m_a", "m_a_columns", "m_a_summary",
-           "realism_columns", "resolve_m_a"]
+__all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "M_A_LABEL", "Magnitude", "MagnitudeSource", "PathConfig",
+           "PoseNoise", "REALISM_FIELDS", "RealismConfig", "RealismRows", "RotNoise", "SelfIdConfig",
+           "SelfIdMagnitude", "SelfIdRealismConfig", "StartsConfig", "StudyConfig", "TrackerNoiseConfig",
+           "add_m_a_columns", "check_noise_pairs", "check_realism_noise", "controller_rows", "format_m_a",
+           "m_a_columns", "m_a_label", "m_a_summary", "realism_columns", "resolve_m_a"]
 
 
 HostOrDevice: TypeAlias = jax.Array | np.ndarray
@@ -68,20 +68,37 @@ def resolve_m_a(m_a, system, where: str = "m_a") -> SelfIdMagnitude:
     return SelfIdMagnitude(np.broadcast_to(value, (n,)).copy(), "config")
 
 
+def m_a_label(value) -> float:
+    """The one number of the ``m_a`` results column for a ``(n_act,)`` magnitude: the value where every actuator
+    has the same, else the geometric mean over actuators [rad or m]."""
+    v = np.asarray(value, float).reshape(-1)
+    return float(v[0]) if np.all(v == v[0]) else float(np.exp(np.log(v).mean()))
+
+
 def add_m_a_columns(meta, choice: SelfIdMagnitude, prefix: str = "") -> None:
-    """Record ``choice`` in every row of ``meta`` (in place): ``{prefix}m_a`` (the ``(n_act,)`` values) and its source.
+    """Record ``choice`` in every row of ``meta`` (in place): ``{prefix}m_a`` (one number, :func:`m_a_label`),
+    ``{prefix}m_a_vec`` (the ``(n_act,)`` values) and ``{prefix}m_a_source``.
 
     The columns reach ``results.parquet``, so ``summarize`` (which reads the
     table only) can say which magnitude each system used (:func:`m_a_summary`).
+    Every experiment writes ``m_a`` as a float and ``m_a_vec`` per actuator, so
+    a table filters and groups by ``m_a`` the same way whichever wrote it.
     """
-    meta[f"{prefix}m_a"] = [tuple(choice.value.tolist())] * len(meta)  # tuples: the run manifest hashes meta
+    meta[f"{prefix}m_a"] = m_a_label(choice.value)
+    meta[f"{prefix}m_a_vec"] = [tuple(choice.value.tolist())] * len(meta)  # tuples: the run manifest hashes meta
     meta[f"{prefix}m_a_source"] = choice.source
+
+
+M_A_LABEL = "the value where all actuators have the same, else the geometric mean over actuators"
+"""What the ``m_a`` results column holds (:func:`m_a_label`), for the experiments' ``COLUMNS``."""
 
 
 def m_a_columns(prefix: str = "", of: str = "") -> dict[str, str]:
     """The results-column documentation (an ``Experiment``'s ``columns``) of :func:`add_m_a_columns`' columns."""
     return {
-        f"{prefix}m_a": f"(n_act,) self-ID actuation magnitude per actuator{of} [rad or m: the actuator's unit]",
+        f"{prefix}m_a": f"self-ID actuation magnitude{of}: {M_A_LABEL} (per actuator: {prefix}m_a_vec) "
+                        "[rad or m: the actuator's unit]",
+        f"{prefix}m_a_vec": f"(n_act,) self-ID actuation magnitude per actuator{of} [rad or m: the actuator's unit]",
         f"{prefix}m_a_source": f"where {prefix}m_a came from: 'system' (the system's own) or 'config' (the m_a key) "
                                "[label]",
     }
@@ -90,11 +107,15 @@ def m_a_columns(prefix: str = "", of: str = "") -> dict[str, str]:
 def m_a_summary(rows, prefix: str = "", vector: str | None = None) -> dict[str, Any]:
     """``{"m_a": ..., "m_a_source": ...}`` of the rows of one system (columns of :func:`add_m_a_columns`).
 
-    ``vector``: the column holding the per-actuator list, if not ``{prefix}m_a``.
+    ``vector``: the column holding the per-actuator values, if not ``{prefix}m_a_vec``. A table written before
+    ``m_a_vec`` existed holds the per-actuator values in ``{prefix}m_a`` itself, and is read from there.
     """
     first = rows.iloc[0]
     source = cast(MagnitudeSource, str(first[f"{prefix}m_a_source"]))  # written by add_m_a_columns
-    return SelfIdMagnitude(np.asarray(first[vector or f"{prefix}m_a"], float), source).summary()
+    column = vector or f"{prefix}m_a_vec"
+    if column not in rows.columns and np.ndim(first[f"{prefix}m_a"]) == 1:  # an older run: m_a was the vector
+        column = f"{prefix}m_a"
+    return SelfIdMagnitude(np.asarray(first[column], float), source).summary()
 
 
 def format_m_a(value) -> str:
