@@ -406,11 +406,30 @@ def test_files_get_the_users_umask(tmp_path, umask):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name
 
 
-def test_json_floats_lose_binary_noise(tmp_path):
-    write_json(tmp_path / "s.json", {"lower": 2.0500000000000003, "curve": np.array([0.1 + 0.2, 1 / 3]),
-                                     "n": np.int64(3), "nan": float("nan"), "tiny": 1.2345678901234567e-9})
-    assert json.loads((tmp_path / "s.json").read_text()) == {
-        "lower": 2.05, "curve": [0.3, 0.333333333333], "n": 3, "nan": None, "tiny": 1.23456789012e-9}
+def test_json_floats_round_trip_exactly(tmp_path):
+    """Run directories and session logs write a number one way, exactly (selfid_jax.strict_json)."""
+    from selfid_jax.robot.journal import Journal, read_journal
+
+    record = {"lower": 2.0500000000000003, "curve": np.array([0.1 + 0.2, 1 / 3]), "n": np.int64(3),
+              "nan": float("nan"), "tiny": 1.2345678901234567e-9, "flag": np.bool_(True), 7: Path("a/b")}
+    expected = {"lower": 2.0500000000000003, "curve": [0.30000000000000004, 1 / 3], "n": 3, "nan": None,
+                "tiny": 1.2345678901234567e-9, "flag": True, "7": "a/b"}
+    write_json(tmp_path / "s.json", record)
+    assert json.loads((tmp_path / "s.json").read_text()) == expected
+    with Journal(tmp_path / "log.jsonl") as journal:
+        journal.append({"e": "header"})
+        journal.append({"e": "x", **record})
+    assert read_journal(tmp_path / "log.jsonl").records == [{"e": "x", **expected}]
+
+
+def test_decimal_linspace_has_no_binary_noise():
+    from selfid_jax.runner.grids import decimal_linspace
+
+    grid = decimal_linspace(0.0, 3.0, 61)
+    assert grid[7] == 0.35 and np.linspace(0.0, 3.0, 61)[7] != 0.35
+    assert grid[0] == 0.0 and grid[-1] == 3.0 and grid.dtype == np.float64
+    np.testing.assert_allclose(grid, np.linspace(0.0, 3.0, 61), rtol=1e-15, atol=0)
+    assert json.dumps(grid.tolist()).count("0000000") == 0
 
 
 class ThresholdConfig(BaseConfig):

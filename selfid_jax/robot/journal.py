@@ -19,14 +19,15 @@ exactly); a non-finite number is written as ``null`` and read back as NaN
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["Journal", "JournalContents", "JournalError", "floats", "jsonable", "read_journal"]
+from selfid_jax.strict_json import jsonable
+
+__all__ = ["Journal", "JournalContents", "JournalError", "floats", "read_journal"]
 
 
 class JournalError(ValueError):
@@ -40,21 +41,6 @@ class JournalContents(NamedTuple):
     records: list[dict[str, Any]]  # every later record, in order
     truncated: int  # 0 or 1: a cut-short last line that was dropped
     good_bytes: int  # length of the file up to the end of its last complete line
-
-
-def jsonable(x: Any) -> Any:
-    """numpy scalars and arrays -> Python floats, ints, bools and lists; NaN/inf -> None (strict JSON)."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def floats(values: Any) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Whole files only: atomic writes (temporary file, fsync, rename) and strict JSON.
+"""Whole files only: atomic writes (temporary file, fsync, rename) and strict JSON (:mod:`selfid_jax.strict_json`).
 
 :func:`atomic_write_bytes` writes a temporary file in the same directory,
 fsyncs it and renames it over the target, so a kill or a full disk never
@@ -9,16 +9,14 @@ gives it the permissions the user's umask gives a new file.
 from __future__ import annotations
 
 import json
-import math
 import os
 import tempfile
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from selfid_jax.strict_json import jsonable
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "jsonable", "write_json"]
+__all__ = ["atomic_write_bytes", "atomic_write_text", "write_json"]
 
 
 def _umask() -> int:
@@ -70,27 +68,7 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def jsonable(x: Any) -> Any:
-    """Numpy scalars/arrays -> Python; NaN/inf -> None (strict JSON); floats to 12 significant digits.
-
-    The rounding drops binary noise such as ``2.0500000000000003`` (from a grid
-    built by arithmetic) and keeps far more digits than any measured value has.
-    """
-    if isinstance(x, Mapping):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float):
-        return float(f"{x:.12g}") if math.isfinite(x) else None
-    if isinstance(x, Path):
-        return str(x)
-    return x
-
-
 def write_json(path: str | Path, obj: Any) -> None:
-    """Atomically write ``obj`` as indented strict JSON (NaN/inf become null)."""
+    """Atomically write ``obj`` as indented strict JSON (:func:`selfid_jax.strict_json.jsonable`: NaN/inf become null,
+    floats exact)."""
     atomic_write_text(path, json.dumps(jsonable(obj), indent=2, allow_nan=False) + "\n")

@@ -11,7 +11,7 @@ import pandas as pd
 
 from selfid_jax.runner.limits import check_rows
 
-__all__ = ["grid_table", "row_keys"]
+__all__ = ["decimal_linspace", "grid_table", "row_keys"]
 
 
 def grid_table(axes: Mapping[str, Sequence[Any]]) -> pd.DataFrame:
@@ -28,6 +28,18 @@ def grid_table(axes: Mapping[str, Sequence[Any]]) -> pd.DataFrame:
     check_rows({k: len(v) for k, v in axes.items()})  # before the product is allocated
     index = pd.MultiIndex.from_product([list(v) for v in axes.values()], names=list(axes))
     return index.to_frame(index=False)
+
+
+def decimal_linspace(start: float, stop: float, num: int) -> np.ndarray:
+    """``np.linspace(start, stop, num)`` (``(num,)`` float64) with each point the float of its 12-digit decimal.
+
+    ``linspace`` computes its points by arithmetic, so ``decimal_linspace(0, 3, 61)[7]`` would be
+    ``0.35000000000000003``: here it is ``0.35``, the value a user who wrote the grid by hand would sweep, and it is
+    written to JSON (exactly, :mod:`selfid_jax.strict_json`) and shown as such. Points differ from ``linspace``'s by
+    at most a few ulps; endpoints are ``start`` and ``stop``.
+    """
+    points = np.linspace(start, stop, num)
+    return np.array([float(f"{x:.12g}") for x in points], np.float64)
 
 
 def row_keys(seed: int, rows: int | np.ndarray) -> np.ndarray:
