@@ -36,9 +36,10 @@ from selfid_jax.identify import estimator, algorithm as selfid
 
 from selfid_jax.control import paths
 
-from selfid_jax.experiments.common.schema import (M_A_LABEL, ControllerConfig, HostOrDevice, Magnitude, PathConfig,
-                                                  PoseNoise, RotNoise, StartsConfig, StudyConfig, check_noise_pairs,
-                                                  controller_rows, m_a_label, m_a_summary, resolve_m_a)
+from selfid_jax.experiments.common.schema import (M_A_LABEL, NOISE_COLUMNS, ControllerConfig, HostOrDevice, Magnitude,
+                                                  PathConfig, PoseNoise, RotNoise, StartsConfig, StudyConfig,
+                                                  check_noise_pairs, controller_rows, m_a_label, m_a_summary,
+                                                  resolve_m_a)
 from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.grids import grid_table, row_keys
@@ -321,15 +322,12 @@ def report(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-plot = figures_plot("ablation")
-"""The figures, :mod:`selfid_jax.experiments.figures.ablation` (imported, with matplotlib, when called)."""
+plot = figures_plot("ablation")  # experiments/figures/ablation.py, imported (with matplotlib) when called
 
 
 COLUMNS = {
     "method": "the method's name (methods[].name of the config) [label]",
-    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
-    "pose_noise": "tracker position noise sd [m]",
-    "rot_noise": "tracker rotation noise sd [rad]",
+    **NOISE_COLUMNS,
     "m_a_level": "index of the self-ID magnitude level (m_a list of the config) [id]",
     "m_a": f"the level's self-ID magnitude: {M_A_LABEL} (per actuator: m_a_vec) [rad or m]",
     "config_id": "feasible start configuration index [id]",

@@ -411,8 +411,7 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-plot = figures_plot("articulated")
-"""The figures, :mod:`selfid_jax.experiments.figures.articulated` (imported, with matplotlib, when called)."""
+plot = figures_plot("articulated")  # experiments/figures/articulated.py, imported (with matplotlib) when called
 
 
 COLUMNS = {

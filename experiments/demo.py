@@ -256,8 +256,7 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-plot = figures_plot("demo")
-"""The figures, :mod:`selfid_jax.experiments.figures.demo` (imported, with matplotlib, when called)."""
+plot = figures_plot("demo")  # experiments/figures/demo.py, imported (with matplotlib) when called
 
 
 COLUMNS = {

@@ -59,8 +59,8 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 from selfid_jax import control, design
 
 from selfid_jax.control import paths
-from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
-                                                  check_noise_pairs, resolve_m_a)
+from selfid_jax.experiments.common.schema import (NOISE_COLUMNS, ControllerConfig, PathConfig, SelfIdConfig,
+                                                  StudyConfig, check_noise_pairs, resolve_m_a)
 from selfid_jax.runner.config import STRICT, stop_after_start
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
@@ -517,15 +517,12 @@ def report(summary: dict) -> str:
 
 # --------------------------------------------------------------------------- figures
 
-plot = figures_plot("design")
-"""The figures, :mod:`selfid_jax.experiments.figures.design` (imported, with matplotlib, when called)."""
+plot = figures_plot("design")  # experiments/figures/design.py, imported (with matplotlib) when called
 
 
 COLUMNS = {
     "system": "system name [label]",
-    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
-    "pose_noise": "tracker position noise sd [m]",
-    "rot_noise": "tracker rotation noise sd [rad]",
+    **NOISE_COLUMNS,
     "stage": "'grid', 'scalar', 'per_actuator' (refinement paths) or 'eval' (held-out comparison) [label]",
     "design": "on eval rows the design compared ('default', 'grid', 'scalar', 'per_actuator'); else the stage "
               "[label]",

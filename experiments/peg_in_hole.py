@@ -47,9 +47,9 @@ from selfid_jax.identify import estimator
 from selfid_jax.math import geometry
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.schema import (ControllerConfig, HostOrDevice, SelfIdConfig, StudyConfig,
-                                                  TrackerNoiseConfig, add_m_a_columns, controller_rows, m_a_columns,
-                                                  m_a_summary, realism_columns)
+from selfid_jax.experiments.common.schema import (NOISE_COLUMNS, ControllerConfig, HostOrDevice, SelfIdConfig,
+                                                  StudyConfig, TrackerNoiseConfig, add_m_a_columns, controller_rows,
+                                                  m_a_columns, m_a_summary, realism_columns)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.lazy_figures import figures_plot
@@ -375,17 +375,14 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-plot = figures_plot("peg_in_hole")
-"""The figures, :mod:`selfid_jax.experiments.figures.peg_in_hole` (imported, with matplotlib, when called)."""
+plot = figures_plot("peg_in_hole")  # experiments/figures/peg_in_hole.py, imported (with matplotlib) when called
 
 
 COLUMNS = {
     "system": "the composed system's name (ur5e+model_o) [label]",
     "inverse": "inverse Jacobians used: 'estimated' (self-ID) or 'analytical' (the true ones) [label]",
     "layout": "layout index (arm yaw, grasp waypoint, hole) in the config's layouts [id]",
-    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
-    "pose_noise": "tracker position noise sd [m]",
-    "rot_noise": "tracker rotation noise sd [rad]",
+    **NOISE_COLUMNS,
     "trial": "trial index (self-ID streams) [id]",
     "arm_converged_at": "arm self-ID iteration meeting Sec. IV-D, -1 if never [iteration]",
     **m_a_columns("arm_", " of the arm"),

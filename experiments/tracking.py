@@ -34,9 +34,9 @@ from selfid_jax.math import geometry
 from selfid_jax.control import metrics, paths
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.schema import (ControllerConfig, HostOrDevice, SelfIdConfig, StartsConfig,
-                                                  StudyConfig, TrackerNoiseConfig, add_m_a_columns, controller_rows,
-                                                  m_a_columns, m_a_summary, realism_columns)
+from selfid_jax.experiments.common.schema import (NOISE_COLUMNS, ControllerConfig, HostOrDevice, SelfIdConfig,
+                                                  StartsConfig, StudyConfig, TrackerNoiseConfig, add_m_a_columns,
+                                                  controller_rows, m_a_columns, m_a_summary, realism_columns)
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.grids import grid_table, row_keys
@@ -375,8 +375,7 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-plot = figures_plot("tracking")
-"""The figures, :mod:`selfid_jax.experiments.figures.tracking` (imported, with matplotlib, when called)."""
+plot = figures_plot("tracking")  # experiments/figures/tracking.py, imported (with matplotlib) when called
 
 
 COLUMNS = {
@@ -384,9 +383,7 @@ COLUMNS = {
     "inverse": "inverse Jacobian followed: 'estimated' (self-ID) or 'analytical' (the true one) [label]",
     "letter_id": "index of the path (letter or rotation axis) in the config's path [id]",
     "path": "the path's label (its letter or rotation axis) [label]",
-    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
-    "pose_noise": "tracker position noise sd [m]",
-    "rot_noise": "tracker rotation noise sd [rad]",
+    **NOISE_COLUMNS,
     "config_id": "feasible start configuration index [id]",
     "trial": "self-ID stream index [id]",
     "converged_at": "self-ID iteration meeting the Sec. IV-D test, -1 if never [iteration]",

@@ -287,8 +287,7 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-plot = figures_plot("valid_region")
-"""The figures, :mod:`selfid_jax.experiments.figures.valid_region` (imported, with matplotlib, when called)."""
+plot = figures_plot("valid_region")  # experiments/figures/valid_region.py, imported (with matplotlib) when called
 
 
 COLUMNS = {

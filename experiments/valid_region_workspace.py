@@ -246,8 +246,7 @@ def report(summary: dict) -> str:
             f"{f(summary['spearman_upper_vs_condition'])}")
 
 
-plot = figures_plot("valid_region_workspace")
-"""The figures, :mod:`selfid_jax.experiments.figures.valid_region_workspace` (imported with matplotlib when called)."""
+plot = figures_plot("valid_region_workspace")  # experiments/figures/valid_region_workspace.py, loaded when called
 
 
 COLUMNS = {

@@ -195,8 +195,7 @@ def report(summary: dict) -> str:
     return "\n".join(lines)
 
 
-plot = figures_plot("workspace")
-"""The figures, :mod:`selfid_jax.experiments.figures.workspace` (imported, with matplotlib, when called)."""
+plot = figures_plot("workspace")  # experiments/figures/workspace.py, imported (with matplotlib) when called
 
 
 COLUMNS = {

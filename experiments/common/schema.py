@@ -19,11 +19,11 @@ from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams
 from selfid_jax.control.realism import Realism
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
 
-__all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "M_A_LABEL", "Magnitude", "MagnitudeSource", "PathConfig",
-           "PoseNoise", "REALISM_FIELDS", "RealismConfig", "RealismRows", "RotNoise", "SelfIdConfig",
-           "SelfIdMagnitude", "SelfIdRealismConfig", "StartsConfig", "StudyConfig", "TrackerNoiseConfig",
-           "add_m_a_columns", "check_noise_pairs", "check_realism_noise", "controller_rows", "format_m_a",
-           "m_a_columns", "m_a_label", "m_a_summary", "realism_columns", "resolve_m_a"]
+__all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "M_A_LABEL", "Magnitude", "MagnitudeSource",
+           "NOISE_COLUMNS", "PathConfig", "PoseNoise", "REALISM_FIELDS", "RealismConfig", "RealismRows", "RotNoise",
+           "SelfIdConfig", "SelfIdMagnitude", "SelfIdRealismConfig", "StartsConfig", "StudyConfig",
+           "TrackerNoiseConfig", "add_m_a_columns", "check_noise_pairs", "check_realism_noise", "controller_rows",
+           "format_m_a", "m_a_columns", "m_a_label", "m_a_summary", "realism_columns", "resolve_m_a"]
 
 
 HostOrDevice: TypeAlias = jax.Array | np.ndarray
@@ -384,6 +384,14 @@ PoseNoise = Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_len
 
 RotNoise = Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)]
 """Tracker rotation noise sd per level [rad], on self-ID readings: one or more values in [0, 1]."""
+
+
+NOISE_COLUMNS = {
+    "noise_level": "tracker-noise level index (pose_noise, rot_noise pair) [id]",
+    "pose_noise": "tracker position noise sd [m]",
+    "rot_noise": "tracker rotation noise sd [rad]",
+}
+"""The results-column documentation of a tracker-noise level's columns (an ``Experiment``'s ``columns``)."""
 
 
 class TrackerNoiseConfig(BaseModel):
