@@ -33,9 +33,15 @@ def public_modules(package: str = PACKAGE) -> list[str]:
     """Dotted names of ``package`` and every module and subpackage under it with no ``_``-prefixed component."""
     pkg = importlib.import_module(package)
     names = [package]
-    for info in pkgutil.walk_packages(pkg.__path__, prefix=f"{package}."):
-        if not any(part.startswith("_") for part in info.name.split(".")):
-            names.append(info.name)
+    # selfid_jax.experiments is the top-level experiments/ (pyproject.toml's package-dir), not a folder of the
+    # package's own path in a checkout: walked by its own path
+    extra = [importlib.import_module(f"{package}.experiments")] if package == PACKAGE else []
+    for mod in (pkg, *extra):
+        if mod is not pkg:
+            names.append(mod.__name__)
+        for info in pkgutil.walk_packages(mod.__path__, prefix=f"{mod.__name__}."):
+            if not any(part.startswith("_") for part in info.name.split(".")):
+                names.append(info.name)
     return sorted(set(names))
 
 
@@ -44,7 +50,8 @@ def _layer_order() -> list[str]:
     config = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
     for contract in config.get("tool", {}).get("importlinter", {}).get("contracts", []):
         if contract.get("type") == "layers":
-            return [name.strip() for layer in reversed(contract["layers"]) for name in layer.split("|")]
+            return [name.strip().removeprefix("selfid_jax.") for layer in reversed(contract["layers"])
+                    for name in layer.split("|")]
     return []
 
 

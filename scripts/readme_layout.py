@@ -34,7 +34,7 @@ FOLDERS = {
     "selfid_jax/robot/data": "the shipped example log ({files}) of selfid-jax fit --example, made by "
     "scripts/make_example_log.py",
     "scripts": "studies and maintenance scripts run from a checkout (not installed)",
-    "configs": "sweep configs (small defaults; *_full.yaml at paper scale or larger)",
+    "configs": "sweep configs (small defaults; *_full.yaml at paper scale or larger), installed as selfid_jax.configs",
     "benchmarks": "scripts that print ratios against a baseline run in the same process",
     "docs": "the documentation site (Sphinx, MyST, furo: conf.py, the pages and their figures); api/ is generated at "
     "build time by scripts/api_pages.py",
@@ -64,7 +64,7 @@ def _layer_order() -> list[str]:
         if contract.get("type") == "layers":
             names = []
             for layer in reversed(contract["layers"]):
-                names += [name.strip() for name in layer.split("|")]
+                names += [name.strip().removeprefix("selfid_jax.") for name in layer.split("|")]
             return names
     return []
 
@@ -91,13 +91,7 @@ def _walk(folder: Path, depth: int, rows: list[tuple[str, str]]) -> None:
     order = _layer_order() if rel == "selfid_jax" else []
     subfolders.sort(key=lambda p: (order.index(p.name) if p.name in order else len(order), p.name))
     for sub in subfolders:
-        if sub.is_symlink():
-            target = sub.readlink().as_posix().rstrip("/")
-            what = (f"{rel}.{sub.name} is the top-level {sub.name}/ below" if (sub / "__init__.py").is_file()
-                    else f"the top-level {sub.name}/ below, installed as package data")
-            rows.append((f"{indent}  {sub.name}/", f"a link to {target}/: {what}"))
-        else:
-            _walk(sub, depth + 1, rows)
+        _walk(sub, depth + 1, rows)
 
 
 def layout_rows() -> list[tuple[str, str]]:

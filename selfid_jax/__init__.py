@@ -17,7 +17,48 @@ Importing the package appends CPU XLA flags to ``XLA_FLAGS`` (see
 ``selfid_jax._xla``); import it before running any JAX computation.
 """
 
-from selfid_jax._xla import apply_default_xla_flags as _apply_default_xla_flags
+from pathlib import Path as _Path
+
+
+class _CheckoutFolders:
+    """Finds selfid_jax.experiments and selfid_jax.configs in a checkout's top-level experiments/ and configs/.
+
+    pyproject.toml's package-dir installs the two folders under this package: a wheel holds them beside this file
+    and an editable install maps them with setuptools' own finder. A checkout imported from its root (``python -m
+    pytest``, Sphinx's conf.py) has neither beside this file; this finder, consulted only after the regular ones
+    and registered only in that case, resolves exactly those two names to the same folders, and nothing else.
+    """
+
+    FOLDERS = {"selfid_jax.experiments": "experiments", "selfid_jax.configs": "configs"}
+
+    def __init__(self, root: _Path) -> None:
+        self.root = root
+
+    def find_spec(self, name, path=None, target=None):
+        from importlib.machinery import ModuleSpec
+        from importlib.util import spec_from_file_location
+
+        if name not in self.FOLDERS:
+            return None
+        folder = self.root / self.FOLDERS[name]
+        if (folder / "__init__.py").is_file():
+            return spec_from_file_location(name, folder / "__init__.py", submodule_search_locations=[str(folder)])
+        spec = ModuleSpec(name, None, is_package=True)  # configs/: a data folder, imported as a namespace package
+        spec.submodule_search_locations = [str(folder)]
+        return spec
+
+
+def _find_checkout_folders() -> None:
+    import sys
+
+    here = _Path(__file__).resolve().parent
+    if not (here / "experiments").is_dir() and (here.parent / "experiments" / "__init__.py").is_file():
+        sys.meta_path.append(_CheckoutFolders(here.parent))
+
+
+_find_checkout_folders()
+
+from selfid_jax._xla import apply_default_xla_flags as _apply_default_xla_flags  # noqa: E402
 
 _apply_default_xla_flags()
 

@@ -14,10 +14,15 @@ def _systems() -> Mapping[str, str]:
 
 
 def _config_dirs() -> tuple[tuple[str, Path], ...]:
-    """Where ``selfid-jax sweep NAME`` looks: ``./configs``, then the configs installed with the package."""
-    from importlib import resources
+    """Where ``selfid-jax sweep NAME`` looks: ``./configs``, then the configs installed with the package.
 
-    return (("./configs", Path("configs")), ("installed", Path(str(resources.files("selfid_jax") / "configs"))))
+    The installed ones are the data package ``selfid_jax.configs`` (the top-level configs/ of a checkout, installed
+    by pyproject.toml's package-dir), a namespace package: its one folder is the first of its ``__path__``.
+    """
+    from importlib import import_module
+
+    installed = Path(next(iter(import_module("selfid_jax.configs").__path__)))
+    return (("./configs", Path("configs")), ("installed", installed))
 
 
 def commands() -> dict:

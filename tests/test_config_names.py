@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from importlib import resources
 from pathlib import Path
 
 import pytest
@@ -12,7 +11,7 @@ from selfid_jax import cli
 from selfid_jax.runner.cli import _find_config
 from selfid_jax.runner.errors import ConfigError
 
-INSTALLED = Path(str(resources.files("selfid_jax") / "configs"))
+INSTALLED = dict(cli._config_dirs())["installed"]  # the data package selfid_jax.configs
 
 
 def test_configs_are_installed_and_names_resolve_local_first(tmp_path, monkeypatch):

@@ -48,21 +48,24 @@ def _script(name: str):
 
 
 def modules_on_disk() -> set[str]:
-    """Public module names of ``selfid_jax`` from its folders: a package is a folder with ``__init__.py``."""
+    """Public module names of ``selfid_jax`` from its folders: a package is a folder with ``__init__.py``.
+
+    The top-level experiments/ is selfid_jax.experiments (pyproject.toml's package-dir).
+    """
     names = set()
-    top = ROOT / "selfid_jax"
-    for folder, subfolders, files in os.walk(top, followlinks=True):
-        here = Path(folder)
-        if not (here / "__init__.py").exists():
-            subfolders[:] = []
-            continue
-        package = ".".join(("selfid_jax",) + here.relative_to(top).parts)
-        if any(part.startswith("_") for part in package.split(".")):
-            subfolders[:] = []
-            continue
-        names.add(package)
-        names |= {f"{package}.{f[:-3]}" for f in files if f.endswith(".py") and not f.startswith("_")}
-        subfolders[:] = [s for s in subfolders if not s.startswith(("_", "."))]
+    for top, prefix in ((ROOT / "selfid_jax", ("selfid_jax",)), (ROOT / "experiments", ("selfid_jax", "experiments"))):
+        for folder, subfolders, files in os.walk(top):
+            here = Path(folder)
+            if not (here / "__init__.py").exists():
+                subfolders[:] = []
+                continue
+            package = ".".join(prefix + here.relative_to(top).parts)
+            if any(part.startswith("_") for part in package.split(".")):
+                subfolders[:] = []
+                continue
+            names.add(package)
+            names |= {f"{package}.{f[:-3]}" for f in files if f.endswith(".py") and not f.startswith("_")}
+            subfolders[:] = [s for s in subfolders if not s.startswith(("_", "."))]
     return names
 
 
