@@ -1,7 +1,7 @@
 """Latency of the online runner's per-sample estimator step, against a numpy RLS update in the same process.
 
 The step is what :func:`selfid_jax.robot.online.run_online` runs after each
-accepted sample: :func:`selfid_jax.robot.online.host_step`, i.e. the jitted
+accepted sample: :func:`selfid_jax.robot.session.host_step`, i.e. the jitted
 :func:`selfid_jax.identify.step.sample_step` (``update`` Eq. 6-12, ``initial_guess``
 Eq. 13, the closed-form refinement Eq. 14, ``record`` Sec. IV-D) and the
 host read of the step's info and ``converged_at`` the loop needs to decide
@@ -37,7 +37,7 @@ jax.config.update("jax_enable_x64", True)  # float64 rows; float32 rows pass flo
 import numpy as np  # noqa: E402
 from emit import emit  # noqa: E402
 
-from selfid_jax.robot import online  # noqa: E402
+from selfid_jax.robot import session  # noqa: E402
 
 CONFIGS = ((6, 3), (3, 3))
 DTYPES = ("float64", "float32")
@@ -58,7 +58,7 @@ def time_ours(state, d, V, dtype) -> np.ndarray:
     out = np.empty(d.shape[0])
     for i in range(d.shape[0]):
         t0 = time.perf_counter()
-        state, _, _ = online.host_step(state, d[i], V[i], 0.0, 0.05)
+        state, _, _ = session.host_step(state, d[i], V[i], 0.0, 0.05)
         out[i] = time.perf_counter() - t0
     return out
 
@@ -87,9 +87,9 @@ def run(samples: int = 4000, warmup: int = 200, rounds: int = 2) -> dict:
         for name in DTYPES:
             dtype = np.dtype(name)
             d, V = make_data(n, m, warmup + samples * rounds)
-            state = online.init_state(n, m, dtype=dtype)
+            state = session.init_state(n, m, dtype=dtype)
             t0 = time.perf_counter()
-            state, info = online.sample_step(state, d[0], V[0], 0.0, 0.05)
+            state, info = session.sample_step(state, d[0], V[0], 0.0, 0.05)
             jax.block_until_ready(info)
             compile_s = time.perf_counter() - t0
             time_ours(state, d[:warmup], V[:warmup], dtype)
@@ -109,7 +109,7 @@ def run(samples: int = 4000, warmup: int = 200, rounds: int = 2) -> dict:
 
 def report(res: dict) -> str:
     lines = [f"online per-sample step, batch 1, {res['backend']} ({res['cpu_count']} CPUs), jax {res['jax']}; "
-             "ours = jitted fit.step + host reads; rls = numpy Sherman-Morrison",
+             "ours = jitted identify.step.sample_step + host reads; rls = numpy Sherman-Morrison",
              f"{'n':>2} {'m':>2} {'dtype':>8} {'samples':>7} {'compile s':>9} {'ours p50 ms':>11} "
              f"{'ours p99 ms':>11} {'rls p50 ms':>10} {'rls p99 ms':>10} {'p50 ratio':>9} {'p99 ratio':>9}"]
     for r in res["rows"]:

@@ -14,8 +14,9 @@ import jax
 import numpy as np
 import pytest
 
+from selfid_jax.math import geometry
 from selfid_jax.robot import offline as fit_mod
-from selfid_jax.robot import online
+from selfid_jax.robot import online, options, safety, session
 from selfid_jax.robot.journal import Journal, JournalError, floats, read_journal
 from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, RobotLimits
 
@@ -89,7 +90,7 @@ class FakeArm:
 
 def opts(**kw):
     base = dict(task="x,y,z", m_a=0.03, eps=0.0, eps_rel=0.05, max_samples=60, seed=3, **FAST)
-    return online.OnlineOptions(**{**base, **kw})
+    return options.OnlineOptions(**{**base, **kw})
 
 
 def assert_in_envelope(fake, env_lower, env_upper, max_step):
@@ -148,13 +149,13 @@ def test_actuation_target_reflects_then_clips():
     lower, upper, m_a = np.array([0.0, 0.0]), np.array([1.0, 0.02]), np.array([0.1, 0.1])
     for k in range(200):
         q = np.array([0.05 if k % 2 else 0.97, 0.01])
-        target = online.actuation_target(7, k, q, m_a, lower, upper)
+        target = safety.actuation_target(7, k, q, m_a, lower, upper)
         assert np.all(target >= lower) and np.all(target <= upper)
         d = np.random.default_rng([7, k]).uniform(-1, 1, 2) * m_a
         assert np.isclose(abs(target[0] - q[0]), abs(d[0]))  # one side fits: reflected, magnitude kept
         assert abs(target[1] - q[1]) <= abs(d[1]) + 1e-15  # neither side fits: clipped
-    np.testing.assert_array_equal(online.actuation_target(7, 5, q, m_a, lower, upper),
-                                  online.actuation_target(7, 5, q, m_a, lower, upper))
+    np.testing.assert_array_equal(safety.actuation_target(7, 5, q, m_a, lower, upper),
+                                  safety.actuation_target(7, 5, q, m_a, lower, upper))
 
 
 def test_stale_tracker_stops_within_stale_s(tmp_path):
@@ -180,7 +181,7 @@ def test_bad_options_refused_before_any_motion(tmp_path):
     for bad, word in ((dict(m_a=0.3), "m_a"), (dict(m_a=[0.1, 0.1]), "m_a"), (dict(task="x,q"), "q"),
                       (dict(max_step=0.01), "m_a"), (dict(box_low=[0, 0], box_high=[1, 1, 1]), "box_low"),
                       (dict(method="slsqp"), "method"), (dict(stale_s=0.0), "stale_s"),
-                      (dict(path=online.FollowOptions(plane="xz"), task="x,y"), "path.plane")):
+                      (dict(path=options.FollowOptions(plane="xz"), task="x,y"), "path.plane")):
         fake = FakeArm()
         with pytest.raises(ValueError, match=word):
             online.run_online(fake, opts(**bad), tmp_path / word)
@@ -264,7 +265,7 @@ def test_follow_after_resume_completes_within_the_envelope(tmp_path, converged_r
     run, ref_fake, ref = converged_run
     shutil.copytree(run, tmp_path / "r")
     fake = FakeArm(q0=ref_fake.q, max_step=0.05)
-    path = online.FollowOptions(size=0.02, tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
+    path = options.FollowOptions(size=0.02, tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
     result = online.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
     assert result.status == online.Stop.COMPLETED, result.detail
     assert result.waypoints == result.waypoints_total == 10 and result.replayed == ref.samples
@@ -274,11 +275,62 @@ def test_follow_after_resume_completes_within_the_envelope(tmp_path, converged_r
     np.testing.assert_allclose(p_end, arm_pose(ref_fake.q)[0], atol=0.0015)  # the star closes where it began
 
 
+def _arm_system():
+    """The fake arm's tip position as a System (its pose map in JAX), limits as FakeArm's default."""
+    import jax.numpy as jnp
+
+    from selfid_jax.systems.system import from_pose_fn
+
+    def pose(params, q):
+        a, b = q[1], q[1] + q[2]
+        r = L1 * jnp.cos(a) + L2 * jnp.cos(b)
+        return jnp.stack([r * jnp.cos(q[0]), r * jnp.sin(q[0]), H + L1 * jnp.sin(a) + L2 * jnp.sin(b)])
+
+    return from_pose_fn(pose, 3, task_dim=3, q_low=-3.0, q_high=3.0, dq_max=10.0, m_a=0.03, name="fake_arm")
+
+
+def test_simulated_follow_commands_what_the_live_runner_commands(tmp_path, converged_run):
+    """One follow law: control.follow on a model of the arm, with FollowOptions.controller(envelope), moves the arm
+    to the very targets the live runner commands the (noise-free) fake arm, step by step, to float64 round-off;
+    the per-actuator cap binds on some steps (it is part of the law, in both)."""
+    from selfid_jax import control
+
+    run, ref_fake, ref = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    fake = FakeArm(q0=ref_fake.q, noise=0.0, max_step=0.05)
+    path = options.FollowOptions(size=0.03, tol=0.001, max_task_step=0.015, gain=0.9, steps=400)
+    live = online.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert live.status == online.Stop.COMPLETED, live.detail
+    env = safety.envelope(fake.lim, max_step=0.03)
+    targets = np.array([t for _, t in fake.moves])
+    capped = np.max(np.abs(np.diff(np.vstack([ref_fake.q, targets]), axis=0)) / env.max_step, axis=1)
+    assert np.sum(capped > 1 - 1e-9) >= 3  # the cap scaled some steps down
+    system = _arm_system()
+    with jax.enable_x64(True):
+        sim = control.follow(system, control.fixed(np.asarray(live.estimate, np.float64)), path.offsets((0, 1, 2)),
+                             np.asarray(ref_fake.q, np.float64), path.controller(env), steps=path.steps,
+                             return_trajectory=True)
+        sim = jax.device_get(sim)
+    k = len(fake.moves)
+    assert int(sim.steps_used) == k == live.follow_steps and float(sim.completion) == 1.0 and not sim.failed
+    np.testing.assert_allclose(sim.final_q, targets[-1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(sim.positions[1:k + 1], np.array([arm_pose(t)[0] for t in targets]), rtol=0,
+                               atol=1e-12)
+    # each waypoint reached at the same step: live, the number of following moves made before its log record
+    moves, live_steps = 0, []
+    for rec in read_journal(live.log).records:
+        moves += rec["e"] == "move" and rec["phase"] == "follow"
+        if rec["e"] == "waypoint":
+            live_steps.append(moves)
+    sim_steps = [int(np.argmax(sim.targets > w)) for w in range(len(live_steps))]
+    assert live_steps == sim_steps and len(live_steps) == 10
+
+
 def test_follow_divergence_and_box_stop(tmp_path, converged_run):
     run, ref_fake, _ = converged_run
     shutil.copytree(run, tmp_path / "d")
     fake = FakeArm(q0=ref_fake.q, mirror=True)  # the arm's Jacobian flipped after self-ID: the estimate is wrong
-    result = online.run_online(fake, opts(path=online.FollowOptions(size=0.05), diverge_dist=0.01),
+    result = online.run_online(fake, opts(path=options.FollowOptions(size=0.05), diverge_dist=0.01),
                                tmp_path / "d", resume=True)
     assert result.status == online.Stop.DIVERGENCE and 0 < len(fake.moves) < 20, result.detail
     recs = read_journal(result.log).records
@@ -286,7 +338,7 @@ def test_follow_divergence_and_box_stop(tmp_path, converged_run):
     shutil.copytree(run, tmp_path / "b")
     p, _ = arm_pose(ref_fake.q)
     fake = FakeArm(q0=ref_fake.q)
-    result = online.run_online(fake, opts(path=online.FollowOptions(size=0.05), box_low=p - [1, 0.05, 1],
+    result = online.run_online(fake, opts(path=options.FollowOptions(size=0.05), box_low=p - [1, 0.05, 1],
                                           box_high=p + 1), tmp_path / "b", resume=True)
     assert result.status == online.Stop.BOX and "path leaves the box" in result.detail and fake.moves == []
 
@@ -381,7 +433,7 @@ def test_example_config_validates():
     cfg = validate(OnlineConfig, read_config(path)[0], path)
     opts = options(cfg)
     assert cfg.robot.host == "127.0.0.1" and opts.path is not None and opts.path.size == 0.02
-    assert online.follow_offsets(opts.path, (0, 1, 2)).shape == (10, 3)
+    assert opts.path.offsets((0, 1, 2)).shape == (10, 3)
 
 
 def test_task_difference_is_the_pose_change_with_rotation():
@@ -394,9 +446,11 @@ def test_task_difference_is_the_pose_change_with_rotation():
     p0, p1 = rng.normal(size=3), rng.normal(size=3)
     a = Observation(0.0, np.zeros(1), p0, wxyz[0], 0.0, True)
     b = Observation(1.0, np.zeros(1), p1, -wxyz[1], 1.0, True)  # the quaternion's sign does not matter
-    np.testing.assert_allclose(online.task_difference(b, a, (0, 2, 3, 5)), [*(p1 - p0)[[0, 2]], w[0], w[2]],
+    np.testing.assert_allclose(session.task_difference(b, a, (0, 2, 3, 5)), [*(p1 - p0)[[0, 2]], w[0], w[2]],
                                atol=1e-12)
-    np.testing.assert_allclose(online.quaternion_matrix(wxyz[1]), r1.as_matrix(), atol=1e-12)
+    with jax.enable_x64(True):
+        R1 = np.asarray(geometry.quaternion_to_rotation(np.asarray(-wxyz[1])))
+    np.testing.assert_allclose(R1, r1.as_matrix(), atol=1e-12)
 
 
 @pytest.mark.slow
@@ -439,8 +493,8 @@ def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module
 
 
 def test_the_step_compiles_once_per_shape(tmp_path, converged_run):
-    before = online._step._cache_size()
+    before = session._step._cache_size()
     for i, (eps, eps_rel) in enumerate(((0.0, 0.2), (1e-3, 0.0), (0.1, 0.3))):
         result = online.run_online(FakeArm(), opts(eps=eps, eps_rel=eps_rel, max_samples=4), tmp_path / str(i))
         assert result.samples >= 2
-    assert online._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace
+    assert session._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace

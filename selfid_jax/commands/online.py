@@ -44,10 +44,11 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, field_validator, model_validator
 
+from selfid_jax.robot.options import FollowOptions, OnlineOptions
 from selfid_jax.runner.config import STRICT
 
 if TYPE_CHECKING:
-    from selfid_jax.robot.online import OnlineOptions, OnlineResult
+    from selfid_jax.robot.online import OnlineResult
 
 __all__ = ["OnlineConfig", "add_arguments", "command", "connect", "options", "run", "summary"]
 
@@ -94,22 +95,26 @@ class RobotSection(BaseModel):
         return self
 
 
+_SELFID = OnlineOptions._field_defaults  # the one place each online default is written (selfid_jax.robot.options)
+_PATH = FollowOptions._field_defaults
+
+
 class SelfIDSection(BaseModel):
-    """Algorithm 1's settings (OnlineOptions)."""
+    """Algorithm 1's settings (:class:`~selfid_jax.robot.options.OnlineOptions`, whose defaults these are)."""
 
     model_config = STRICT
 
-    task: str = Field("x,y,z", description="task axes out of x,y,z,rx,ry,rz")
-    m_a: Positive | list[Positive] = Field(0.03, description="self-ID magnitude, actuator units, scalar or per "
-                                           "actuator")
-    eps: float = Field(0.0, ge=0, description="absolute Sec. IV-D threshold")
-    eps_rel: float = Field(0.05, ge=0, description="relative Sec. IV-D threshold")
-    max_samples: int = Field(200, ge=1, le=10**7, description="most random moves")
-    seed: int = Field(0, ge=0, le=2**32 - 1)
-    settle_s: float = Field(0.2, ge=0, description="s after each move before reading")
-    poll_s: float = Field(0.01, gt=0, description="s between reads while waiting for a fresh pose")
-    method: Literal["closed_form", "optax"] = "closed_form"
-    v_tol: float = Field(1e-9, ge=0)
+    task: str = Field(_SELFID["task"], description="task axes out of x,y,z,rx,ry,rz")
+    m_a: Positive | list[Positive] = Field(_SELFID["m_a"], description="self-ID magnitude, actuator units, scalar or "
+                                           "per actuator")
+    eps: float = Field(_SELFID["eps"], ge=0, description="absolute Sec. IV-D threshold")
+    eps_rel: float = Field(_SELFID["eps_rel"], ge=0, description="relative Sec. IV-D threshold")
+    max_samples: int = Field(_SELFID["max_samples"], ge=1, le=10**7, description="most random moves")
+    seed: int = Field(_SELFID["seed"], ge=0, le=2**32 - 1)
+    settle_s: float = Field(_SELFID["settle_s"], ge=0, description="s after each move before reading")
+    poll_s: float = Field(_SELFID["poll_s"], gt=0, description="s between reads while waiting for a fresh pose")
+    method: Literal["closed_form", "optax"] = _SELFID["method"]
+    v_tol: float = Field(_SELFID["v_tol"], ge=0)
 
     @field_validator("task")
     @classmethod
@@ -121,32 +126,41 @@ class SelfIDSection(BaseModel):
 
 
 class SafetySection(BaseModel):
-    """The safety envelope (selfid_jax.robot.online.Envelope)."""
+    """The safety envelope (:class:`selfid_jax.robot.safety.Envelope`; defaults from
+    :class:`~selfid_jax.robot.options.OnlineOptions`)."""
 
     model_config = STRICT
 
-    box_low: Vec3 | None = Field(None, description="m, lowest tracked x, y, z")
-    box_high: Vec3 | None = Field(None, description="m, highest tracked x, y, z")
-    max_step: Positive | list[Positive] | None = Field(None, description="actuator units per move; default the "
-                                                       "driver's")
-    stale_s: float = Field(1.0, gt=0, description="s, tracker watchdog")
-    diverge_dist: float = Field(0.05, gt=0, description="task units, distance from the path that stops following")
-    limits_lower: list[float] | None = Field(None, description="actuator units, narrows the driver's limits")
-    limits_upper: list[float] | None = None
+    box_low: Vec3 | None = Field(_SELFID["box_low"], description="m, lowest tracked x, y, z")
+    box_high: Vec3 | None = Field(_SELFID["box_high"], description="m, highest tracked x, y, z")
+    max_step: Positive | list[Positive] | None = Field(_SELFID["max_step"], description="actuator units per move; "
+                                                       "default the driver's")
+    stale_s: float = Field(_SELFID["stale_s"], gt=0, description="s, tracker watchdog")
+    diverge_dist: float = Field(_SELFID["diverge_dist"], gt=0, description="m, distance from the path (its position "
+                                "axes) that stops following")
+    limits_lower: list[float] | None = Field(_SELFID["lower"], description="actuator units, narrows the driver's "
+                                             "limits")
+    limits_upper: list[float] | None = _SELFID["upper"]
 
 
 class PathSection(BaseModel):
-    """The path followed after convergence (selfid_jax.robot.online.FollowOptions)."""
+    """The path followed after convergence and the follow law's settings
+    (:class:`~selfid_jax.robot.options.FollowOptions`, whose defaults these are)."""
 
     model_config = STRICT
 
-    kind: Literal["star"] = "star"
-    size: float = Field(0.02, gt=0, description="m, the star's outer radius")
-    plane: Literal["xy", "xz", "yz"] = "xy"
-    gain: float = Field(0.5, gt=0, le=1)
-    tol: float = Field(0.002, gt=0, description="task units")
-    max_task_step: float = Field(0.005, gt=0, description="task units per move")
-    steps: int = Field(500, ge=1, le=10**7)
+    kind: Literal["star"] = _PATH["kind"]
+    size: float = Field(_PATH["size"], gt=0, description="m, the star's outer radius")
+    plane: Literal["xy", "xz", "yz"] = _PATH["plane"]
+    gain: float = Field(_PATH["gain"], gt=0, le=1)
+    tol: float = Field(_PATH["tol"], gt=0, description="m, position error at which a waypoint counts as reached")
+    max_task_step: float = Field(_PATH["max_task_step"], gt=0, description="m, cap on the twist's position part "
+                                 "per move")
+    steps: int = Field(_PATH["steps"], ge=1, le=10**7)
+    rot_tol: float = Field(_PATH["rot_tol"], gt=0, description="rad, rotation error at which a waypoint counts as "
+                           "reached (tasks with rotation axes)")
+    max_rot_step: float = Field(_PATH["max_rot_step"], gt=0, description="rad, cap on the twist's rotation part "
+                                "per move")
 
 
 class OnlineConfig(BaseModel):
@@ -163,8 +177,6 @@ class OnlineConfig(BaseModel):
 
 def options(cfg: OnlineConfig) -> OnlineOptions:
     """The config as :class:`~selfid_jax.robot.online.OnlineOptions` (the same names, one level flatter)."""
-    from selfid_jax.robot.online import FollowOptions, OnlineOptions
-
     s, f = cfg.selfid, cfg.safety
     path = None if cfg.path is None else FollowOptions(**cfg.path.model_dump())
     return OnlineOptions(task=s.task, m_a=s.m_a, eps=s.eps, eps_rel=s.eps_rel, max_samples=s.max_samples, seed=s.seed,
@@ -238,6 +250,7 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
         "rejected": result.rejected,
         "moves": result.moves,
         "follow_steps": result.follow_steps,
+        "follow_rejected": result.follow_rejected,
         "waypoints": result.waypoints,
         "waypoints_total": result.waypoints_total,
         "replayed": result.replayed,
@@ -280,13 +293,13 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # one estimator per process: float64, like `fit`
-    from selfid_jax.robot import online
+    from selfid_jax.robot import online, session
     from selfid_jax.robot.log import parse_task
 
     opts = options(cfg)
     if opts.path is not None:
         try:
-            online.follow_offsets(opts.path, parse_task(opts.task) or ())
+            opts.path.offsets(parse_task(opts.task) or ())
         except ValueError as err:
             raise ConfigError(f"{args.config}: {err}") from None
     out = args.out if args.out is not None else Path(cfg.out) if cfg.out else \
@@ -332,9 +345,9 @@ def run(args: argparse.Namespace) -> int:
         signals.phase("write")
         files = write_run(result, cfg, out)
     _report(result, files)
-    if result.status == online.Stop.INTERRUPTED:
+    if result.status == session.Stop.INTERRUPTED:
         return 130
-    return 0 if result.status in (online.Stop.CONVERGED, online.Stop.COMPLETED) else 1
+    return 0 if result.status in (session.Stop.CONVERGED, session.Stop.COMPLETED) else 1
 
 
 def write_run(result: OnlineResult, cfg: OnlineConfig, out: Path) -> dict[str, Path]:

@@ -78,3 +78,16 @@ def check_scalar(name: str, value, *, ge: float | None = None, gt: float | None 
     if gt is not None and (arr <= gt).any():
         raise ValueError(f"{name}: must be > {gt}, got {value!r}")
     return value
+
+
+def check_magnitude(name: str, m_a, n: int):
+    """Check a self-ID magnitude ``m_a`` [rad or m]: one number or ``(n,)``, one per actuator, each finite and > 0.
+
+    Raises ``ValueError`` naming ``name``, the shape or the value; traced
+    values pass unchecked (their shape still is). Returns ``m_a`` unchanged.
+    The one check of ``m_a`` for Algorithm 1, the live runner, the design
+    search and the systems.
+    """
+    if np.ndim(m_a) not in (0, 1) or (np.ndim(m_a) == 1 and np.shape(m_a)[0] != n):
+        raise ValueError(f"{name}: expected a scalar or shape ({n},) (one per actuator), got shape {np.shape(m_a)}")
+    return check_scalar(name, m_a, gt=0.0)

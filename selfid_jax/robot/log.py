@@ -199,17 +199,17 @@ def pairs_from_time_series(q, p, R, axes: Sequence[int]):
     return dtheta, full[:, axes]
 
 
-def _rotations(kind: str, values: np.ndarray) -> np.ndarray:
-    """``(K, 3, 3)`` rotations of ``(K, 4)`` quaternions ``(w, x, y, z)`` (normalised here) or ``(K, 3)`` rotation
-    vectors."""
+def rotations(kind: str, values: np.ndarray) -> np.ndarray:
+    """``(K, 3, 3)`` rotations (float64) of ``(K, 4)`` quaternions ``(w, x, y, z)`` (normalised here;
+    ``kind="quaternion"``) or ``(K, 3)`` rotation vectors (``kind="rotation_vector"``)."""
     import jax
-    import jaxlie
+
+    from selfid_jax.math import geometry
 
     with jax.enable_x64(True):  # the pose math in float64 whatever the global setting (data, not traced code)
         v = jax.numpy.asarray(values, jax.numpy.float64)
-        so3 = jaxlie.SO3(v / jax.numpy.linalg.norm(v, axis=-1, keepdims=True)) if kind == "quaternion" \
-            else jaxlie.SO3.exp(v)
-        return np.asarray(so3.as_matrix(), np.float64)
+        R = geometry.quaternion_to_rotation(v) if kind == "quaternion" else geometry.so3_exp(v)
+        return np.asarray(R, np.float64)
 
 
 def samples_from_table(
@@ -350,7 +350,7 @@ def samples_from_table(
         R = None
         if rotation is not None:
             rot_columns = _QUATERNION if rotation == "quaternion" else _ROTVEC
-            R = _rotations(rotation, np.stack([data[c][idx] for c in rot_columns], axis=1))
+            R = rotations(rotation, np.stack([data[c][idx] for c in rot_columns], axis=1))
         dtheta, V = pairs_from_time_series(q, p, R, axes)
         dt = np.diff(t_k)
         if max_gap == "auto":

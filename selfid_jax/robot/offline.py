@@ -29,8 +29,6 @@ import numpy as np
 from selfid_jax.identify import estimator
 from selfid_jax.identify.refine import METHODS, needs_samples, refine
 from selfid_jax.identify.step import sample_step
-# re-exported for robot.online until it imports identify.step
-from selfid_jax.identify.step import StepInfo, sample_step as step  # noqa: F401
 from selfid_jax.math.checks import check_array, float_dtype
 from selfid_jax.robot.log import Samples, load_log, samples_from_table
 

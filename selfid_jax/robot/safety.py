@@ -1,0 +1,122 @@
+"""The live session's safety envelope, its random self-ID draw, and the check of every reading a driver returns.
+
+numpy only, float64: nothing here is traced. :func:`envelope` intersects the
+driver's limits with the user's and refuses an empty or malformed one;
+:func:`actuation_target` draws self-ID move ``k`` inside it; and
+:func:`check_observation` copies and checks a driver's reading before the
+session reads it. :mod:`selfid_jax.robot.session` applies them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from selfid_jax.robot.options import DIVERGE_DIST, STALE_S
+from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits, check_limits
+
+__all__ = ["Envelope", "actuation_target", "check_observation", "envelope"]
+
+
+class Envelope(NamedTuple):
+    """The safety envelope of a session (float64 numpy)."""
+
+    lower: np.ndarray  # (n,) lowest actuator target (actuator units): max of the driver's and the user's
+    upper: np.ndarray  # (n,) highest actuator target: min of the driver's and the user's
+    max_step: np.ndarray  # (n,) largest |target - q| commanded (actuator units), <= the driver's max_step
+    box_low: np.ndarray  # (3,) m, lowest tracked position (tracker frame); -inf: unbounded
+    box_high: np.ndarray  # (3,) m, highest tracked position; +inf: unbounded
+    stale_s: float  # s: a tracker pose older than this stops the session (watchdog)
+    diverge_dist: float  # m: while following, farther than this from the path (its position axes) stops
+
+
+def envelope(limits: RobotLimits, *, lower=None, upper=None, max_step=None, box_low=None, box_high=None,
+             stale_s: float = STALE_S, diverge_dist: float = DIVERGE_DIST) -> Envelope:
+    """The :class:`Envelope` of a session: the driver's ``limits`` narrowed by the user's (each optional).
+
+    Raises ValueError naming the field when a user value has the wrong shape,
+    is not finite (box bounds may be infinite), or leaves an empty range.
+    """
+    lim = check_limits(limits)
+    n = lim.lower.shape[0]
+
+    def vec(name, x, size, default, finite=True):
+        if x is None:
+            return np.asarray(default, np.float64)
+        v = np.broadcast_to(np.asarray(x, np.float64), (size,)).copy() if np.ndim(x) == 0 else \
+            np.asarray(x, np.float64)
+        if v.shape != (size,):
+            raise ValueError(f"{name}: expected {size} values, got shape {np.shape(x)}")
+        if (finite and not np.all(np.isfinite(v))) or np.any(np.isnan(v)):
+            raise ValueError(f"{name}: every value must be finite, got {v.tolist()}")
+        return v
+
+    lo = np.maximum(lim.lower, vec("lower", lower, n, lim.lower))
+    hi = np.minimum(lim.upper, vec("upper", upper, n, lim.upper))
+    bad = np.flatnonzero(lo >= hi)
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"limits: actuator {i} has no room: lower {lo[i]:g} >= upper {hi[i]:g} "
+                         f"(driver [{lim.lower[i]:g}, {lim.upper[i]:g}] and the user's limits)")
+    step = vec("max_step", max_step, n, lim.max_step)
+    if np.any(step <= 0):
+        raise ValueError(f"max_step: must be > 0, got {step.tolist()}")
+    step = np.minimum(step, lim.max_step)
+    blo = vec("box_low", box_low, 3, np.full(3, -np.inf), finite=False)
+    bhi = vec("box_high", box_high, 3, np.full(3, np.inf), finite=False)
+    bad = np.flatnonzero(blo >= bhi)
+    if bad.size:
+        raise ValueError(f"box_low[{bad[0]}] = {blo[bad[0]]:g} is not below box_high[{bad[0]}] = {bhi[bad[0]]:g}")
+    for name, v in (("stale_s", stale_s), ("diverge_dist", diverge_dist)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name}: must be a finite number > 0, got {v!r}")
+    return Envelope(lo, hi, step, blo, bhi, float(stale_s), float(diverge_dist))
+
+
+def actuation_target(seed: int, k: int, q: np.ndarray, m_a: np.ndarray, lower: np.ndarray,
+                     upper: np.ndarray) -> np.ndarray:
+    """Target ``(n,)`` of random self-ID move ``k``: ``q + dtheta``, ``dtheta_i ~ uniform(-m_a_i, m_a_i)``, in limits.
+
+    ``dtheta`` comes from ``numpy.random.default_rng([seed, k])``, so draw ``k``
+    is the same in an interrupted and a resumed session. Where ``q_i +
+    dtheta_i`` falls outside ``[lower_i, upper_i]`` the move is **reflected**
+    (``q_i - dtheta_i``): ``|dtheta_i|`` keeps its uniform distribution on
+    ``[0, m_a_i]`` and only its sign depends on the position, which the
+    estimator does not mind (Eq. 6 pairs the sign of each actuation with the
+    sign of the pose change it caused). Only where both directions leave the
+    limits (a range narrower than ``2 m_a_i`` around ``q_i``) is the target
+    clipped, which shortens that move. Clipping alone would pile the
+    distribution up at the limit with short moves.
+    """
+    rng = np.random.default_rng([int(seed), int(k)])
+    d = rng.uniform(-1.0, 1.0, q.shape[0]) * m_a
+    out = (q + d > upper) | (q + d < lower)
+    d = np.where(out, -d, d)
+    return np.clip(q + d, lower, upper)
+
+
+def check_observation(obs: Any, n: int) -> Observation:
+    """The driver's reading as new float64 arrays of the protocol's shapes; RobotError if it is malformed.
+
+    The arrays are copies (a driver may reuse and update its own). A
+    reading flagged valid whose pose is not finite, or whose quaternion is
+    zero, is a dropout (``valid`` False).
+    """
+    try:
+        q = np.array(obs.q, np.float64).reshape(-1)
+        p = np.array(obs.position, np.float64).reshape(-1)
+        quat = np.array(obs.quaternion, np.float64).reshape(-1)
+        t, tt, valid = float(obs.t), float(obs.tracker_t), bool(obs.valid)
+    except (AttributeError, TypeError, ValueError) as err:
+        raise RobotError(f"driver returned a malformed observation: {err}") from None
+    if q.shape != (n,) or p.shape != (3,) or quat.shape != (4,):
+        raise RobotError(f"driver returned q {q.shape}, position {p.shape}, quaternion {quat.shape}; "
+                         f"expected ({n},), (3,), (4,)")
+    if not np.all(np.isfinite(q)) or not (math.isfinite(t) and math.isfinite(tt)):
+        raise RobotError(f"driver returned a non-finite actuator position or time (q={q.tolist()}, t={t}, "
+                         f"tracker_t={tt})")
+    if valid and not (np.all(np.isfinite(p)) and np.all(np.isfinite(quat)) and np.linalg.norm(quat) > 0):
+        valid = False  # a "valid" pose with NaN in it is a dropout all the same
+    return Observation(t, q, p, quat, tt, valid)

@@ -1,0 +1,379 @@
+"""One live session's loop: Algorithm 1's random moves, then following with the simulations' control step.
+
+:class:`Session` holds a session's state and runs its two phases against a
+:class:`~selfid_jax.robot.protocol.Robot`, logging every read, command,
+sample and waypoint to the session's :class:`~selfid_jax.robot.journal.Journal`
+as it happens, and raising :class:`Stopped` where a stop is found:
+
+* :meth:`Session.selfid` (Algorithm 1): each random move's sample runs the
+  jitted :func:`sample_step`, the per-sample identification step of
+  Algorithm 1 and ``fit`` (:func:`selfid_jax.identify.step.sample_step`).
+* :meth:`Session.follow`: each step is :func:`follow_command`, which is
+  :func:`selfid_jax.control.law.command` with
+  :func:`~selfid_jax.control.law.inverse_jacobian_law` on the converged
+  estimate, the control step of the simulated follow loop
+  (:func:`selfid_jax.control.loop.follow_law`) run on the host in float64.
+  So a simulated tracking result with the same controller settings
+  (:meth:`selfid_jax.robot.online.FollowOptions.controller`) describes what
+  the robot does: the waypoint test, the twist clipped per part, the
+  per-actuator cap, the limits, the divergence test, and a reading that is
+  not fresh makes no command (the simulation's dropout does the same).
+* :meth:`Session.replay` folds a logged session back into the state (resume).
+
+:func:`selfid_jax.robot.online.run_online` builds and ends a session.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import jax
+import numpy as np
+
+from selfid_jax.control.law import Command, command, inverse_jacobian_law
+from selfid_jax.control.sources import fixed
+from selfid_jax.control.task import ControllerParams, Task
+from selfid_jax.identify import estimator
+from selfid_jax.identify.refine import needs_samples
+from selfid_jax.identify.step import StepInfo
+from selfid_jax.identify.step import sample_step as identify_step
+from selfid_jax.math import geometry
+from selfid_jax.math.checks import float_dtype
+from selfid_jax.robot.journal import Journal, JournalContents, JournalError, floats
+from selfid_jax.robot.log import pairs_from_time_series, rotations
+from selfid_jax.robot.protocol import Observation, Robot
+from selfid_jax.robot.safety import Envelope, actuation_target, check_observation
+
+__all__ = ["ResumeError", "Session", "Stop", "Stopped", "follow_command", "host_step", "init_state", "sample_step",
+           "task_difference"]
+
+
+class Stop(enum.StrEnum):
+    """Why a session ended."""
+
+    CONVERGED = "converged"  # self-ID met Sec. IV-D and there is no path to follow
+    COMPLETED = "completed"  # the path was followed to its last waypoint
+    MAX_SAMPLES = "max_samples"  # self-ID made max_samples random moves without converging
+    MAX_STEPS = "max_steps"  # following took max_steps moves without reaching the last waypoint
+    STALE = "stale"  # the tracker was older than stale_s (watchdog)
+    BOX = "box"  # the tracked position left the task-space box (or the path would)
+    LIMITS = "limits"  # a measured actuator position outside the limits
+    DIVERGENCE = "divergence"  # while following, farther than diverge_dist from the path
+    CONNECTION = "connection"  # the driver raised RobotConnectionError
+    ROBOT_ERROR = "robot_error"  # the driver raised another RobotError (a refused command, a fault)
+    INTERRUPTED = "interrupted"  # KeyboardInterrupt or a stop request
+
+
+class ResumeError(JournalError):
+    """A session log that cannot be resumed with these options; the message names the disagreeing field."""
+
+
+class Stopped(Exception):
+    """End the session with ``reason`` (raised where the reason is found, caught in ``run_online``)."""
+
+    def __init__(self, reason: Stop, detail: str):
+        super().__init__(detail)
+        self.reason, self.detail = reason, detail
+
+
+def task_difference(obs: Observation, prev: Observation, axes: Sequence[int]) -> np.ndarray:
+    """``V (m,) = [p - p_prev, log(R R_prev^T)][axes]`` between two tracker poses (m; rad for rotation axes).
+
+    :func:`selfid_jax.robot.log.pairs_from_time_series` on the two rows, so an
+    online sample is exactly what ``fit`` would form from the same time series.
+    """
+    p = np.stack([prev.position, obs.position])
+    R = None if all(a < 3 for a in axes) else rotations("quaternion", np.stack([prev.quaternion, obs.quaternion]))
+    return pairs_from_time_series(np.zeros((2, 1)), p, R, axes)[1][0]
+
+
+# --------------------------------------------------------------------------- the jitted steps
+
+_step = jax.jit(identify_step, static_argnames=("method", "options"))
+
+
+def init_state(n: int, m: int, *, method: str = "closed_form", v_tol: float = 1e-9, max_samples: int = 200,
+               dtype=None) -> estimator.EstimatorState:
+    """Empty estimator for a session: no sample buffer unless the refinement needs one (then ``max_samples``)."""
+    capacity = max_samples if needs_samples(method) else 0
+    return estimator.init(n, m, capacity=capacity, v_tol=v_tol, dtype=float_dtype() if dtype is None else dtype)
+
+
+def sample_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form"
+                ) -> tuple[estimator.EstimatorState, StepInfo]:
+    """One accepted sample ``(dtheta (n,), V (m,))`` through :func:`selfid_jax.identify.step.sample_step`, jitted.
+
+    ``eps`` and ``eps_rel`` are passed as arrays of the state's dtype, so one
+    compilation per ``(n, m, method, dtype)`` serves every threshold and every
+    sample of every session in the process. The inputs are cast with numpy
+    (``jit`` transfers numpy arguments on its fast path; ``jnp.asarray`` on
+    each would cost more than the step itself at batch 1).
+    """
+    dtype = state.estimate.dtype
+    return _step(state, np.asarray(dtheta, dtype), np.asarray(V, dtype), np.asarray(eps, dtype),
+                 np.asarray(eps_rel, dtype), method=method, options=())
+
+
+def host_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form"
+              ) -> tuple[estimator.EstimatorState, StepInfo, int]:
+    """:func:`sample_step` and what the online loop reads back: ``(state, info as numpy, converged_at)``.
+
+    One ``device_get`` of the info and ``converged_at`` together: the whole
+    per-sample cost of the loop's estimator (``benchmarks/online_step.py``).
+    """
+    state, info = sample_step(state, dtheta, V, eps, eps_rel, method=method)
+    info, conv = jax.device_get((info, state.converged_at))
+    return state, info, int(conv)
+
+
+@functools.partial(jax.jit, static_argnames=("axes",))
+def _follow_command(Jinv, offsets, p0, R0, waypoint, q, p, R, ctrl, *, axes):
+    law = inverse_jacobian_law(None, fixed(Jinv))
+    task = Task.from_axes(offsets, (p0, R0), axes)
+    state = law.init(q)
+    return command(law, task, ctrl, state, waypoint, q, (p, R), law.observe(state, q)), task.path_distance(p)
+
+
+def follow_command(Jinv: np.ndarray, offsets: np.ndarray, anchor: Observation, waypoint: int, obs: Observation,
+                   ctrl: ControllerParams, axes: tuple[int, ...]) -> tuple[Command, float]:
+    """The follow loop's control step at the reading ``obs``, on the host in float64: ``(command, path distance)``.
+
+    :func:`selfid_jax.control.law.command` with ``inverse_jacobian_law`` on the
+    constant ``Jinv (n, m)``, towards waypoint offsets ``offsets (W, m)`` taken
+    from the pose of ``anchor``; the path distance [m] is that of ``obs``'s
+    position (:meth:`~selfid_jax.control.task.Task.path_distance`). The same
+    function :func:`selfid_jax.control.loop.follow_law` runs under ``scan``,
+    compiled once per ``(n, m, W, axes)``. Returned as numpy.
+    """
+    with jax.enable_x64(True):
+        f64 = functools.partial(np.asarray, dtype=np.float64)
+        R0, R = (np.asarray(geometry.quaternion_to_rotation(f64(o.quaternion)), np.float64) for o in (anchor, obs))
+        ctrl = jax.tree.map(f64, ctrl)
+        out = _follow_command(f64(Jinv), f64(offsets), f64(anchor.position), R0, np.int32(waypoint), f64(obs.q),
+                              f64(obs.position), R, ctrl, axes=tuple(axes))
+        cmd, dist = jax.device_get(out)
+    return cmd, float(dist)
+
+
+# --------------------------------------------------------------------------- the session
+
+
+class Session:
+    """One session's loop state; its methods raise :class:`Stopped` to end it.
+
+    ``opts`` is the session's :class:`selfid_jax.robot.online.OnlineOptions`
+    (read for ``seed``, ``max_samples``, ``settle_s``, ``poll_s``, ``eps``,
+    ``eps_rel``, ``method``), ``env`` its checked :class:`Envelope`, ``axes``
+    its task axes and ``m_a (n,)`` its self-ID magnitude.
+    """
+
+    def __init__(self, robot: Robot, opts, env: Envelope, axes: tuple[int, ...], m_a: np.ndarray,
+                 journal: Journal, stop_requested: Callable[[], bool] | None, sleep: Callable[[float], None]):
+        self.robot, self.opts, self.env, self.axes, self.m_a = robot, opts, env, axes, m_a
+        self.journal, self.stop_requested, self.sleep = journal, stop_requested, sleep
+        self.n = env.lower.shape[0]
+        self.last_tracker_t = -math.inf
+        self.last_advance_wall = time.monotonic()
+        self.last_cmd_t = -math.inf  # driver time of the reading before the last command
+        self.state: estimator.EstimatorState | None = None
+        self.k = 0  # self-ID draws completed (accepted + rejected samples)
+        self.samples = 0
+        self.rejected: dict[str, int] = {}
+        self.moves = 0
+        self.follow_steps = 0
+        self.follow_rejected = 0  # readings after a following move that were not fresh (no command from them)
+        self.anchor: Observation | None = None
+        self.offsets: np.ndarray | None = None
+        self.waypoint = 0
+        self.step_ms: list[float] = []
+
+    # ---- robot I/O, each logged as it happens
+
+    def check_interrupt(self) -> None:
+        if self.stop_requested is not None and self.stop_requested():
+            raise Stopped(Stop.INTERRUPTED, "stop requested")
+
+    def read(self, phase: str) -> Observation:
+        """Read, log, and apply the watchdog, the limits and the box (valid poses only)."""
+        obs = check_observation(self.robot.read(), self.n)
+        now = time.monotonic()
+        self.journal.append({"e": "obs", "phase": phase, "t": obs.t, "q": obs.q, "p": obs.position,
+                             "quat": obs.quaternion, "tracker_t": obs.tracker_t, "valid": obs.valid})
+        if obs.valid and obs.tracker_t > self.last_tracker_t:
+            self.last_tracker_t, self.last_advance_wall = obs.tracker_t, now
+        # the driver's age of the pose, and a lower bound on it from our clock (the same pose seen since then)
+        age = max(obs.t - obs.tracker_t, now - self.last_advance_wall)
+        if age > self.env.stale_s:
+            raise Stopped(Stop.STALE, f"tracker pose {age:.3f} s old (stale_s = {self.env.stale_s:g} s)")
+        env = self.env
+        out = np.flatnonzero((obs.q < env.lower) | (obs.q > env.upper))
+        if out.size:
+            i = out[0]
+            raise Stopped(Stop.LIMITS, f"actuator {i} at {obs.q[i]:.6g}, outside [{env.lower[i]:.6g}, "
+                          f"{env.upper[i]:.6g}]")
+        if obs.valid:
+            out = np.flatnonzero((obs.position < env.box_low) | (obs.position > env.box_high))
+            if out.size:
+                i = out[0]
+                raise Stopped(Stop.BOX, f"tracked {'xyz'[i]} = {obs.position[i]:.6g} m, outside the box "
+                              f"[{env.box_low[i]:.6g}, {env.box_high[i]:.6g}]")
+        return obs
+
+    def is_fresh(self, obs: Observation) -> bool:
+        """Whether ``obs`` has a pose taken after the last command (valid and newer than the reading before it)."""
+        return obs.valid and obs.tracker_t > self.last_cmd_t
+
+    def fresh(self, phase: str) -> Observation:
+        """Read without moving until the pose is valid and newer than the last command (or the watchdog stops)."""
+        while True:
+            self.check_interrupt()
+            obs = self.read(phase)
+            if self.is_fresh(obs):
+                return obs
+            self.sleep(self.opts.poll_s)
+
+    def move(self, target: np.ndarray, base: Observation, phase: str, k: int) -> None:
+        """Log and command ``target``; refuses (a bug) one outside the envelope."""
+        env = self.env
+        if np.any(target < env.lower) or np.any(target > env.upper) or \
+                np.any(np.abs(target - base.q) > env.max_step * (1 + 1e-12)):
+            raise RuntimeError(f"internal: target {target.tolist()} from {base.q.tolist()} is outside the envelope")
+        self.check_interrupt()
+        self.journal.append({"e": "move", "phase": phase, "k": k, "target": target, "from": base.q})
+        self.last_cmd_t = base.t
+        self.robot.move(target)
+
+    # ---- the estimator
+
+    def step(self, dtheta: np.ndarray, V: np.ndarray):
+        assert self.state is not None
+        t0 = time.perf_counter()
+        state, info, conv = host_step(self.state, dtheta, V, self.opts.eps, self.opts.eps_rel,
+                                      method=self.opts.method)
+        self.step_ms.append(1e3 * (time.perf_counter() - t0))
+        self.state = state
+        self.samples += 1
+        return info, conv
+
+    # ---- Algorithm 1
+
+    def selfid(self) -> None:
+        opts = self.opts
+        base = self.fresh("selfid")
+        while True:
+            if self.k >= opts.max_samples:
+                raise Stopped(Stop.MAX_SAMPLES, f"not converged after {self.k} random moves (max_samples)")
+            target = actuation_target(opts.seed, self.k, base.q, self.m_a, self.env.lower, self.env.upper)
+            self.moves += 1  # counted as issued: a command whose call raised may or may not have moved the robot
+            self.move(target, base, "selfid", self.k)
+            self.sleep(opts.settle_s)
+            obs = self.read("selfid")
+            k, self.k = self.k, self.k + 1
+            reason = None if obs.valid and obs.tracker_t > base.t else ("dropout" if not obs.valid else "stale")
+            if reason is not None:
+                self.rejected[reason] = self.rejected.get(reason, 0) + 1
+                self.journal.append({"e": "sample", "k": k, "accepted": False, "reason": reason})
+                base = self.fresh("selfid")
+                continue
+            dtheta, V = obs.q - base.q, task_difference(obs, base, self.axes)
+            info, conv = self.step(dtheta, V)
+            self.journal.append({"e": "sample", "k": k, "accepted": True, "dtheta": dtheta, "V": V,
+                                 "estimator_accepted": bool(info.accepted), "delta": float(info.delta),
+                                 "threshold": float(info.threshold), "converged_at": conv,
+                                 "step_ms": self.step_ms[-1]})
+            base = obs
+            if conv > 0:
+                self.journal.append({"e": "converged", "converged_at": conv,
+                                     "estimate": np.asarray(self.state.estimate) if self.state else None})
+                return
+
+    # ---- following
+
+    def follow(self, path) -> None:
+        """Follow ``path`` (:class:`selfid_jax.robot.online.FollowOptions`) with the converged estimate."""
+        assert self.state is not None
+        env = self.env
+        Jinv = np.asarray(self.state.estimate, np.float64)
+        if not np.all(np.isfinite(Jinv)):
+            raise Stopped(Stop.DIVERGENCE, "the estimate is not finite; nothing to follow with")
+        obs = self.fresh("follow")
+        if self.anchor is None:
+            planned = path.offsets(self.axes)
+            where = obs.position + path.positions()
+            out = np.flatnonzero(np.any((where < env.box_low) | (where > env.box_high), axis=1))
+            if out.size:
+                raise Stopped(Stop.BOX, f"the path leaves the box at waypoint {out[0] + 1} of {len(planned)} "
+                              f"({where[out[0]].round(6).tolist()} m); no following move was made")
+            self.anchor, self.offsets, self.waypoint = obs, planned, 0
+            self.journal.append({"e": "follow", "p": obs.position, "quat": obs.quaternion, "offsets": planned})
+        anchor, offsets = self.anchor, self.offsets
+        assert offsets is not None and anchor is not None
+        W = offsets.shape[0]
+        ctrl = path.controller(env)
+        while True:
+            cmd, dist = follow_command(Jinv, offsets, anchor, self.waypoint, obs, ctrl, self.axes)
+            if cmd.reached:
+                self.journal.append({"e": "waypoint", "reached": self.waypoint})
+            self.waypoint = int(cmd.waypoint)
+            if self.waypoint == W:
+                raise Stopped(Stop.COMPLETED, f"path followed: {W} waypoints in {self.follow_steps} moves")
+            if dist > env.diverge_dist:
+                raise Stopped(Stop.DIVERGENCE, f"{dist:.4g} m from the path towards waypoint {self.waypoint + 1} "
+                              f"(diverge_dist = {env.diverge_dist:g})")
+            if self.follow_steps >= path.steps:
+                raise Stopped(Stop.MAX_STEPS, f"waypoint {self.waypoint + 1} of {W} not reached in "
+                              f"{path.steps} moves")
+            target = np.clip(obs.q + cmd.dq, env.lower, env.upper)
+            self.follow_steps += 1
+            self.move(target, obs, "follow", self.follow_steps - 1)
+            self.sleep(self.opts.settle_s)
+            obs = self.read("follow")
+            if not self.is_fresh(obs):
+                self.follow_rejected += 1
+                self.journal.append({"e": "rejected", "phase": "follow", "k": self.follow_steps - 1,
+                                     "reason": "dropout" if not obs.valid else "stale"})
+                obs = self.fresh("follow")
+
+    # ---- resume
+
+    def replay(self, log: JournalContents) -> int:
+        """Fold the log's accepted samples into the state (the same jitted step); return how many."""
+        assert self.state is not None
+        logged_conv = -1
+        replayed = 0
+        for rec in log.records:
+            e = rec["e"]
+            if e == "sample":
+                self.k = max(self.k, int(rec["k"]) + 1)
+                if rec["accepted"]:
+                    self.state, _ = sample_step(self.state, floats(rec["dtheta"]), floats(rec["V"]), self.opts.eps,
+                                                self.opts.eps_rel, method=self.opts.method)
+                    self.samples += 1
+                    replayed += 1
+                    logged_conv = int(rec["converged_at"])
+                else:
+                    self.rejected[rec["reason"]] = self.rejected.get(rec["reason"], 0) + 1
+            elif e == "move":
+                if rec["phase"] == "selfid":
+                    self.moves += 1
+                else:
+                    self.follow_steps += 1
+            elif e == "follow":
+                q = np.zeros(self.n)
+                self.anchor = Observation(0.0, q, floats(rec["p"]), floats(rec["quat"]), 0.0, True)
+                self.offsets = np.array([floats(r) for r in rec["offsets"]])
+                self.waypoint = 0
+            elif e == "waypoint":
+                self.waypoint = int(rec["reached"]) + 1
+            elif e == "rejected":
+                self.follow_rejected += 1
+        conv = int(self.state.converged_at)
+        if conv != logged_conv and not (logged_conv < 0 and conv < 0):
+            raise ResumeError(f"{self.journal.path}: replaying the log's {replayed} samples gives convergence at "
+                              f"{conv}, the log recorded {logged_conv}; it was written by another estimator "
+                              "(version, platform) and cannot be continued")
+        return replayed
