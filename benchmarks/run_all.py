@@ -7,7 +7,8 @@ met it, and writes everything (the table and each script's full record) to
 ``--out``. Timings are medians of a few repetitions but still move with the
 load of the machine; ratios measured in one process (``x RLS``, ``x SLSQP``)
 are the robust numbers. About 22 minutes on 2 CPU cores at load 1.5, most of it ``compile_time`` and
-``test_suite`` (the test suite's two tiers, and its fast tier at the shipped LLVM level, as the README runs them).
+``test_suite`` (suite_time.py: the test suite's two tiers, and its fast tier at the shipped LLVM level, as the
+README runs them).
 
     python benchmarks/run_all.py [--out benchmarks/results.json] [--markdown] [--skip ablation ...] [--resume]
 
@@ -75,7 +76,7 @@ def collect(skip=(), gpu_scale=False, done: dict | None = None, save=None) -> di
         "articulated": ("articulated", ["--batch", "200" if gpu_scale else "8", "--steps", "100"], None),
         "mjx_profile": ("mjx_profile", ["--scenes", "stewart", "--no-stages", "--native", "16", "--native-steps", "10",
                                         "--batch", "10000" if gpu_scale else "500"], None),
-        "test_suite": ("test_suite", ["--tiers", "fast", "whole", "--shipped"], None),
+        "test_suite": ("suite_time", ["--tiers", "fast", "whole", "--shipped"], None),
     }
     if gpu_scale:
         plans.pop("estimator_2dev")

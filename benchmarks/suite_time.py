@@ -7,7 +7,7 @@ the fast tier at level 3 (``XLA_FLAGS=--xla_backend_optimization_level=3``) in
 the same run, the baseline of the ratio. Goals (issue 27): the whole suite
 <= 300 s and the fast tier <= 45 s on the 2-core machine.
 
-    python benchmarks/test_suite.py [--tiers fast whole] [--shipped] [--json out.json]
+    python benchmarks/suite_time.py [--tiers fast whole] [--shipped] [--json out.json]
 """
 
 from __future__ import annotations
