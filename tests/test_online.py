@@ -498,3 +498,16 @@ def test_the_step_compiles_once_per_shape(tmp_path, converged_run):
         result = online.run_online(FakeArm(), opts(eps=eps, eps_rel=eps_rel, max_samples=4), tmp_path / str(i))
         assert result.samples >= 2
     assert session._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace
+
+
+def test_cli_and_api_give_the_same_defaults_for_every_online_option():
+    """`selfid-jax online` with an empty config section runs exactly run_online's defaults (one source each)."""
+    import inspect
+
+    from selfid_jax.commands.online import OnlineConfig, options as cli_options
+
+    cfg = OnlineConfig(robot={"host": "127.0.0.1", "port": 50007}, path={})
+    assert cli_options(cfg) == options.OnlineOptions(path=options.FollowOptions())
+    for name, p in inspect.signature(safety.envelope).parameters.items():
+        if p.default is not inspect.Parameter.empty and name in options.OnlineOptions._fields:
+            assert p.default == options.OnlineOptions._field_defaults[name], name

@@ -16,12 +16,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
-import numpy as np
 
 from selfid_jax.identify import estimator
 from selfid_jax.identify import recursive as rec_mod
 from selfid_jax.math.geometry import noisy_pose
-from selfid_jax.math.checks import check_positive_int, check_scalar, float_dtype
+from selfid_jax.math.checks import check_magnitude, check_positive_int, check_scalar, float_dtype
 from selfid_jax.identify.refine import needs_samples
 from selfid_jax.identify.step import sample_step
 
@@ -118,9 +117,7 @@ def self_identify(
         capacity = iters if needs_samples(method, options.get("loss", "l2")) else 0
     capacity = estimator.check_nonnegative_int("capacity", capacity)
     dtype = float_dtype()
-    if np.ndim(m_a) not in (0, 1) or (np.ndim(m_a) == 1 and np.shape(m_a) != (n_act,)):
-        raise ValueError(f"m_a: expected a scalar or shape ({n_act},) (one per actuator), got shape {np.shape(m_a)}")
-    check_scalar("m_a", m_a, gt=0.0)
+    check_magnitude("m_a", m_a, n_act)
     estimator.check_thresholds(eps, eps_rel)
     m_a = jnp.broadcast_to(jnp.asarray(m_a, dtype), (n_act,))
     state0 = estimator.init(n_act, task_dim, capacity=capacity, v_tol=v_tol, forget=forget, dtype=dtype)

@@ -14,6 +14,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from jax.typing import ArrayLike
 
+from selfid_jax.math.checks import check_magnitude
+
 Values = ArrayLike | Sequence[float]
 """One number or one per actuator (a scalar, a list, a numpy or JAX array) [rad or m]."""
 
@@ -122,8 +124,7 @@ def validate(limits: Limits, *, has_rotation: bool) -> Limits:
     if not np.all((dq_max > 0) & np.isfinite(dq_max)):
         raise ValueError(f"dq_max must be positive and finite, got {dq_max}")
     m_a = vector("m_a", m_a, n_act)
-    if not np.all((m_a > 0) & np.isfinite(m_a)):
-        raise ValueError(f"m_a must be positive and finite, got {m_a}")
+    check_magnitude("m_a", m_a, n_act)
     if sample_low is None:
         sample_low = q_low
     if sample_high is None:
