@@ -176,7 +176,7 @@ class OnlineConfig(BaseModel):
 
 
 def options(cfg: OnlineConfig) -> OnlineOptions:
-    """The config as :class:`~selfid_jax.robot.online.OnlineOptions` (the same names, one level flatter)."""
+    """The config as :class:`~selfid_jax.robot.options.OnlineOptions` (the same names, one level flatter)."""
     s, f = cfg.selfid, cfg.safety
     path = None if cfg.path is None else FollowOptions(**cfg.path.model_dump())
     return OnlineOptions(task=s.task, m_a=s.m_a, eps=s.eps, eps_rel=s.eps_rel, max_samples=s.max_samples, seed=s.seed,

@@ -27,7 +27,7 @@ class ControllerParams(NamedTuple):
     The defaults are the shipped configs' UR5e protocol
     (:class:`selfid_jax.experiments.common.schema.ControllerConfig` reads its defaults from here); the live
     runner builds one from its path options and safety envelope
-    (:meth:`selfid_jax.robot.online.FollowOptions.controller`).
+    (:meth:`selfid_jax.robot.options.FollowOptions.controller`).
     """
 
     max_step: ArrayLike = 0.0025  # () largest POM position step per control step [m]

@@ -2,7 +2,7 @@
 
 :class:`VirtualRobot` implements :class:`selfid_jax.robot.protocol.Robot` in
 process; :mod:`selfid_jax.robot.transport` serves it (or any other driver) over
-a socket, and ``selfid-jax robot-sim CONFIG`` (:mod:`selfid_jax.app.robot_sim`)
+a socket, and ``selfid-jax robot-sim CONFIG`` (:mod:`selfid_jax.commands.robot_sim`)
 runs it in a process of its own.
 
 Model (the rule of :mod:`selfid_jax.control.realism`, evaluated in numpy on a
