@@ -18,8 +18,10 @@ Model, per control step of ``period`` seconds, actuator targets ``u``:
 * the tracker reports the pose of ``latency`` whole control steps ago, with
   Gaussian noise of ``noise_pos`` metres and ``noise_rot`` radians per axis
   (rotation noise as a random rotation vector), and with probability
-  ``dropout`` per reading no pose at all (the loop then holds its last good
-  reading and counts the dropout).
+  ``dropout`` per reading no pose at all (the reading is the last good one
+  and the dropout is counted; the follow loop makes no waypoint test and no
+  new command from it, as the live runner waits for a fresh pose, and a
+  self-ID sample with it is rejected).
 
 The controller commands relative to the *measured* actuator positions: each
 step it reads ``q`` (the encoders: exact and without delay, as
