@@ -113,7 +113,8 @@ def command(law: StepLaw, task: Task, ctrl: ControllerParams, law_state, waypoin
     e_p, e_r = task.error(seen, waypoint)
     reached = active & (waypoint < W) & task.reached(e_p, e_r, ctrl)
     waypoint = waypoint + reached.astype(jnp.asarray(waypoint).dtype)
-    V = task.twist(*task.error(seen, waypoint), ctrl)
+    e_p_next, e_r_next = task.error(seen, waypoint)
+    V = task.twist(e_p_next, e_r_next, ctrl)
     dq, learned, ok = law.step(law_state, q, seen, aux, V)
     return Command(waypoint=waypoint, reached=reached, error=e_p, V=V, dq=cap_actuator_step(dq, ctrl.max_dq),
                    law=learned, ok=ok)

@@ -121,7 +121,8 @@ def design_params(m_a, *, pose_noise=0.0, rot_noise=0.0, controller=ControllerPa
     return DesignParams(jnp.log(jnp.asarray(m_a, jnp.result_type(float))), pose_noise, rot_noise, controller)
 
 
-def _check_inputs(system, params, q0s, path, *, iters, n_trials, steps, follow_from, fail_error):
+def _check_inputs(system: System, params: DesignParams, q0s, path, *, iters, n_trials, steps, follow_from,
+                  fail_error):
     """Eager checks (shapes are static: before any compute), each naming its argument."""
     if not isinstance(system, System) or not isinstance(params, DesignParams):
         raise TypeError(f"need a selfid_jax System and DesignParams, got {type(system).__name__} and "
@@ -221,7 +222,8 @@ def _nudge(path, system: System):
     return path.at[:, jnp.asarray(cols)].add(ROTATION_NUDGE_EPS * float(jnp.finfo(path.dtype).eps))
 
 
-def _rollout(params: DesignParams, data, *, iters: int, steps: int, follow_from: str, safe: bool):
+def _rollout(params: DesignParams, data: tuple[System, jax.Array, jax.Array, jax.Array, jax.Array], *, iters: int,
+             steps: int, follow_from: str, safe: bool):
     """``(loss (), _Rollout)``; ``data = (system, key, q0 (n,), path (W, m), fail_error ())``."""
     system, key, q0, path, fail_error = data
     if safe:

@@ -11,7 +11,7 @@ one per-sample step :func:`selfid_jax.identify.step.sample_step` (or, with
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -23,6 +23,9 @@ from selfid_jax.math.geometry import noisy_pose
 from selfid_jax.math.checks import check_magnitude, check_positive_int, check_scalar, float_dtype
 from selfid_jax.identify.refine import needs_samples
 from selfid_jax.identify.step import sample_step
+
+if TYPE_CHECKING:  # the systems package loads the shipped robots (MuJoCo): not at run time
+    from selfid_jax.systems.system import SelfIDSystem
 
 Observe = Callable[[Any, jax.Array, jax.Array], tuple[Any, jax.Array]]
 """``observe(env, key, dtheta (n,)) -> (env, V (m,))``: apply an actuation, return the pose change."""
@@ -189,7 +192,7 @@ def _recursive_closed_form(method: str, options: dict) -> bool:
 
 
 def run(
-    system,
+    system: SelfIDSystem,
     key: jax.Array,
     q0: ArrayLike,
     *,
@@ -208,6 +211,10 @@ def run(
     recursive: bool | None = None,
 ) -> SelfIDResult:
     """Algorithm 1 on a simulated :class:`~selfid_jax.systems.System` starting at ``q0 (n,)``.
+
+    ``system``: a :class:`~selfid_jax.systems.System` or any
+    :class:`~selfid_jax.systems.system.SelfIDSystem` (``n_act``, ``task_dim``,
+    ``m_a``, ``pose``, ``apply``, ``task_difference``).
 
     Each iteration draws ``dtheta ~ uniform(-m_a, m_a)`` (default: the system's
     safe ``m_a``), reads the pose (with Gaussian position noise ``pose_noise``

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 
 __all__ = ["ldl", "small_matmul", "small_sum", "sort_axis0"]
@@ -44,7 +45,9 @@ def small_matmul(A, B):
     return out
 
 
-def ldl(S, scale):
+def ldl(
+    S: jax.Array, scale: ArrayLike
+) -> tuple[list[list[jax.Array]], list[list[jax.Array]], list[jax.Array], list[jax.Array]]:
     """Unrolled ``L D L^T`` of a symmetric ``S (m, m)`` without pivoting: ``(L, Li, dinv, keep)``, nested lists of
     scalars.
 
@@ -57,7 +60,7 @@ def ldl(S, scale):
     zero, one = jnp.zeros((), S.dtype), jnp.ones((), S.dtype)
     L = [[zero] * m for _ in range(m)]
     Li = [[one if i == c else zero for c in range(m)] for i in range(m)]
-    d, dinv, keep = [zero] * m, [zero] * m, [None] * m
+    d, dinv, keep = [zero] * m, [zero] * m, list[jax.Array]()
     for k in range(m):
         for c in range(k):  # row k of L^-1 from row k of L (columns < k, final) and earlier rows
             Li[k][c] = -sum((L[k][j] * Li[j][c] for j in range(c + 1, k)), L[k][c])
@@ -65,7 +68,7 @@ def ldl(S, scale):
         for j in range(k):
             piv = piv - L[k][j] * L[k][j] * d[j]
         norm2 = sum((Li[k][c] * Li[k][c] for c in range(k)), one)  # ||z_k||^2 >= 1
-        keep[k] = piv > scale * norm2
+        keep.append(piv > scale * norm2)  # keep[k]
         d[k] = jnp.where(keep[k], piv, 0.0)
         dinv[k] = jnp.where(keep[k], 1.0 / jnp.where(keep[k], piv, 1.0), 0.0)
         for i in range(k + 1, m):

@@ -96,14 +96,14 @@ def psd_pinv(S, *, rcond=None):
     zero = jnp.zeros((), S.dtype)
     Li, dinv, N = _ldl_null_space(S, rcond)
     # W = Li^T D^+ Li (symmetric)
-    W = [[zero] * m for _ in range(m)]
+    Wrows = [[zero] * m for _ in range(m)]
     for i in range(m):
         for j in range(i, m):
             w = zero
             for k in range(j, m):
                 w = w + Li[k][i] * dinv[k] * Li[k][j]
-            W[i][j] = W[j][i] = w
-    W = jnp.stack([jnp.stack(row) for row in W])
+            Wrows[i][j] = Wrows[j][i] = w
+    W = jnp.stack([jnp.stack(row) for row in Wrows])
     R = jnp.eye(m, dtype=S.dtype) - N
     return small_matmul(small_matmul(R, W), R), N
 
@@ -119,7 +119,7 @@ def _ldl_null_space(S, rcond):
     rcond = default_rcond(m, S.dtype) if rcond is None else rcond
     _, Li, dinv, keep = ldl(S, rcond * sum((S[k, k] for k in range(1, m)), S[0, 0]))  # rcond * tr(S)
     # null space: z_k (row k of Li) for dropped k, orthonormalised
-    qs = []
+    qs: list[list[jax.Array]] = []
     for k in range(m):
         z = list(Li[k])
         for q in qs:

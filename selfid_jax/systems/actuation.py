@@ -210,7 +210,11 @@ def _tendon_row(mj, t):
     return row
 
 
-def _select(mj, actuators, label):
+# One chosen actuator: (name, row (nq,), joints, description, MuJoCo actuator id or None for a bare joint).
+_Chosen = tuple[str, np.ndarray, list[int], str, int | None]
+
+
+def _select(mj, actuators, label) -> list[_Chosen]:
     """``[(name, row, joints, desc, actuator id or None)]`` of the chosen actuators."""
     import mujoco
 
@@ -218,7 +222,7 @@ def _select(mj, actuators, label):
     if isinstance(actuators, str) and actuators == "joints":
         if not scalar:
             raise ValueError(f"MJCF {label} has no hinge or slide joints: nothing to actuate")
-        out = []
+        out: list[_Chosen] = []
         for j in scalar:
             row = np.zeros(mj.nq)
             row[mj.jnt_qposadr[j]] = 1.0
@@ -247,7 +251,7 @@ def _select(mj, actuators, label):
             ids.append(names.index(a))
         if not ids:
             raise ValueError("actuators is empty: name at least one actuator")
-    out, skipped = [], []
+    out, skipped = [], list[str]()
     for i in ids:
         row, joints, desc = _actuator_row(mj, i)
         if row is None:
@@ -283,13 +287,13 @@ def _solve(C, rhs0, ref, n_act):
         cols = np.flatnonzero(row)
         for c in cols[1:]:
             parent[find(c)] = find(cols[0])
-    blocks = {}
+    blocks: dict[int, list[int]] = {}
     for r, row in enumerate(C):
         blocks.setdefault(find(int(np.flatnonzero(row)[0])), []).append(r)
     first_act = C.shape[0] - n_act
     for rows in blocks.values():
         cols = np.flatnonzero(np.any(C[rows] != 0, axis=0))
-        Cb = C[np.ix_(rows, cols)]
+        Cb = C[np.ix_(np.asarray(rows), cols)]
         d0 = np.array([rhs0[r] if r < first_act else 0.0 for r in rows])
         pinv = (1.0 / Cb) if Cb.shape == (1, 1) else np.linalg.pinv(Cb)
         offset[cols] = ref[cols] + pinv @ (d0 - Cb @ ref[cols])

@@ -33,10 +33,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 import numpy as np
 
 from selfid_jax.systems.validation import Values
@@ -45,7 +46,46 @@ from selfid_jax.math import geometry
 from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.validation import Limits, check_task_axes, check_task_dim, default_axes, validate
 
-__all__ = ["System", "from_pose_fn", "PositionOnlyPose"]
+__all__ = ["System", "SelfIDSystem", "from_pose_fn", "PositionOnlyPose"]
+
+Pose = tuple[jax.Array, jax.Array]
+"""A POM pose ``(p (3,), R (3, 3))``: world-frame position and orientation."""
+
+
+class SelfIDSystem(Protocol):
+    """What Algorithm 1 (:func:`selfid_jax.identify.algorithm.run`) uses of a simulated system.
+
+    :class:`System` is one (mypy checks it where a ``System`` is passed); any
+    object with these members runs self-ID too. Shapes as in :class:`System`:
+    ``n = n_act`` actuators, ``m = task_dim`` task dimensions.
+    """
+
+    @property
+    def n_act(self) -> int:
+        """Number of actuators ``n`` (static)."""
+        ...
+
+    @property
+    def task_dim(self) -> int:
+        """Task dimension ``m`` (static)."""
+        ...
+
+    @property
+    def m_a(self) -> jax.Array:
+        """``(n,)`` default self-ID magnitude per actuator."""
+        ...
+
+    def pose(self, q: jax.Array) -> Pose:
+        """POM pose ``(p (3,), R (3, 3))`` at actuator positions ``q (n,)``; vmapped over a batch of two."""
+        ...
+
+    def apply(self, q: jax.Array, dtheta: jax.Array) -> jax.Array:
+        """Actuator positions ``(n,)`` after requesting the change ``dtheta (n,)`` at ``q (n,)``."""
+        ...
+
+    def task_difference(self, pose_t: Pose, pose_prev: Pose) -> jax.Array:
+        """Task-space pose difference ``V (m,)`` from ``pose_prev`` to ``pose_t``."""
+        ...
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,7 +152,7 @@ class System:
         return tuple(a - 3 for a in self.axes if a >= 3)
 
     # ---------------------------------------------------------------- poses
-    def pose(self, q):
+    def pose(self, q: jax.Array) -> Pose:
         """POM pose at actuator positions ``q``.
 
         Args:
@@ -121,9 +161,11 @@ class System:
         Returns:
           ``(p (3,), R (3, 3))``: world-frame position and orientation.
         """
+        if self.pose_fn is None:
+            raise TypeError(f"System {self.name!r} has no pose_fn: build one with from_pose_fn or make_system")
         return self.pose_fn(self.params, q)
 
-    def task_difference(self, pose_t, pose_prev):
+    def task_difference(self, pose_t: Pose, pose_prev: Pose) -> jax.Array:
         """Task-space pose difference ``V`` (DESIGN: ``[p_t - p_prev, log(R_t R_prev^T)]``).
 
         The entries :attr:`axes` of :func:`geometry.pose_difference`:
@@ -221,7 +263,7 @@ class System:
         return jnp.prod(self.singular_values(q))
 
     # ------------------------------------------------------------ actuation
-    def apply(self, q, dtheta):
+    def apply(self, q: ArrayLike, dtheta: ArrayLike) -> jax.Array:
         """Actuate: ``clip(q + clip(dtheta, -dq_max, dq_max), q_low, q_high)``.
 
         Args:

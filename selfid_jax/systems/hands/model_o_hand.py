@@ -38,8 +38,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 from importlib import resources
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -367,7 +368,7 @@ class TiltGuardedPose:
     where unsettled or outside the safe box.
     """
 
-    inner: object
+    inner: Callable[[Any, jax.Array], tuple[jax.Array, jax.Array]]
 
     def __call__(self, params, q):
         inner_params, max_tilt = params
