@@ -1,13 +1,20 @@
 """selfid_jax: model-free self-identification of inverse Jacobians in JAX; ``import selfid_jax as sj`` is its API.
 
-``import selfid_jax as sj`` gives the functional API: the estimator
-(``sj.init``/``sj.update``/``sj.initial_guess``/``sj.refine``/``sj.record``,
-Eq. 6-14 and Sec. IV-D), self-ID from a recorded log (``sj.fit``), Algorithm 1
-(``sj.self_identify``, ``sj.selfid.run``), systems (``sj.ur5e``, ``sj.two_link``, ``sj.arm5``,
-``sj.from_pose_fn``, ``sj.from_mjcf``, ``sj.from_ets``), kinematic metrics (``sj.manipulability``),
-damped least-squares IK (``sj.dls``), the controller (``sj.follow`` with ``sj.ControllerParams``), the estimation
-baselines (``sj.baselines``) and the experiment runner (``sj.experiment``, loaded
-on first use). docs/api_guide.md has runnable examples.
+``import selfid_jax as sj`` gives one spelling per public name. Flat, the
+functions a user calls: the estimator (``sj.init``, ``sj.update``,
+``sj.signed_inverse_jacobian``, ``sj.magnitude_inverse_jacobian``,
+``sj.initial_guess``, ``sj.refine``, ``sj.record``, ``sj.converged``,
+``sj.objective``; Eq. 6-14 and Sec. IV-D), Algorithm 1 (``sj.self_identify``,
+``sj.stateless``), self-ID from a recorded log (``sj.fit``), systems
+(``sj.ur5e``, ``sj.two_link``, ``sj.arm5``, ``sj.model_o``,
+``sj.stewart_hand``, ``sj.from_pose_fn``, ``sj.from_mjcf``, ``sj.from_ets``)
+and the controller (``sj.follow`` with ``sj.ControllerParams``). Everything
+else by its package, under the package's own name: ``sj.math``,
+``sj.systems``, ``sj.identify``, ``sj.control``, ``sj.baselines``,
+``sj.design``, ``sj.articulated``, ``sj.robot`` and ``sj.runner`` (e.g.
+``sj.identify.algorithm.run``, Algorithm 1 on a system; ``sj.control.paths``;
+``sj.runner.get``). Each is imported on first use. docs/api_guide.md has
+runnable examples.
 
 Layers, bottom to top (import-linter contracts in ``pyproject.toml``):
 ``math`` < ``systems`` < ``identify`` | ``control`` < ``baselines`` <
@@ -66,41 +73,25 @@ from typing import TYPE_CHECKING  # noqa: E402
 
 # name -> (module, attribute or None for the module itself): imported on first use (PEP 562), so that
 # ``import selfid_jax`` costs milliseconds and the command line can set up its signal handling before JAX loads.
+# One spelling per name: the flat functions, and the subpackages under their own names (a module's functions are
+# reached through its package, ``sj.identify.estimator.update``, not through a second top-level alias).
+_SUBPACKAGES = ("articulated", "baselines", "control", "design", "identify", "math", "robot", "runner", "systems")
 _LAZY: dict[str, tuple[str, str | None]] = {
-    "baselines": ("selfid_jax.baselines", None),
-    "control": ("selfid_jax.control", None),
-    "design": ("selfid_jax.design", None),
-    "systems": ("selfid_jax.systems", None),
-    "dls": ("selfid_jax.control.dls", None),
-    "metrics": ("selfid_jax.control.metrics", None),
-    "paths": ("selfid_jax.control.paths", None),
-    "selfid": ("selfid_jax.identify.algorithm", None),
-    "estimator": ("selfid_jax.identify.estimator", None),
-    "magnitude": ("selfid_jax.identify.magnitude", None),
-    "refine_lib": ("selfid_jax.identify.refine", None),
-    "geometry": ("selfid_jax.math.geometry", None),
-    "manipulability": ("selfid_jax.systems.manipulability", None),
-    "experiment": ("selfid_jax.runner", None),
-    **{name: ("selfid_jax.control.loop", name) for name in ("ControllerParams", "FollowResult", "follow")},
-    **{name: ("selfid_jax.identify.algorithm", name) for name in ("SelfIDResult", "self_identify", "stateless")},
+    **{name: (f"selfid_jax.{name}", None) for name in _SUBPACKAGES},
     **{name: ("selfid_jax.identify.estimator", name) for name in (
         "EstimatorState", "converged", "init", "initial_guess", "magnitude_inverse_jacobian", "objective", "record",
         "signed_inverse_jacobian", "update")},
     "refine": ("selfid_jax.identify.refine", "refine"),
-    "robot": ("selfid_jax.robot", None),
+    **{name: ("selfid_jax.identify.algorithm", name) for name in ("SelfIDResult", "self_identify", "stateless")},
     "fit": ("selfid_jax.robot.offline", "fit"),
+    **{name: ("selfid_jax.control", name) for name in ("ControllerParams", "FollowResult", "follow")},
     **{name: ("selfid_jax.systems", name) for name in (
         "System", "arm5", "from_ets", "from_mjcf", "from_pose_fn", "model_o", "stewart_hand", "two_link", "ur5e")},
 }
 
 if TYPE_CHECKING:
-    from selfid_jax import baselines, control, design, systems
-    from selfid_jax import runner as experiment
-    from selfid_jax.control import dls, metrics, paths
-    from selfid_jax.control.loop import ControllerParams, FollowResult, follow
-    from selfid_jax.identify import algorithm as selfid
-    from selfid_jax.identify import estimator, magnitude
-    from selfid_jax.identify import refine as refine_lib
+    from selfid_jax import articulated, baselines, control, design, identify, math, robot, runner, systems
+    from selfid_jax.control import ControllerParams, FollowResult, follow
     from selfid_jax.identify.algorithm import SelfIDResult, self_identify, stateless
     from selfid_jax.identify.estimator import (
         EstimatorState,
@@ -114,18 +105,16 @@ if TYPE_CHECKING:
         update,
     )
     from selfid_jax.identify.refine import refine
-    from selfid_jax import robot
     from selfid_jax.robot.offline import fit
-    from selfid_jax.math import geometry
     from selfid_jax.systems import (
-        System, arm5, from_ets, from_mjcf, from_pose_fn, manipulability, model_o, stewart_hand, two_link, ur5e,
+        System, arm5, from_ets, from_mjcf, from_pose_fn, model_o, stewart_hand, two_link, ur5e,
     )
 
 __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
-    """The public names, imported on first use (``sj.experiment``, the runner, loads pandas and pydantic)."""
+    """The public names, imported on first use (``sj.runner`` loads pandas and pydantic)."""
     try:
         module, attr = _LAZY[name]
     except KeyError:
@@ -135,8 +124,31 @@ def __getattr__(name: str):
     value = importlib.import_module(module)
     if attr is not None:
         value = getattr(value, attr)
+    _load_public_modules()
     globals()[name] = value
     return value
+
+
+_EXPANDED: set[str] = set()
+
+
+def _load_public_modules() -> None:
+    """Import the public modules of every subpackage loaded so far, so that ``sj.control.paths.star`` and
+    ``sj.identify.algorithm.run`` work however the package was first reached (an import of a subpackage as a
+    side effect sets its attribute here without passing through :func:`__getattr__`)."""
+    import importlib
+    import pkgutil
+    import sys
+
+    for sub in _SUBPACKAGES:
+        package = sys.modules.get(f"{__name__}.{sub}")
+        if package is None or sub in _EXPANDED:
+            continue
+        _EXPANDED.add(sub)
+        for info in pkgutil.iter_modules(package.__path__):
+            if not info.name.startswith("_"):
+                importlib.import_module(f"{__name__}.{sub}.{info.name}")
+        _load_public_modules()  # a module just imported may have loaded another subpackage
 
 
 def __dir__() -> list[str]:
@@ -144,45 +156,43 @@ def __dir__() -> list[str]:
 
 
 __all__ = [
-    "ControllerParams",
+    # the estimator (Eq. 6-14, Sec. IV-D) and Algorithm 1
     "EstimatorState",
-    "FollowResult",
     "SelfIDResult",
-    "System",
-    "arm5",
-    "baselines",
-    "design",
-    "dls",
-    "from_ets",
-    "manipulability",
-    "control",
-    "fit",
-    "follow",
-    "from_mjcf",
-    "from_pose_fn",
-    "geometry",
-    "magnitude",
-    "metrics",
-    "model_o",
-    "stewart_hand",
-    "systems",
-    "two_link",
-    "ur5e",
     "converged",
-    "estimator",
-    "experiment",
+    "fit",
     "init",
     "initial_guess",
     "magnitude_inverse_jacobian",
     "objective",
-    "paths",
     "record",
     "refine",
-    "refine_lib",
-    "robot",
-    "selfid",
     "self_identify",
     "signed_inverse_jacobian",
     "stateless",
     "update",
+    # systems
+    "System",
+    "arm5",
+    "from_ets",
+    "from_mjcf",
+    "from_pose_fn",
+    "model_o",
+    "stewart_hand",
+    "two_link",
+    "ur5e",
+    # the controller
+    "ControllerParams",
+    "FollowResult",
+    "follow",
+    # the subpackages
+    "articulated",
+    "baselines",
+    "control",
+    "design",
+    "identify",
+    "math",
+    "robot",
+    "runner",
+    "systems",
 ]

@@ -51,7 +51,7 @@ def test_experiments_install_under_the_package_namespace(tmp_path):
     """An ``experiments`` folder in the user's working directory does not shadow the registered experiments."""
     (tmp_path / "experiments").mkdir()
     (tmp_path / "experiments" / "__init__.py").write_text("raise ImportError('the user package was imported')\n")
-    code = ("import selfid_jax as sj; e = sj.experiment.get('valid_region'); "
+    code = ("import selfid_jax as sj; e = sj.runner.get('valid_region'); "
             "print(type(e).__module__, e.config.__module__)")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
                          env={**os.environ, "PYTHONPATH": str(PACKAGE.parent)})

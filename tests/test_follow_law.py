@@ -282,4 +282,4 @@ def test_a_path_of_the_wrong_width_names_the_task_and_the_fix():
     arm = sj.two_link()
     q0 = arm.sample_configs(jax.random.key(0), 1)[0]
     with pytest.raises(ValueError, match=r"for the 2-D task of 'two_link', got \(10, 3\).*paths.star\(size, dim=2\)"):
-        sj.follow(arm, sj.control.true_inverse(arm), sj.paths.star(size=0.05, dim=3), q0)
+        sj.follow(arm, sj.control.true_inverse(arm), sj.control.paths.star(size=0.05, dim=3), q0)

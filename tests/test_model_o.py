@@ -110,7 +110,7 @@ def test_jacobians_forward_mode_through_solve_and_rotation(hand):
     # the 6-D rows: world-frame angular velocity against differences of the rotation vector
     pose = jax.jit(hand.pose)
     R0 = pose(q)[1]
-    rot = lambda q_: sj.geometry.so3_log(pose(q_)[1] @ R0.T)
+    rot = lambda q_: sj.math.geometry.so3_log(pose(q_)[1] @ R0.T)
     Jr = jnp.stack([(rot(q + 1e-6 * e) - rot(q - 1e-6 * e)) / 2e-6 for e in jnp.eye(3)], axis=1)
     assert np.abs(J6[3:] - Jr).max() < 1e-5 * np.abs(Jr).max()
     assert np.linalg.matrix_rank(np.asarray(J6), tol=1e-6) == 3  # the grasp has 3 DOF
@@ -127,7 +127,8 @@ def test_mjx_matches_kinematic(hand):
 
 @pytest.mark.slow
 def test_grasp_held_over_random_selfid_actuations(hand):
-    run = jax.jit(lambda k, q0: sj.selfid.run(hand, k, q0, iters=50, eps=0.0, eps_rel=0.05, stop_at_convergence=False))
+    run = jax.jit(lambda k, q0: sj.identify.algorithm.run(hand, k, q0, iters=50, eps=0.0, eps_rel=0.05,
+                                                          stop_at_convergence=False))
     for k, q0 in zip(jax.random.split(jax.random.key(1), 2), hand.sample_configs(jax.random.key(0), 4)[:2]):
         res = run(k, q0)  # m_a: the hand's default, 0.3 mm of tendon
         assert res.state.rejected == 0 and np.all(np.isfinite(res.V)) and np.abs(res.V).max() > 0
@@ -156,12 +157,12 @@ def test_roll_over_is_flagged(hand):
 @pytest.mark.slow
 def test_selfid_converges_and_star_is_followed(hand):
     # eps_rel 0.05: ||J_t - J_{t-1}|| <= 5% of ||J_t|| twice (J^+ is ~3 m/m here, so ~0.15 absolute)
-    path = sj.paths.star(size=0.0015, dim=3)
+    path = sj.control.paths.star(size=0.0015, dim=3)
     ctrl = sj.ControllerParams(max_step=0.0002, tol=0.00005)
 
     @jax.jit
     def one(key, q0):
-        res = sj.selfid.run(hand, key, q0, iters=12, eps=0.0, eps_rel=0.05)
+        res = sj.identify.algorithm.run(hand, key, q0, iters=12, eps=0.0, eps_rel=0.05)
         est = sj.follow(hand, sj.control.fixed(res.estimate), path, res.env, ctrl, steps=200)
         true = sj.follow(hand, sj.control.true_inverse(hand), path, q0, ctrl, steps=200)
         return res.converged_at, est.completion, est.failed, true.completion, true.failed

@@ -182,11 +182,11 @@ def test_selfid_and_follow_rotation(hand):
     """Self-ID (eps_rel = 0.02) converges near the truth; true inverse and estimate complete a 6-D rotation path."""
     q0 = hand.sample_configs(jax.random.key(0), 1)[0]
     ctrl = sj.ControllerParams(max_step=0.0005, tol=0.0002, max_rot_step=0.01, rot_tol=0.005)
-    path = sj.paths.rotation(axis=(1.0, 1.0, 0.0), angle=0.1, steps=5)
+    path = sj.control.paths.rotation(axis=(1.0, 1.0, 0.0), angle=0.1, steps=5)
 
     @jax.jit
     def one(key, q0):
-        res = sj.selfid.run(hand, key, q0, iters=20, eps=0.0, eps_rel=0.02)
+        res = sj.identify.algorithm.run(hand, key, q0, iters=20, eps=0.0, eps_rel=0.02)
         J_true = hand.true_inverse_jacobian(res.env)
         est = sj.follow(hand, sj.control.fixed(res.estimate), path, res.env, ctrl, steps=100)
         tru = sj.follow(hand, sj.control.true_inverse(hand), path, res.env, ctrl, steps=100)
@@ -203,7 +203,7 @@ def test_three_backends_agree_on_a_short_rollout(hand):
     """The same controller rollout (a fixed inverse Jacobian from the kinematic hand) on all three backends."""
     q0 = jnp.asarray(HOME)
     J = hand.true_inverse_jacobian(q0)
-    path = sj.paths.star(size=0.002, dim=6)[:2]
+    path = sj.control.paths.star(size=0.002, dim=6)[:2]
     ctrl = sj.ControllerParams(max_step=0.0005, tol=0.0002, max_rot_step=0.01, rot_tol=0.005)
     runs = {}
     for backend in ("kinematic", "mjx", "native"):

@@ -166,7 +166,7 @@ def test_selfid_run_identical_to_buffered_closed_form(stop):
     form replayed on its samples with numpy, and the convergence iteration is the same."""
     system = _arm4()
     q0 = jnp.array([0.3, 0.4, 0.6, -0.5])
-    run = jax.jit(lambda k: sj.selfid.run(system, k, q0, iters=10, eps=EPS, pose_noise=1e-5,
+    run = jax.jit(lambda k: sj.identify.algorithm.run(system, k, q0, iters=10, eps=EPS, pose_noise=1e-5,
                                           stop_at_convergence=stop))
     res = run(jax.random.key(0))
     assert res.state.dtheta_buf.shape == (0, 4)
@@ -194,8 +194,9 @@ def test_state_size_is_independent_of_the_number_of_samples():
     assert leaves(few) == leaves(many) == leaves(E.init(3, 3, capacity=0))
     # a whole self-ID run: the same state whatever the number of iterations
     system = _arm4()
-    shapes = [leaves(jax.eval_shape(lambda k, it=it: sj.selfid.run(system, k, jnp.zeros(4), iters=it, eps=1e-3).state,
-                                    jax.random.key(0))) for it in (10, 1000)]
+    shapes = [leaves(jax.eval_shape(
+        lambda k, it=it: sj.identify.algorithm.run(system, k, jnp.zeros(4), iters=it, eps=1e-3).state,
+        jax.random.key(0))) for it in (10, 1000)]
     assert shapes[0] == shapes[1]
     # the paper's estimator in the ablation protocol keeps no buffer unless its magnitude variant needs one
     assert B.ours().init(4, 3, capacity=64).dtheta_buf.shape == (0, 4)
@@ -247,7 +248,7 @@ def test_buffer_free_state_refuses_sample_based_refinements():
             sj.refine(state, J0, **kwargs)
     for name in ("median", "weighted", "kalman"):
         with pytest.raises(ValueError, match="capacity=0"):
-            sj.magnitude.get(name)(state)
+            sj.identify.magnitude.get(name)(state)
     # the L2 gradient refinement reads the statistics: it reaches the closed form without samples
     np.testing.assert_allclose(sj.refine(state, J0, method="optax"), sj.refine(state, J0, method="closed_form"),
                                rtol=1e-7, atol=1e-9)
