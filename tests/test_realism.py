@@ -124,6 +124,20 @@ def test_dropout_rate_within_binomial_bounds_and_every_metric_finite(starts):
     assert res.completion[0] == 1.0 and not np.any(res.failed)
 
 
+def test_a_dropped_reading_makes_no_command_that_step(starts):
+    """The live runner's rule in the simulation: a step whose reading dropped out does not move the arm (no latency,
+    no noise: a reading that differs from the pose is a held, dropped one)."""
+    res = follow_batch(starts, batch({"dropout": 0.3}, 4), keys(4, 5))
+    held = 0
+    for i in range(4):
+        used = int(res.steps_used[i])
+        pos, seen = np.asarray(res.positions[i]), np.asarray(res.readings[i])
+        dropped = np.flatnonzero(np.any(seen[:used] != pos[:used], axis=1))
+        np.testing.assert_array_equal(pos[dropped + 1], pos[dropped])
+        held += dropped.size
+    assert held >= 20 and not np.any(res.failed)  # (a held step still spends the step budget)
+
+
 # ------------------------------------------------------------------ IDEAL is the ideal loop
 
 def test_ideal_follow_equals_the_loop_without_realism_bit_for_bit(starts):
