@@ -14,7 +14,7 @@ nothing (every program of the warm run read back from the cache).
     python benchmarks/compile_time.py [--configs NAME ...] [--json out.json]
 
 Default: every shipped config except the ``*_full`` ones and the robot
-commands' configs (``online_*``, ``robot_sim_*``), which are not sweeps. About
+commands' configs (``configs/robot/``), which are not sweeps. About
 1-5 minutes per config on 2 cores.
 """
 
@@ -34,16 +34,17 @@ FIRST_RESULT_GOAL_S = 60.0
 
 
 def shipped(names: list[str] | None) -> list[Path]:
-    """The configs to time: ``names`` (stems) or every sweep config of ``configs/`` but the ``_full`` ones."""
+    """The configs to time: ``names`` (stems, found in any subfolder of ``configs/``) or every sweep config of
+    ``configs/`` but the ``_full`` ones and ``configs/robot/`` (the online and robot-sim commands' configs)."""
     folder = ROOT / "configs"
+    every = {p.stem: p for p in sorted(folder.rglob("*.yaml"))}
     if names:
-        paths = [folder / f"{n.removesuffix('.yaml')}.yaml" for n in names]
-        missing = [str(p) for p in paths if not p.is_file()]
+        stems = [n.removesuffix(".yaml") for n in names]
+        missing = [f"{n}.yaml" for n in stems if n not in every]
         if missing:
-            raise SystemExit(f"no such config: {', '.join(missing)}")
-        return paths
-    return [p for p in sorted(folder.glob("*.yaml"))
-            if not p.stem.endswith("_full") and not p.stem.startswith(("online_", "robot_sim_"))]
+            raise SystemExit(f"no such config under {folder}: {', '.join(missing)}")
+        return [every[n] for n in stems]
+    return [p for p in every.values() if not p.stem.endswith("_full") and p.parent.name != "robot"]
 
 
 def row(config: Path, timeout: int) -> dict:

@@ -7,7 +7,8 @@ split, rollouts per second and the peak RSS. Configs named ``*_full`` run only
 their first ``--full-chunks`` chunks (fewer configurations; default 2) and the
 full map's time is projected from the rows per second of the run phase.
 
-    python benchmarks/valid_region.py [--configs configs/valid_region_ur5e.yaml configs/valid_region_ur5e_full.yaml]
+    python benchmarks/valid_region.py [--configs configs/valid_region/valid_region_ur5e.yaml
+                                                 configs/valid_region/valid_region_ur5e_full.yaml]
                                       [--full-chunks 2] [--json out.json]
 """
 
@@ -41,7 +42,8 @@ def _overrides(path: Path, full_chunks: int):
     return [f"n_configs={keep}"], n_full
 
 
-def run(configs=(ROOT / "configs/valid_region_ur5e.yaml", ROOT / "configs/valid_region_ur5e_full.yaml"),
+def run(configs=(ROOT / "configs/valid_region/valid_region_ur5e.yaml",
+                 ROOT / "configs/valid_region/valid_region_ur5e_full.yaml"),
         full_chunks: int = 2, warm: bool = True) -> dict:
     res = {}
     for path in map(Path, configs):
@@ -77,8 +79,8 @@ def report(res: dict) -> str:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--configs", nargs="+", default=[str(ROOT / "configs/valid_region_ur5e.yaml"),
-                                                     str(ROOT / "configs/valid_region_ur5e_full.yaml")])
+    ap.add_argument("--configs", nargs="+", default=[str(ROOT / "configs/valid_region/valid_region_ur5e.yaml"),
+                                                     str(ROOT / "configs/valid_region/valid_region_ur5e_full.yaml")])
     ap.add_argument("--full-chunks", type=int, default=2,
                     help="run only this many chunks of configs named *_full (projects the total)")
     ap.add_argument("--json", default=None)

@@ -149,7 +149,7 @@ def compute(static: Static, p: Params) -> Outputs:
     followed by ONE vmapped rollout, and ``true`` by one more, so the compiled
     program holds two rollout loops whatever the number of methods (one per
     method made compile time grow with the method list: 19 s of compile for
-    the 14 methods of ``configs/ablation_ur5e.yaml``).
+    the 14 methods of ``configs/ablation/ablation_ur5e.yaml``).
     """
     system = static.system
     checkpoints = jnp.asarray(static.checkpoints)

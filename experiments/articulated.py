@@ -16,7 +16,7 @@ non-finite states (counted, never NaN).
 Grid axes besides object x controller x arm: ``grasp.k`` (the spring grasp's
 stiffness, N/m) and ``resistance`` (a scale on every object's damping and
 friction loss): the two quantities the paper leaves open
-(``configs/articulated_plane.yaml`` sweeps them).
+(``configs/articulated/articulated_plane.yaml`` sweeps them).
 
 Size: about 470 lines, one experiment's contract (the config schema with the seed's physical checks on the
 grasp spring, build, compute, tabulate, summarize, report); the figures are in ``experiments/figures``.

@@ -14,7 +14,7 @@ with ``eps_limit = 1``, so that the study's one compiled program serves both:
 From Python::
 
     from selfid_jax import runner
-    cfg = runner.load("configs/valid_region_two_link.yaml")
+    cfg = runner.load("configs/valid_region/valid_region_two_link.yaml")
     table, summary = runner.run(runner.get("valid_region"), cfg, "runs/vr")
 """
 

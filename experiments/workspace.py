@@ -16,8 +16,8 @@ cell size from Python.
 
 From the command line::
 
-    selfid-jax sweep configs/workspace_arm5.yaml        # 50k configurations
-    selfid-jax sweep configs/workspace_arm5_full.yaml   # 1M configurations
+    selfid-jax sweep configs/workspace/workspace_arm5.yaml        # 50k configurations
+    selfid-jax sweep configs/workspace/workspace_arm5_full.yaml   # 1M configurations
 """
 
 from __future__ import annotations

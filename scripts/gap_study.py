@@ -1,5 +1,5 @@
-"""The gap to the paper's robots: read the runs of the ``configs/gap_*.yaml`` sweeps and print ours against the
-paper row by row (Markdown), and draw one figure of it.
+"""The gap to the paper's robots: read the runs of the ``configs/studies/gap/gap_*.yaml`` sweeps and print ours
+against the paper row by row (Markdown), and draw one figure of it.
 
 Each gap config sweeps the real loop's non-idealities (tracker latency x tracker noise x servo lag at a 30 Hz
 control period; the values and their sources are in each config's header). Per realism level this prints:
@@ -14,7 +14,8 @@ Nothing here is tuned toward the paper's numbers: the rows are what the sweeps g
 
     python scripts/gap_study.py [--runs runs] [--figure docs/gap_study.png]
 
-with the runs made by ``selfid-jax sweep configs/gap_<name>.yaml`` (default run directories ``runs/gap_<name>``).
+with the runs made by ``selfid-jax sweep gap_<name>`` (``configs/studies/gap/gap_<name>.yaml``; default run
+directories ``runs/gap_<name>``).
 """
 
 from __future__ import annotations

@@ -34,7 +34,9 @@ FOLDERS = {
     "selfid_jax/robot/data": "the shipped example log ({files}) of selfid-jax fit --example, made by "
     "scripts/make_example_log.py",
     "scripts": "studies and maintenance scripts run from a checkout (not installed)",
-    "configs": "sweep configs (small defaults; *_full.yaml at paper scale or larger), installed as selfid_jax.configs",
+    "configs": "sweep configs by experiment, configs/<experiment>/ (small defaults; *_full.yaml at paper scale or "
+    "larger), robot/ for selfid-jax online and robot-sim, studies/gap/ for scripts/gap_study.py; installed as "
+    "selfid_jax.configs",
     "benchmarks": "scripts that print ratios against a baseline run in the same process",
     "docs": "the documentation site (Sphinx, MyST, furo: conf.py, the pages and their figures); api/ is generated at "
     "build time by scripts/api_pages.py",

@@ -33,6 +33,12 @@ from selfid_jax.runner import registry
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
+def shipped(name: str) -> Path:
+    """A shipped config by file name, in whichever subfolder of configs/ holds it."""
+    (path,) = CONFIGS.rglob(name)
+    return path
+
+
 def _capture(monkeypatch, module):
     """Replace ``module.save_figure`` by one that keeps the figures (by name) instead of writing them."""
     drawn: dict = {}
@@ -142,7 +148,7 @@ def _ablation_table(methods, rng, iterations=(1, 2, 5, 10), n_configs=3):
 
 
 def _ablation_summary(table, config):
-    cfg = registry.load(CONFIGS / config)
+    cfg = registry.load(shipped(config))
     return ablation.summarize(table, cfg), cfg
 
 
@@ -172,7 +178,7 @@ def test_method_styles_rejects_repeated_names():
 
 @pytest.mark.parametrize("config", ["ablation_ekm_two_link.yaml", "ablation_ekm_ur5e.yaml"])
 def test_ekm_ablation_has_a_path_error_panel_equal_to_the_error_column(monkeypatch, tmp_path, config):
-    cfg = registry.load(CONFIGS / config)
+    cfg = registry.load(shipped(config))
     methods = [m.name for m in cfg.methods]
     table = _ablation_table(methods, np.random.default_rng(2), iterations=tuple(cfg.iterations))
     summary, _ = _ablation_summary(table, config)
@@ -211,7 +217,7 @@ def _valid_region_table(systems, eps=(0.0, 0.5, 1.0, 1.5, 2.0)):
 
 @pytest.mark.parametrize("config", ["valid_region_all.yaml", "valid_region_two_link.yaml"])
 def test_valid_region_suptitle_names_only_controllers_the_systems_ran(monkeypatch, tmp_path, config):
-    cfg = registry.load(CONFIGS / config)
+    cfg = registry.load(shipped(config))
     table = _valid_region_table([str(s if isinstance(s, str) else s.system) for s in cfg.systems])
     summary = valid_region.summarize(table, cfg)
     drawn = _capture(monkeypatch, figures)
@@ -272,7 +278,7 @@ def _tracking_table(cfg, commanded_m, *, tracked, rng, steps=None):
 
 
 def _tracking_figure(monkeypatch, tmp_path, config, tracked, steps=None):
-    cfg = registry.load(CONFIGS / config)
+    cfg = registry.load(shipped(config))
     commanded = [np.concatenate([np.zeros((1, 3)), np.asarray(w, float)[:, :3]]) for w in cfg.path._paths()]
     table = _tracking_table(cfg, commanded, tracked=tracked, rng=np.random.default_rng(3), steps=steps)
     summary = tracking.summarize(table, cfg)

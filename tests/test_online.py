@@ -429,7 +429,7 @@ def test_example_config_validates():
     from selfid_jax.commands.online import OnlineConfig, options
     from selfid_jax.runner.config import read_config, validate
 
-    path = Path(__file__).resolve().parents[1] / "configs" / "online_ur5e.yaml"
+    path = Path(__file__).resolve().parents[1] / "configs" / "robot" / "online_ur5e.yaml"
     cfg = validate(OnlineConfig, read_config(path)[0], path)
     opts = options(cfg)
     assert cfg.robot.host == "127.0.0.1" and opts.path is not None and opts.path.size == 0.02

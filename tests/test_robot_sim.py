@@ -24,7 +24,7 @@ from selfid_jax.robot.transport import RemoteRobot, RobotServer
 
 pytestmark = pytest.mark.slow  # subprocesses with JAX and a real-time clock
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "robot"
 UR5E_XML = Path(__file__).resolve().parents[1] / "selfid_jax" / "systems" / "assets" / "ur5e.xml"
 
 

@@ -17,7 +17,7 @@ from selfid_jax.runner.errors import ConfigError  # noqa: E402
 from selfid_jax.runner.registry import load as load_config  # noqa: E402
 from selfid_jax.systems.ets import ARM5_Q_HIGH, ARM5_Q_LOW  # noqa: E402
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "workspace"
 
 
 def test_shipped_configs_validate():

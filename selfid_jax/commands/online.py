@@ -221,7 +221,7 @@ def connect(section: RobotSection):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``online`` subcommand's arguments."""
-    p.add_argument("config", type=Path, help="YAML config (see the description and configs/online_ur5e.yaml)")
+    p.add_argument("config", type=Path, help="YAML config (see the description and configs/robot/online_ur5e.yaml)")
     p.add_argument("--resume", action="store_true", help="continue the session logged in the run directory")
     p.add_argument("--out", type=Path, default=None, help="run directory (default: the config's out, else "
                    "runs/online_<config stem>)")

@@ -78,7 +78,8 @@ def _parser(extra: Mapping[str, Command] | None = None) -> argparse.ArgumentPars
         "report and draw the figures. Run the same command again after an interruption to resume.",
     )
     s.add_argument("config", type=Path, help="YAML config with a top-level 'experiment:' key, or the name of a "
-                   "shipped config (e.g. valid_region_ur5e: ./configs first, then the installed ones; selfid-jax list)")
+                   "shipped config (e.g. valid_region_ur5e, found in any subfolder: ./configs first, then the "
+                   "installed ones; selfid-jax list)")
     s.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a config value by dotted key, e.g. --set controller.tol=1e-3 (repeatable)",
@@ -327,32 +328,60 @@ def _list(args: argparse.Namespace, catalogues: Mapping[str, Callable[[], Mappin
         for name, doc in entries().items():
             print(f"  {name:14s} {doc}")
     for label, folder in args.config_dirs:
-        configs = sorted(Path(folder).glob("*.yaml"))
+        configs = _config_files(Path(folder))
         if configs:
-            print(f"configs ({label}: {folder}; selfid-jax sweep NAME runs NAME.yaml):")
+            print(f"configs ({label}: {folder}; selfid-jax sweep NAME runs NAME.yaml from any of its folders):")
+            group = None
             for path in configs:
-                print(f"  {path.stem:34s} {path}")
+                sub = path.parent.relative_to(folder).as_posix()
+                if sub != group:
+                    group = sub
+                    print(f"  {'.' if sub == '.' else sub}/")
+                print(f"    {path.stem:32s} {path}")
         else:
             print(f"configs ({label}: {folder}): none")
     return 0
 
 
+def _config_files(folder: Path, names: Sequence[str] | None = None) -> list[Path]:
+    """The YAML files under ``folder`` and its subfolders (hidden and ``__pycache__`` folders skipped), sorted by
+    folder then name; with ``names``, the files of those names instead (of any suffix), in the same order."""
+    import os
+
+    found: list[Path] = []
+    if not folder.is_dir():
+        return found
+    for root, subdirs, files in os.walk(folder):
+        subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and d != "__pycache__")
+        for name in sorted(files):
+            if name in names if names is not None else name.endswith((".yaml", ".yml")):
+                found.append(Path(root) / name)
+    return sorted(found, key=lambda p: (p.parent.relative_to(folder).parts, p.name))
+
+
 def _find_config(config: Path, dirs: Sequence[tuple[str, Path]]) -> Path:
     """``config`` if it is a file, else ``NAME`` or ``NAME.yaml`` from the first of ``dirs`` that has it.
 
-    Only a bare name (no folder part) is looked up, so a mistyped path is reported as that path.
+    Each of ``dirs`` is searched with its subfolders (the shipped configs are grouped by experiment:
+    ``configs/valid_region/valid_region_ur5e.yaml`` is found as ``valid_region_ur5e``); a name found twice under
+    one of them is an error naming both files. Only a bare name (no folder part) is looked up, so a mistyped path
+    is reported as that path.
     """
+    from selfid_jax.runner.errors import ConfigError
+
     if config.exists() or config.parent != Path(".") or not dirs:
         return config
     names = [config.name] if config.suffix in (".yaml", ".yml") else [config.name + ".yaml", config.name]
-    for _, folder in dirs:
+    for label, folder in dirs:
         for name in names:
-            if (Path(folder) / name).is_file():
-                return Path(folder) / name
-    from selfid_jax.runner.errors import ConfigError
-
+            found = _config_files(Path(folder), [name])
+            if len(found) > 1:
+                raise ConfigError(f"{config}: {name} is in more than one folder of {folder} ({label}): "
+                                  f"{', '.join(map(str, found))}; give the path of the one to run")
+            if found:
+                return found[0]
     where = " or ".join(f"{folder}" for _, folder in dirs)
-    raise ConfigError(f"{config}: config file not found, and no {names[0]} in {where} "
+    raise ConfigError(f"{config}: config file not found, and no {names[0]} in {where} or their subfolders "
                       f"('{_PROG} list' shows the shipped configs)")
 
 
@@ -411,8 +440,9 @@ def main(argv: Sequence[str] | None = None,
     ``catalogues``: extra sections of ``selfid-jax list``, title -> a function
     returning ``{name: one-line description}`` (the package adds its built-in systems).
     ``commands``: extra subcommands, name -> :class:`Command` (the package adds ``fit``).
-    ``config_dirs``: ``(label, folder)`` pairs, in order, where ``sweep NAME`` looks for ``NAME.yaml``
-    and ``list`` lists configs (the package adds its installed configs after ``./configs``).
+    ``config_dirs``: ``(label, folder)`` pairs, in order, where ``sweep NAME`` looks for ``NAME.yaml`` (in each
+    folder and its subfolders; the first folder that has it wins) and ``list`` lists configs, grouped by subfolder
+    (the package adds its installed configs after ``./configs``).
     ``handle_signals``: take over SIGINT and SIGTERM (:func:`selfid_jax.runner.signals.install`:
     exit 130 / 143 with one line at any phase); default: when ``argv`` is None, i.e. as the
     console script, never when called from Python with arguments (a test, a notebook).
