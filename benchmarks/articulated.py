@@ -18,13 +18,12 @@ On a GPU, ``--batch 200 --steps 2000`` is the paper-scale population of one kind
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import numpy as np
 from emit import emit
+from timing import time_call
 
 from selfid_jax.articulated import sim
 from selfid_jax.runner.execute import precision
@@ -49,15 +48,7 @@ def measure(backend: str, kind: str, batch: int, steps: int, controller: str, fr
         st = part.static.sim
         fn = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))
         params = jax.tree.map(np.asarray, part.params.rollout)
-        t0 = time.perf_counter()
-        res = jax.block_until_ready(fn(params))
-        first = time.perf_counter() - t0
-        times = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(params))
-            times.append(time.perf_counter() - t0)
-    run = statistics.median(times)
+        res, first, run, _ = time_call(fn, params, reps=reps)
     sim_s = batch * steps * cfg.control_dt
     return {"backend": backend, "first_call_s": first, "run_s": run, "rollouts_per_s": batch / run,
             "sim_s_per_wall_s": sim_s / run, "progress_mean": float(np.mean(np.asarray(res.progress))),

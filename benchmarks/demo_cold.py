@@ -19,10 +19,10 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from emit import emit
+from timing import run_process
 
 GOAL_S = 20.0
 
@@ -32,16 +32,10 @@ def one_run(timeout: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "selfid_jax.cli", "demo", "--out", str(Path(tmp) / "demo")]
         env = {**os.environ, "SELFID_JAX_CACHE_DIR": "off"}
-        t0 = time.perf_counter()
-        proc = subprocess.Popen(cmd, cwd=tmp, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        try:
-            _, err = proc.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            raise
-        wall = time.perf_counter() - t0
+        proc, wall = run_process(cmd, cwd=tmp, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                 timeout=timeout)  # killed on timeout
         if proc.returncode != 0:
-            raise RuntimeError(f"{' '.join(cmd)} failed:\n{err.decode()[-3000:]}")
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr.decode()[-3000:]}")
     return {"wall_s": wall}
 
 

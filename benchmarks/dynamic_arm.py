@@ -25,8 +25,6 @@ gravity sag of the shipped model held at home without compensation.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
@@ -34,6 +32,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from emit import emit
+from timing import time_call
 from mujoco import rollout as mj_rollout
 
 from selfid_jax.systems.dynamic import dynamic_ur5e
@@ -50,19 +49,6 @@ def _rows(batch: int, steps: int, seed: int):
     jumps = rng.uniform(-0.05, 0.05, (batch, n_hold, 6))
     targets = q0[:, None, :] + np.repeat(jumps, HOLD, axis=1)[:, :steps]
     return q0, targets
-
-
-def _timed(reps: int, fn, *args):
-    """``(fn(*args), first call s, median of reps further calls s)``."""
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return out, first, statistics.median(times)
 
 
 def native_rollout(m, q0, targets, substeps: int, nthread: int, pool):
@@ -109,14 +95,14 @@ def speed(batches, steps: int, substeps: int, nthread: int, reps: int, seed: int
         for B in batches:
             q0, targets = _rows(B, steps, seed)
             q0_j, u_j = jnp.asarray(q0), jnp.asarray(targets)
-            (q_mjx, _, _), first, run = _timed(reps, fn, q0_j, u_j)
-            q_nat, _, run_nat = _timed(reps, native_rollout, m, q0, targets, substeps, nthread, pool)
+            (q_mjx, _, _), first, run, _ = time_call(fn, q0_j, u_j, reps=reps)
+            q_nat, _, run_nat, _ = time_call(native_rollout, m, q0, targets, substeps, nthread, pool, reps=reps)
             row = {"batch": B, "mjx_first_call_s": first, "mjx_run_s": run, "mjx_steps_per_s": B * steps / run,
                    "native_rollout_steps_per_s": B * steps / run_nat,
                    "max_q_diff_rad": float(np.abs(np.asarray(q_mjx) - q_nat).max())}
             row["mjx_vs_rollout"] = row["mjx_steps_per_s"] / row["native_rollout_steps_per_s"]
             if B == 1:
-                _, _, run_loop = _timed(reps, native_loop, m, q0[0], targets[0], substeps)
+                run_loop = time_call(native_loop, m, q0[0], targets[0], substeps, reps=reps).run_s
                 row["native_loop_steps_per_s"] = steps / run_loop
                 row["mjx_vs_loop"] = row["mjx_steps_per_s"] / row["native_loop_steps_per_s"]
             rows.append(row)

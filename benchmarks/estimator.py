@@ -33,13 +33,13 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import time
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import jax.numpy as jnp
 import numpy as np
 from emit import emit
+from timing import first_call, interleaved
 
 from selfid_jax import baselines
 from selfid_jax.identify import estimator as E
@@ -139,20 +139,13 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5, rounds: int = 3, st
             continue
         T = steps_before if "before" in name else steps
         fn = scan_fn(batch, init, step, read, shard)
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn(d[:T], V[:T]))
-        compile_s[name] = time.perf_counter() - t0
+        out, compile_s[name] = first_call(fn, d[:T], V[:T])
         fns[name] = (fn, T)
         if T == steps:
             J = np.asarray(out[: len(ref)], np.float64)
             errs[name] = float(np.max(np.linalg.norm(J - ref, axis=(1, 2)) / np.linalg.norm(ref, axis=(1, 2))))
-    times = {name: [] for name in fns}
-    for _ in range(rounds):
-        for name, (fn, T) in fns.items():
-            for _ in range(reps):
-                t0 = time.perf_counter()
-                jax.block_until_ready(fn(d[:T], V[:T]))
-                times[name].append((time.perf_counter() - t0) / T)
+    times = interleaved({name: (lambda fn=fn, T=T: fn(d[:T], V[:T]), T) for name, (fn, T) in fns.items()},
+                        reps, rounds)
     rls_rate = 1.0 / statistics.median(times["rls"])
     rows = {}
     for name, ts in times.items():

@@ -62,6 +62,7 @@ import mujoco
 import numpy as np
 from emit import emit
 from mujoco import mjx
+from timing import time_call
 
 from selfid_jax.systems.hands.settle import cast_like
 
@@ -207,13 +208,9 @@ def settle_rates(scene: Scene, reps: int = 2) -> dict:
     q = jnp.asarray(scene.q)
     for backend, system in scene.systems.items():
         fn = jax.jit(jax.vmap(system.pose))
-        poses[backend] = np.asarray(jax.block_until_ready(fn(q))[0])
-        best = np.inf
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(q))
-            best = min(best, time.perf_counter() - t0)
-        out[f"{backend}_poses_per_s"] = q.shape[0] / best
+        t = time_call(fn, q, reps=reps, stat=min)
+        poses[backend] = np.asarray(t.out[0])
+        out[f"{backend}_poses_per_s"] = q.shape[0] / t.run_s
     out["mjx_time_x_native"] = out["native_poses_per_s"] / out["mjx_poses_per_s"]
     out["max_pose_diff_m"] = float(np.nanmax(np.abs(poses["mjx"] - poses["native"])))
     out["nan_fraction"] = {k: float(np.mean(np.isnan(v[:, 0]))) for k, v in poses.items()}

@@ -36,6 +36,7 @@ jax.config.update("jax_enable_x64", True)  # float64 rows; float32 rows pass flo
 
 import numpy as np  # noqa: E402
 from emit import emit  # noqa: E402
+from timing import first_call  # noqa: E402
 
 from selfid_jax.robot import session  # noqa: E402
 
@@ -88,10 +89,7 @@ def run(samples: int = 4000, warmup: int = 200, rounds: int = 2) -> dict:
             dtype = np.dtype(name)
             d, V = make_data(n, m, warmup + samples * rounds)
             state = session.init_state(n, m, dtype=dtype)
-            t0 = time.perf_counter()
-            state, info = session.sample_step(state, d[0], V[0], 0.0, 0.05)
-            jax.block_until_ready(info)
-            compile_s = time.perf_counter() - t0
+            (state, info), compile_s = first_call(session.sample_step, state, d[0], V[0], 0.0, 0.05)
             time_ours(state, d[:warmup], V[:warmup], dtype)
             time_rls(d[:warmup], V[:warmup], dtype.type)
             ours, rls = [], []

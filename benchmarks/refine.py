@@ -26,6 +26,7 @@ import numpy as np  # noqa: E402
 import selfid_jax as sj  # noqa: E402
 from selfid_jax.identify import estimator as E  # noqa: E402
 from selfid_jax.identify.refine import slsqp_refine  # noqa: E402
+from timing import time_call  # noqa: E402
 
 N = M = 6
 K = 20
@@ -45,12 +46,6 @@ def make_problems(key, batch):
         return jax.lax.scan(body, E.init(N, M, capacity=K), (d, V))[0]
 
     return jax.jit(jax.vmap(fold))(d, V)
-
-
-def timed(fn, *args):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return out, time.perf_counter() - t0
 
 
 def main():
@@ -79,8 +74,7 @@ def main():
     results = {}
     for method in ("optax", "closed_form"):
         fn = jax.jit(jax.vmap(lambda s, j, method=method: sj.refine(s, j, method=method, steps=args.steps)))
-        _, t_first = timed(fn, states, J0)
-        out, t_run = timed(fn, states, J0)
+        out, t_first, t_run, _ = time_call(fn, states, J0, reps=1)  # one call after the first
         results[method] = (out, t_run / args.batch, t_first - t_run)
 
     obj = jax.jit(jax.vmap(E.objective))

@@ -52,6 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from emit import emit
+from timing import first_call, interleaved
 
 from selfid_jax import baselines
 from selfid_jax.identify import estimator as E
@@ -176,17 +177,10 @@ def throughput(batch, steps, reps, rounds, n=6, m=3):
     first, errs = {}, {}
     data = {name: ((d2, V2, ref2) if "steady" in name else (d, V, ref)) for name in fns}
     for name, fn in fns.items():
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn(*data[name][:2]))
-        first[name] = time.perf_counter() - t0
+        out, first[name] = first_call(fn, *data[name][:2])
         errs[name] = rel_err(out, data[name][2])
-    times = {name: [] for name in fns}
-    for _ in range(rounds):
-        for name, fn in fns.items():
-            for _ in range(reps):
-                t0 = time.perf_counter()
-                jax.block_until_ready(fn(*data[name][:2]))
-                times[name].append((time.perf_counter() - t0) / steps)
+    times = interleaved({name: (lambda fn=fn, name=name: fn(*data[name][:2]), steps) for name, fn in fns.items()},
+                        reps, rounds)
     plain = statistics.median(times["plain RLS"])
     rls = statistics.median(times["baselines.rls"])
     rows = {}

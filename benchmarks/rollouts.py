@@ -30,6 +30,7 @@ from selfid_jax.systems.ur5e import UR5E_XML
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 import numpy_reference as ref  # noqa: E402
+from timing import time_call  # noqa: E402
 
 STEPS = 200
 CTRL = dict(max_step=0.0025, tol=0.0005)
@@ -78,12 +79,7 @@ def main():
     rows = []
     for batch in args.batches:
         q0s = system.sample_configs(jax.random.key(batch), batch)
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(q0s))
-        first = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        comp = jax.block_until_ready(fn(q0s))
-        run = time.perf_counter() - t0
+        comp, first, run, _ = time_call(fn, q0s, reps=1)  # one call after the first (same result: deterministic)
         rows.append((f"JAX jit(vmap), batch {batch}", run / batch, first - run, float(jnp.mean(comp))))
 
     q0s = np.asarray(system.sample_configs(jax.random.key(0), args.loops), float)

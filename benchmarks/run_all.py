@@ -32,6 +32,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from timing import run_process
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 BENCHMARKS = ("estimator", "estimator_2dev", "rls_floor", "rollouts", "refine", "valid_region", "ablation",
@@ -42,10 +44,8 @@ def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "out.json"
         cmd = [sys.executable, str(HERE / f"{name}.py"), *args, "--json", str(out)]
-        t0 = time.perf_counter()
-        proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, **(env or {})}, capture_output=True, text=True,
-                              timeout=timeout)
-        wall = time.perf_counter() - t0
+        proc, wall = run_process(cmd, cwd=ROOT, env={**os.environ, **(env or {})}, capture_output=True, text=True,
+                                 timeout=timeout)
         if proc.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
         print(proc.stdout.rstrip(), flush=True)
@@ -213,12 +213,12 @@ def table(res: dict) -> list[dict]:
     if "ablation" in res:
         r = res["ablation"]["result"]
         if "cold" in r:
-            _row(rows, "ablation, paper protocol (configs/ablation/ablation_ur5e.yaml), cold", r["cold"]["wall_s"],
+            _row(rows, "ablation, paper protocol (configs/ablation_ur5e.yaml), cold", r["cold"]["wall_s"],
                  "s whole process", "<= 30", r["cold"]["wall_s"] <= 30,
                  f"warm {r['warm']['wall_s']:.1f} s; peak RSS {r['cold']['peak_rss_mib']:.0f} MiB")
         if "full" in r:
             f = r["full"]
-            _row(rows, "ablation, full (configs/ablation/ablation_ur5e_full.yaml), peak RSS", f["peak_rss_mib"], "MiB",
+            _row(rows, "ablation, full (configs/ablation_ur5e_full.yaml), peak RSS", f["peak_rss_mib"], "MiB",
                  "< 4096", f["peak_rss_mib"] < 4096,
                  f"{f['streams']} of {f['streams_full']} streams; projected run {f['projected_full_run_s']:.0f} s")
         if "updates_per_s" in r:

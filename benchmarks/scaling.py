@@ -34,8 +34,6 @@ more.
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
@@ -43,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from emit import emit
 from estimator import ours_step  # the full self-ID step the estimator benchmark times
+from timing import time_call
 
 from selfid_jax import control
 from selfid_jax.control import paths
@@ -51,19 +50,6 @@ from selfid_jax.systems.ur5e import ur5e
 
 F32 = jnp.float32
 PAYS = 1.2  # a 10x larger batch must raise the throughput by at least this factor to pay
-
-
-def _median_time(fn, *args, reps: int) -> tuple[float, float]:
-    """``(compile + first run, median of reps later runs)`` in seconds; results blocked on."""
-    t = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return first, statistics.median(times)
 
 
 def _peak_bytes(jitted, *args) -> int | None:
@@ -96,7 +82,7 @@ def estimator_row(batch: int, n: int, m: int, steps: int, reps: int) -> dict:
         return jax.lax.scan(body, state, (d, V))[0]
 
     jitted = jax.jit(run)
-    first, t = _median_time(jitted, state0, d, V, reps=reps)
+    _, first, t, _ = time_call(jitted, state0, d, V, reps=reps)
     # the memory of the program a fleet runs: its state donated, so that XLA writes the new state over the old
     # (timed without donation, which would consume state0 at the first call; the step is the same)
     peak = _peak_bytes(jax.jit(run, donate_argnums=0), state0, d, V)
@@ -144,7 +130,7 @@ def rollout_row(batch: int, reps: int) -> dict:
         return jax.vmap(lambda q: control.follow(system, control.true_inverse(system), path, q, steps=435))(q0)
 
     jitted = jax.jit(run)
-    first, t = _median_time(jitted, q0, reps=reps)
+    _, first, t, _ = time_call(jitted, q0, reps=reps)
     peak = _peak_bytes(jitted, q0)
     return dict(what="rollout", batch=batch, compile_s=first - t, run_s=t, per_s=batch / t,
                 peak_bytes_per=None if peak is None else peak / batch)

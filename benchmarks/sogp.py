@@ -21,25 +21,12 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
 
 from selfid_jax import baselines  # noqa: E402
 from selfid_jax.baselines import sogp  # noqa: E402
+from timing import time_call  # noqa: E402
 
 D, P = 4, 2
-
-
-def timed(fn, *args, repeat=3):
-    """(result, seconds of the first call, best seconds of ``repeat`` further calls)."""
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t0)
-    return out, first, best
 
 
 def main():
@@ -60,7 +47,7 @@ def main():
             state = sogp.init(D, P, capacity=M, kernel=sogp.RBF(0.5, 1.0), noise=1e-2, novelty_tol=1e-4)
             return jax.lax.scan(lambda s, xy: (sogp.update(s, *xy), None), state, (X, Y))[0]
 
-        state, first, best = timed(jax.jit(jax.vmap(run)), X, Y)
+        state, first, best, _ = time_call(jax.jit(jax.vmap(run)), X, Y, reps=3, stat=min)
         ups[M] = B * T / best
         print(f"SOGP M={M:4d}: {ups[M]:12,.0f} updates/s ({1e6 / ups[M]:.2f} us per estimator-update; "
               f"compile+first {first:.1f} s); basis size mean {float(jnp.mean(sogp.size(state))):.1f}, "
@@ -73,7 +60,7 @@ def main():
     def run_rls(d, V):
         return baselines.scan(rls, rls.init(2, 2), d, V, jnp.zeros((2, 2)))[0]
 
-    _, first, best = timed(jax.jit(jax.vmap(run_rls)), d, V)
+    _, first, best, _ = time_call(jax.jit(jax.vmap(run_rls)), d, V, reps=3, stat=min)
     rls_ups = B * T / best
     print(f"RLS (2x2)  : {rls_ups:12,.0f} updates/s ({1e6 / rls_ups:.2f} us per estimator-update)")
 

@@ -15,12 +15,11 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 from emit import emit
+from timing import run_process
 
 ROOT = Path(__file__).resolve().parent.parent
 GOALS_S = {"fast": 45.0, "whole": 300.0}
@@ -36,9 +35,7 @@ def one_tier(tier: str, level: int | None, timeout: int) -> dict:
     if level is not None:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_backend_optimization_level={level}".strip()
     load = os.getloadavg()[0]
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
-    wall = time.perf_counter() - t0
+    proc, wall = run_process(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
     tail = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
     found = re.search(r"(\d+) passed.* in ([\d.]+)s", tail)
     if proc.returncode != 0 or not found:

@@ -20,10 +20,11 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
+
+from timing import run_process
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -33,10 +34,8 @@ def measure(config, cache_dir, overrides=(), env=None, timeout=1800) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), str(config), "--cache-dir", str(cache_dir)]
     for o in overrides:
         cmd += ["--set", o]
-    t0 = time.perf_counter()
-    out = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, env={**os.environ, **(env or {})},
-                         timeout=timeout)
-    wall = time.perf_counter() - t0
+    out, wall = run_process(cmd, capture_output=True, text=True, cwd=ROOT, env={**os.environ, **(env or {})},
+                            timeout=timeout)
     if out.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
     record = json.loads(out.stdout.strip().splitlines()[-1])

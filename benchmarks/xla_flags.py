@@ -18,9 +18,10 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 CHILD = r"""
-import json, sys, time
+import json, sys
 import selfid_jax as sj
 import jax, jax.numpy as jnp
 
@@ -54,11 +55,10 @@ elif sys.argv[3] == "mjx":
 else:
     fn = jax.jit(jax.vmap(one))
     keys = jax.random.split(jax.random.key(0), batch)
-t0 = time.perf_counter(); jax.block_until_ready(fn(keys)); first = time.perf_counter() - t0
-runs = []
-for _ in range(3):
-    t0 = time.perf_counter(); jax.block_until_ready(fn(keys)); runs.append(time.perf_counter() - t0)
-print(json.dumps({"compile_and_first": first, "run": min(runs)}))
+sys.path.insert(0, sys.argv[4])
+from timing import time_call
+t = time_call(fn, keys, reps=3, stat=min)
+print(json.dumps({"compile_and_first": t.first_s, "run": t.run_s}))
 """
 
 
@@ -67,7 +67,8 @@ def measure(batch: int, iters: int, flags_on: bool, workload: str) -> dict:
     env.pop("XLA_FLAGS", None)
     if not flags_on:
         env["SELFID_JAX_NO_XLA_FLAGS"] = "1"
-    out = subprocess.run([sys.executable, "-c", CHILD, str(batch), str(iters), workload], env=env, capture_output=True,
+    out = subprocess.run([sys.executable, "-c", CHILD, str(batch), str(iters), workload,
+                          str(Path(__file__).resolve().parent)], env=env, capture_output=True,
                          text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
