@@ -1,18 +1,18 @@
 """Ablation cost: whole-process time of the paper-protocol ablation, peak memory, and updates per second per method.
 
-Part 1 runs the ablation of ``configs/ablation_ur5e.yaml`` (14 methods, 9
+Part 1 runs the ablation of ``configs/ablation/ablation_ur5e.yaml`` (14 methods, 9
 configurations x 10 trials x 4 noise levels = 360 self-ID streams, 13
 checkpoints: 61,200 rollouts of 435 steps) as a whole process twice, through
 ``benchmarks/whole_process.py``: cold (empty persistent compilation cache)
 then warm (the same cache), and prints wall time, the import / build / run
 split and the peak RSS. ``--full-chunks K`` also runs the first ``K`` chunks
-of ``configs/ablation_ur5e_full.yaml`` (20x the streams) for its peak RSS and
+of ``configs/ablation/ablation_ur5e_full.yaml`` (20x the streams) for its peak RSS and
 a projected wall time. Part 2 times ``baselines.run_stream`` for each method
 alone, vmapped over 256 streams of 100 UR5e-sized samples (n = 6, m = 3), and
 prints updates per second against the paper's estimator ("ours") measured in
 the same process.
 
-    python benchmarks/ablation.py [--config configs/ablation_ur5e.yaml] [--skip-study] [--full-chunks 1]
+    python benchmarks/ablation.py [--config configs/ablation/ablation_ur5e.yaml] [--skip-study] [--full-chunks 1]
                                   [--json out.json]
 """
 
@@ -77,7 +77,7 @@ def update_rates(cfg, batch=256, T=100, n=6, m=3, reps=3):
     return rows
 
 
-def run(config=ROOT / "configs/ablation_ur5e.yaml", *, skip_study=False, full=0, rates=True) -> dict:
+def run(config=ROOT / "configs/ablation/ablation_ur5e.yaml", *, skip_study=False, full=0, rates=True) -> dict:
     import selfid_jax  # noqa: F401
     from selfid_jax.runner.registry import load as load_config
 
@@ -117,7 +117,7 @@ def report(res: dict) -> str:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default=str(ROOT / "configs/ablation_ur5e.yaml"))
+    ap.add_argument("--config", default=str(ROOT / "configs/ablation/ablation_ur5e.yaml"))
     ap.add_argument("--skip-study", action="store_true")
     ap.add_argument("--skip-rates", action="store_true")
     ap.add_argument("--full-chunks", type=int, default=0, help="also run this many chunks of the _full config")

@@ -213,12 +213,12 @@ def table(res: dict) -> list[dict]:
     if "ablation" in res:
         r = res["ablation"]["result"]
         if "cold" in r:
-            _row(rows, "ablation, paper protocol (configs/ablation_ur5e.yaml), cold", r["cold"]["wall_s"],
+            _row(rows, "ablation, paper protocol (configs/ablation/ablation_ur5e.yaml), cold", r["cold"]["wall_s"],
                  "s whole process", "<= 30", r["cold"]["wall_s"] <= 30,
                  f"warm {r['warm']['wall_s']:.1f} s; peak RSS {r['cold']['peak_rss_mib']:.0f} MiB")
         if "full" in r:
             f = r["full"]
-            _row(rows, "ablation, full (configs/ablation_ur5e_full.yaml), peak RSS", f["peak_rss_mib"], "MiB",
+            _row(rows, "ablation, full (configs/ablation/ablation_ur5e_full.yaml), peak RSS", f["peak_rss_mib"], "MiB",
                  "< 4096", f["peak_rss_mib"] < 4096,
                  f"{f['streams']} of {f['streams_full']} streams; projected run {f['projected_full_run_s']:.0f} s")
         if "updates_per_s" in r:

@@ -68,7 +68,7 @@ from selfid_jax.runner.config import STRICT, stop_after_start
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.experiments.common.schema import controller_rows
 from selfid_jax.experiments.common.schema import StartsConfig
-from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.runner.grids import decimal_points, grid_table, row_keys
 from selfid_jax.systems import System
 from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
                                                  unique_system_names)
@@ -94,8 +94,8 @@ class MagnitudeGrid(BaseModel):
     _stop_after_start = field_validator("stop")(stop_after_start)
 
     def values(self) -> np.ndarray:
-        """``(num,)`` magnitudes, ``geomspace(start, stop, num)``."""
-        return np.geomspace(self.start, self.stop, self.num)
+        """``(num,)`` magnitudes, ``geomspace(start, stop, num)``, each its 12-digit decimal (the value written)."""
+        return decimal_points(np.geomspace(self.start, self.stop, self.num))
 
 
 class RefineConfig(BaseModel):

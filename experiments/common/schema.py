@@ -21,6 +21,7 @@ from pydantic import BaseModel, Field, field_validator, model_validator
 from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams
 from selfid_jax.control.realism import Realism
 from selfid_jax.runner.config import STRICT, BaseConfig, stop_after_start
+from selfid_jax.runner.grids import decimal_linspace
 
 __all__ = ["ControllerConfig", "EpsLimits", "HostOrDevice", "M_A_LABEL", "Magnitude", "MagnitudeSource",
            "NOISE_COLUMNS", "PathConfig", "PoseNoise", "REALISM_FIELDS", "RealismConfig", "RealismRows", "RotNoise",
@@ -156,8 +157,9 @@ class EpsLimits(BaseModel):
     _stop_after_start = field_validator("stop")(stop_after_start)
 
     def values(self) -> np.ndarray:
-        """The grid, shape ``(num,)``, float64."""
-        return np.linspace(self.start, self.stop, self.num)
+        """The grid, shape ``(num,)``, float64: ``linspace`` with each point its 12-digit decimal (0.35, not
+        0.35000000000000003: the value swept is the value written, :func:`selfid_jax.runner.grids.decimal_linspace`)."""
+        return decimal_linspace(self.start, self.stop, self.num)
 
 
 _PARAMS = ControllerParams._field_defaults  # the one place the traced controller defaults are written

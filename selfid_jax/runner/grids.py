@@ -11,7 +11,7 @@ import pandas as pd
 
 from selfid_jax.runner.limits import check_rows
 
-__all__ = ["decimal_linspace", "grid_table", "row_keys"]
+__all__ = ["decimal_linspace", "decimal_points", "grid_table", "row_keys"]
 
 
 def grid_table(axes: Mapping[str, Sequence[Any]]) -> pd.DataFrame:
@@ -38,8 +38,13 @@ def decimal_linspace(start: float, stop: float, num: int) -> np.ndarray:
     written to JSON (exactly, :mod:`selfid_jax.strict_json`) and shown as such. Points differ from ``linspace``'s by
     at most a few ulps; endpoints are ``start`` and ``stop``.
     """
-    points = np.linspace(start, stop, num)
-    return np.array([float(f"{x:.12g}") for x in points], np.float64)
+    return decimal_points(np.linspace(start, stop, num))
+
+
+def decimal_points(points) -> np.ndarray:
+    """``points (num,)`` as float64, each the float of its 12-digit decimal: a grid built by arithmetic
+    (``linspace``, ``geomspace``) with its binary noise dropped, so the value swept is the value written."""
+    return np.array([float(f"{x:.12g}") for x in np.asarray(points, np.float64)], np.float64)
 
 
 def row_keys(seed: int, rows: int | np.ndarray) -> np.ndarray:
