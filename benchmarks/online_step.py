@@ -1,6 +1,6 @@
 """Latency of the online runner's per-sample estimator step, against a numpy RLS update in the same process.
 
-The step is what :func:`selfid_jax.robot.online.run_online` runs after each
+The step is what :func:`selfid_jax.robot.live.run_online` runs after each
 accepted sample: :func:`selfid_jax.robot.session.host_step`, i.e. the jitted
 :func:`selfid_jax.identify.step.sample_step` (``update`` Eq. 6-12, ``initial_guess``
 Eq. 13, the closed-form refinement Eq. 14, ``record`` Sec. IV-D) and the

@@ -33,7 +33,7 @@ def commands() -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.cli.main` with the built-in systems and ``fit``
+    """Entry point of ``selfid-jax``: :func:`selfid_jax.runner.command_line.main` with the built-in systems and ``fit``
     (:mod:`selfid_jax.commands.fit`); the exit code.
 
     As the console script (``argv`` None) it first takes over SIGINT and SIGTERM
@@ -48,9 +48,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             from selfid_jax._xla import request_quick_compile
 
             request_quick_compile()
-    from selfid_jax.runner import cli
+    from selfid_jax.runner import command_line
 
-    return cli.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None,
+    return command_line.main(argv, catalogues={"systems (selfid_jax.systems)": _systems}, handle_signals=argv is None,
                     commands=commands(), config_dirs=_config_dirs())
 
 

@@ -70,7 +70,7 @@ def _use_test_cache():
     where = os.environ.get(_CACHE_ENV)
     if not where:
         return
-    os.environ.setdefault("SELFID_JAX_CACHE_DIR", where)  # the console script's cache (runner.cli)
+    os.environ.setdefault("SELFID_JAX_CACHE_DIR", where)  # the console script's cache (runner.command_line)
     jax.config.update("jax_compilation_cache_dir", where)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from selfid_jax import cli
-from selfid_jax.runner.cli import _find_config
+from selfid_jax.runner.command_line import _find_config
 from selfid_jax.runner.errors import ConfigError
 
 INSTALLED = dict(cli._config_dirs())["installed"]  # the data package selfid_jax.configs

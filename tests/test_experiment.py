@@ -305,7 +305,7 @@ def test_parts_run_side_by_side_in_threads_and_give_the_tables_they_give_in_turn
     with pytest.raises(ValueError, match="SELFID_JAX_PART_THREADS must be a positive integer, got '0'"):
         part_threads(2)
     # the command line names it in one line, exit 2, before it builds anything
-    from selfid_jax.runner import cli as runner_cli
+    from selfid_jax.runner import command_line as runner_cli
 
     experiment.register(TWO_PARTS)
     path = tmp_path / "two.yaml"

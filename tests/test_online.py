@@ -1,4 +1,4 @@
-"""The online runner (selfid_jax.robot.online) against an in-process fake arm with injectable faults, its session
+"""The online runner (selfid_jax.robot.live) against an in-process fake arm with injectable faults, its session
 log (selfid_jax.robot.journal), and the ``selfid-jax online`` command."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import pytest
 
 from selfid_jax.math import geometry
 from selfid_jax.robot import offline as fit_mod
-from selfid_jax.robot import online, options, safety, session
+from selfid_jax.robot import live, options, safety, session
 from selfid_jax.robot.journal import Journal, JournalError, floats, read_journal
 from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, RobotLimits
 
@@ -113,8 +113,8 @@ def converged_run(tmp_path_factory):
     """One uninterrupted session to convergence (no path): the reference for resume and follow tests."""
     run = tmp_path_factory.mktemp("online") / "ref"
     fake = FakeArm()
-    result = online.run_online(fake, opts(), run)
-    assert result.status == online.Stop.CONVERGED, result.detail
+    result = live.run_online(fake, opts(), run)
+    assert result.status == live.Stop.CONVERGED, result.detail
     return run, fake, result
 
 
@@ -124,8 +124,8 @@ def converged_run(tmp_path_factory):
 def test_selfid_with_dropouts_matches_offline_fit(tmp_path):
     lower = (START[0] - 0.01, -3.0, -3.0)  # joint 0 has 1 cm of room below: draws there are reflected
     fake = FakeArm(lower=lower, dropouts={3, 5})  # reads 3 and 5 follow moves 2 and 3
-    result = online.run_online(fake, opts(), tmp_path)
-    assert result.status == online.Stop.CONVERGED and fake.closed
+    result = live.run_online(fake, opts(), tmp_path)
+    assert result.status == live.Stop.CONVERGED and fake.closed
     assert result.rejected == {"dropout": 2}
     # exactly converged_at + rejected random moves, none after convergence
     assert len(fake.moves) == result.moves == result.converged_at + 2 == result.samples + 2
@@ -160,8 +160,8 @@ def test_actuation_target_reflects_then_clips():
 
 def test_stale_tracker_stops_within_stale_s(tmp_path):
     fake = FakeArm(freeze_at=4)  # read 4 follows move 3: from then on the tracker stops advancing
-    result = online.run_online(fake, opts(stale_s=0.15), tmp_path)
-    assert result.status == online.Stop.STALE, result.detail
+    result = live.run_online(fake, opts(stale_s=0.15), tmp_path)
+    assert result.status == live.Stop.STALE, result.detail
     assert result.rejected == {"stale": 1}
     assert len(fake.moves) == 3  # nothing commanded once the tracker froze
     assert fake.closed_at - fake.frozen_since <= 0.15 + 0.0 + 0.1  # stale_s + settle_s + slack
@@ -170,11 +170,11 @@ def test_stale_tracker_stops_within_stale_s(tmp_path):
 def test_box_stops_without_further_motion(tmp_path):
     p0, _ = arm_pose(START)
     fake = FakeArm(noise=0.0)
-    result = online.run_online(fake, opts(box_low=p0 - 0.002, box_high=p0 + 0.002), tmp_path / "a")
-    assert result.status == online.Stop.BOX and len(fake.moves) == 1 and "outside the box" in result.detail
+    result = live.run_online(fake, opts(box_low=p0 - 0.002, box_high=p0 + 0.002), tmp_path / "a")
+    assert result.status == live.Stop.BOX and len(fake.moves) == 1 and "outside the box" in result.detail
     fake = FakeArm()
-    result = online.run_online(fake, opts(box_low=p0 + 0.01, box_high=p0 + 0.1), tmp_path / "b")
-    assert result.status == online.Stop.BOX and fake.moves == []  # the start is outside: no motion at all
+    result = live.run_online(fake, opts(box_low=p0 + 0.01, box_high=p0 + 0.1), tmp_path / "b")
+    assert result.status == live.Stop.BOX and fake.moves == []  # the start is outside: no motion at all
 
 
 def test_bad_options_refused_before_any_motion(tmp_path):
@@ -184,19 +184,19 @@ def test_bad_options_refused_before_any_motion(tmp_path):
                       (dict(path=options.FollowOptions(plane="xz"), task="x,y"), "path.plane")):
         fake = FakeArm()
         with pytest.raises(ValueError, match=word):
-            online.run_online(fake, opts(**bad), tmp_path / word)
+            live.run_online(fake, opts(**bad), tmp_path / word)
         assert fake.moves == [] and fake.reads == 0 and fake.closed
 
 
 def test_interrupt_closes_and_keeps_the_log(tmp_path):
     fake = FakeArm(interrupt_at=2)
-    result = online.run_online(fake, opts(), tmp_path / "kbd")
-    assert result.status == online.Stop.INTERRUPTED and fake.closed and len(fake.moves) == 2
+    result = live.run_online(fake, opts(), tmp_path / "kbd")
+    assert result.status == live.Stop.INTERRUPTED and fake.closed and len(fake.moves) == 2
     assert read_journal(result.log).records[-1] == {"e": "stop", "reason": "interrupted",
                                                      "detail": "interrupted (KeyboardInterrupt)"}
     fake = FakeArm()
-    result = online.run_online(fake, opts(), tmp_path / "req", stop_requested=lambda: len(fake.moves) >= 3)
-    assert result.status == online.Stop.INTERRUPTED and len(fake.moves) == 3
+    result = live.run_online(fake, opts(), tmp_path / "req", stop_requested=lambda: len(fake.moves) >= 3)
+    assert result.status == live.Stop.INTERRUPTED and len(fake.moves) == 3
 
 
 # --------------------------------------------------------------------------- log and resume
@@ -206,15 +206,15 @@ def test_connection_error_then_resume_equals_uninterrupted(tmp_path, converged_r
     _, ref_fake, ref = converged_run
     assert ref.converged_at > 4
     fake = FakeArm(fail_move_at=3)
-    cut = online.run_online(fake, opts(), tmp_path)
-    assert cut.status == online.Stop.CONNECTION and fake.closed and cut.samples == 3
+    cut = live.run_online(fake, opts(), tmp_path)
+    assert cut.status == live.Stop.CONNECTION and fake.closed and cut.samples == 3
     contents = read_journal(cut.log)
     assert contents.records[-1]["reason"] == "connection" and contents.truncated == 0
     with open(cut.log, "ab") as f:  # a crash in the middle of the next line
         f.write(b'{"e":"obs","phase":"selfid","t":12.5,"q":[0.1,')
     again = FakeArm(q0=fake.q)
-    result = online.run_online(again, opts(), tmp_path, resume=True)
-    assert result.status == online.Stop.CONVERGED and result.truncated == 1 and result.replayed == 3
+    result = live.run_online(again, opts(), tmp_path, resume=True)
+    assert result.status == live.Stop.CONVERGED and result.truncated == 1 and result.replayed == 3
     assert states_equal(result.state, ref.state)
     assert result.converged_at == ref.converged_at
     assert result.moves == ref.moves + 1  # the command whose call raised is counted: it may have been sent
@@ -230,13 +230,13 @@ def test_resume_refuses_a_disagreeing_header(tmp_path, converged_run):
     for change, field in ((dict(m_a=0.02), "m_a"), (dict(seed=4), "seed"), (dict(task="x,y"), "m"),
                           (dict(eps_rel=0.1), "eps_rel")):
         fake = FakeArm()
-        with pytest.raises(online.ResumeError, match=f"log's {field} is"):
-            online.run_online(fake, opts(**change), tmp_path / "r", resume=True)
+        with pytest.raises(live.ResumeError, match=f"log's {field} is"):
+            live.run_online(fake, opts(**change), tmp_path / "r", resume=True)
         assert fake.moves == [] and fake.closed
-    with pytest.raises(online.ResumeError, match="already holds a session log"):
-        online.run_online(FakeArm(), opts(), tmp_path / "r")
-    with pytest.raises(online.ResumeError, match="no session log"):
-        online.run_online(FakeArm(), opts(), tmp_path / "none", resume=True)
+    with pytest.raises(live.ResumeError, match="already holds a session log"):
+        live.run_online(FakeArm(), opts(), tmp_path / "r")
+    with pytest.raises(live.ResumeError, match="no session log"):
+        live.run_online(FakeArm(), opts(), tmp_path / "none", resume=True)
 
 
 def test_journal_tolerates_only_a_cut_last_line(tmp_path):
@@ -266,8 +266,8 @@ def test_follow_after_resume_completes_within_the_envelope(tmp_path, converged_r
     shutil.copytree(run, tmp_path / "r")
     fake = FakeArm(q0=ref_fake.q, max_step=0.05)
     path = options.FollowOptions(size=0.02, tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
-    result = online.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
-    assert result.status == online.Stop.COMPLETED, result.detail
+    result = live.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert result.status == live.Stop.COMPLETED, result.detail
     assert result.waypoints == result.waypoints_total == 10 and result.replayed == ref.samples
     assert result.moves == ref.moves and result.follow_steps == len(fake.moves) <= 400  # no random move
     assert_in_envelope(fake, fake.lim.lower, fake.lim.upper, 0.03)
@@ -299,26 +299,26 @@ def test_simulated_follow_commands_what_the_live_runner_commands(tmp_path, conve
     shutil.copytree(run, tmp_path / "r")
     fake = FakeArm(q0=ref_fake.q, noise=0.0, max_step=0.05)
     path = options.FollowOptions(size=0.03, tol=0.001, max_task_step=0.015, gain=0.9, steps=400)
-    live = online.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
-    assert live.status == online.Stop.COMPLETED, live.detail
+    result = live.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert result.status == live.Stop.COMPLETED, result.detail
     env = safety.envelope(fake.lim, max_step=0.03)
     targets = np.array([t for _, t in fake.moves])
     capped = np.max(np.abs(np.diff(np.vstack([ref_fake.q, targets]), axis=0)) / env.max_step, axis=1)
     assert np.sum(capped > 1 - 1e-9) >= 3  # the cap scaled some steps down
     system = _arm_system()
     with jax.enable_x64(True):
-        sim = control.follow(system, control.fixed(np.asarray(live.estimate, np.float64)), path.offsets((0, 1, 2)),
+        sim = control.follow(system, control.fixed(np.asarray(result.estimate, np.float64)), path.offsets((0, 1, 2)),
                              np.asarray(ref_fake.q, np.float64), path.controller(env), steps=path.steps,
                              return_trajectory=True)
         sim = jax.device_get(sim)
     k = len(fake.moves)
-    assert int(sim.steps_used) == k == live.follow_steps and float(sim.completion) == 1.0 and not sim.failed
+    assert int(sim.steps_used) == k == result.follow_steps and float(sim.completion) == 1.0 and not sim.failed
     np.testing.assert_allclose(sim.final_q, targets[-1], rtol=0, atol=1e-12)
     np.testing.assert_allclose(sim.positions[1:k + 1], np.array([arm_pose(t)[0] for t in targets]), rtol=0,
                                atol=1e-12)
     # each waypoint reached at the same step: live, the number of following moves made before its log record
     moves, live_steps = 0, []
-    for rec in read_journal(live.log).records:
+    for rec in read_journal(result.log).records:
         moves += rec["e"] == "move" and rec["phase"] == "follow"
         if rec["e"] == "waypoint":
             live_steps.append(moves)
@@ -330,17 +330,17 @@ def test_follow_divergence_and_box_stop(tmp_path, converged_run):
     run, ref_fake, _ = converged_run
     shutil.copytree(run, tmp_path / "d")
     fake = FakeArm(q0=ref_fake.q, mirror=True)  # the arm's Jacobian flipped after self-ID: the estimate is wrong
-    result = online.run_online(fake, opts(path=options.FollowOptions(size=0.05), diverge_dist=0.01),
+    result = live.run_online(fake, opts(path=options.FollowOptions(size=0.05), diverge_dist=0.01),
                                tmp_path / "d", resume=True)
-    assert result.status == online.Stop.DIVERGENCE and 0 < len(fake.moves) < 20, result.detail
+    assert result.status == live.Stop.DIVERGENCE and 0 < len(fake.moves) < 20, result.detail
     recs = read_journal(result.log).records
     assert recs[-1]["reason"] == "divergence"
     shutil.copytree(run, tmp_path / "b")
     p, _ = arm_pose(ref_fake.q)
     fake = FakeArm(q0=ref_fake.q)
-    result = online.run_online(fake, opts(path=options.FollowOptions(size=0.05), box_low=p - [1, 0.05, 1],
+    result = live.run_online(fake, opts(path=options.FollowOptions(size=0.05), box_low=p - [1, 0.05, 1],
                                           box_high=p + 1), tmp_path / "b", resume=True)
-    assert result.status == online.Stop.BOX and "path leaves the box" in result.detail and fake.moves == []
+    assert result.status == live.Stop.BOX and "path leaves the box" in result.detail and fake.moves == []
 
 
 # --------------------------------------------------------------------------- the command
@@ -470,7 +470,7 @@ def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module
                                                         os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen([*console, "online", str(cfg), "--out", str(out)], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
-    log = out / online.LOG_FILE
+    log = out / live.LOG_FILE
     deadline = time.monotonic() + 60
     while proc.poll() is None and time.monotonic() < deadline and \
             not (log.exists() and log.read_bytes().count(b'"e":"sample"') >= 5):
@@ -495,7 +495,7 @@ def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module
 def test_the_step_compiles_once_per_shape(tmp_path, converged_run):
     before = session._step._cache_size()
     for i, (eps, eps_rel) in enumerate(((0.0, 0.2), (1e-3, 0.0), (0.1, 0.3))):
-        result = online.run_online(FakeArm(), opts(eps=eps, eps_rel=eps_rel, max_samples=4), tmp_path / str(i))
+        result = live.run_online(FakeArm(), opts(eps=eps, eps_rel=eps_rel, max_samples=4), tmp_path / str(i))
         assert result.samples >= 2
     assert session._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace
 

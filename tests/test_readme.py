@@ -153,7 +153,7 @@ def test_readme_python_block_prints_what_it_says(index, tmp_path):
 
 def test_readme_cli_subcommands_exist():
     from selfid_jax.cli import commands as package_commands
-    from selfid_jax.runner.cli import _parser
+    from selfid_jax.runner.command_line import _parser
 
     commands = set(re.findall(r"^selfid-jax ([\w-]+)", TEXT, re.MULTILINE))
     known = set(_parser(package_commands())._subparsers._group_actions[0].choices)  # as selfid_jax.cli adds them

@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from selfid_jax.robot import online
+from selfid_jax.robot import live, options
 from selfid_jax.robot.journal import read_journal
 from selfid_jax.robot.protocol import RobotConnectionError, RobotError
 from selfid_jax.robot.transport import RemoteRobot, RobotServer
@@ -129,7 +129,7 @@ def test_online_ur5e_and_model_o_self_identify_then_follow_a_star_with_no_random
         assert done.returncode == 0, done.stdout + done.stderr
         summary = json.loads((out / "summary.json").read_text())
         assert summary["status"] == "completed" and summary["converged_at"] >= 2, summary
-        records = read_journal(out / online.LOG_FILE).records
+        records = read_journal(out / live.LOG_FILE).records
         at = next(i for i, r in enumerate(records) if r["e"] == "converged")
         assert all(r.get("phase") != "selfid" for r in records[at:] if r["e"] == "move")  # no random move after
         moves = [r for r in records if r["e"] == "move" and r["phase"] == "selfid"]
@@ -145,9 +145,9 @@ def test_dropouts_are_rejected_and_a_latency_spike_or_a_frozen_tracker_stops_saf
         realism: {period: 0.01, latency: 1, noise_pos: 1.0e-5, dropout: 0.3, servo_tau: 0.01}
         seed: 1
         """, "dropouts")
-    opts = online.OnlineOptions(m_a=0.03, eps_rel=0.05, max_samples=150, settle_s=0.08, stale_s=0.5)
-    res = online.run_online(RemoteRobot("127.0.0.1", sim.port, timeout_s=5), opts, tmp_path / "dropouts")
-    assert res.status == online.Stop.CONVERGED and res.rejected.get("dropout", 0) >= 1
+    opts = options.OnlineOptions(m_a=0.03, eps_rel=0.05, max_samples=150, settle_s=0.08, stale_s=0.5)
+    res = live.run_online(RemoteRobot("127.0.0.1", sim.port, timeout_s=5), opts, tmp_path / "dropouts")
+    assert res.status == live.Stop.CONVERGED and res.rejected.get("dropout", 0) >= 1
     assert res.moves == res.converged_at + sum(res.rejected.values())
 
     spike = sims("""\
@@ -166,9 +166,9 @@ def test_dropouts_are_rejected_and_a_latency_spike_or_a_frozen_tracker_stops_saf
         faults: {freeze_tracker_at_s: 0.0}
         """, "frozen")
     t0 = time.monotonic()
-    res = online.run_online(RemoteRobot("127.0.0.1", frozen.port, timeout_s=5),
+    res = live.run_online(RemoteRobot("127.0.0.1", frozen.port, timeout_s=5),
                             opts._replace(stale_s=0.3), tmp_path / "frozen")
-    assert res.status == online.Stop.STALE and time.monotonic() - t0 < 30
+    assert res.status == live.Stop.STALE and time.monotonic() - t0 < 30
     assert res.samples == 0
 
 
@@ -181,26 +181,26 @@ def test_simulator_killed_mid_run_stops_cleanly_and_resume_continues(sims, tmp_p
         """
     sim = sims(text, "first")
     run_dir = tmp_path / "run"
-    opts = online.OnlineOptions(m_a=0.03, eps_rel=0.02, max_samples=200, settle_s=0.08)
+    opts = options.OnlineOptions(m_a=0.03, eps_rel=0.02, max_samples=200, settle_s=0.08)
     box: dict = {}
     thread = threading.Thread(target=lambda: box.update(
-        res=online.run_online(RemoteRobot("127.0.0.1", sim.port, timeout_s=2), opts, run_dir)))
+        res=live.run_online(RemoteRobot("127.0.0.1", sim.port, timeout_s=2), opts, run_dir)))
     thread.start()
-    log = run_dir / online.LOG_FILE
+    log = run_dir / live.LOG_FILE
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and not (log.exists() and log.read_bytes().count(b'"e":"sample"') >= 4):
         time.sleep(0.02)
     os.kill(sim.proc.pid, signal.SIGKILL)
     thread.join(timeout=60)
     res = box["res"]
-    assert res.status == online.Stop.CONNECTION, res.detail
+    assert res.status == live.Stop.CONNECTION, res.detail
     records = read_journal(log).records  # intact: every line parses (a cut last line would be counted)
     assert records[-1]["e"] == "stop" and records[-1]["reason"] == "connection"
     done = sum(1 for r in records if r["e"] == "sample")
     assert done >= 4
     again = sims(text, "second")
-    res2 = online.run_online(RemoteRobot("127.0.0.1", again.port, timeout_s=5), opts, run_dir, resume=True)
-    assert res2.replayed == res.samples and res2.status == online.Stop.CONVERGED
+    res2 = live.run_online(RemoteRobot("127.0.0.1", again.port, timeout_s=5), opts, run_dir, resume=True)
+    assert res2.replayed == res.samples and res2.status == live.Stop.CONVERGED
     assert res2.samples > res.samples
 
 

@@ -32,7 +32,7 @@ from test_sweep import (
 )
 
 from selfid_jax import cli, runner as experiment
-from selfid_jax.runner import cli as runner_cli
+from selfid_jax.runner import command_line as runner_cli
 
 from selfid_jax.experiments.common import figures as plots
 

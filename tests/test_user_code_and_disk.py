@@ -86,7 +86,7 @@ def test_plot_beside_a_running_sweep_is_refused(tmp_path):
 
 def test_output_path_is_checked_before_any_compute(tmp_path, capsys, monkeypatch):
     """``--out`` naming a file (or a path through one) exits 2 naming it, before the experiment is even set up."""
-    from selfid_jax.runner import cli as runner_cli
+    from selfid_jax.runner import command_line as runner_cli
 
     def no_compute(*args, **kwargs):
         raise AssertionError("the experiment was set up although --out is unusable")

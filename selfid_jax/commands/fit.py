@@ -237,8 +237,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def command():
-    """The ``fit`` subcommand for :func:`selfid_jax.runner.cli.main`."""
-    from selfid_jax.runner.cli import Command
+    """The ``fit`` subcommand for :func:`selfid_jax.runner.command_line.main`."""
+    from selfid_jax.runner.command_line import Command
 
     return Command(help="self-ID from a recorded log (CSV, Parquet, NPZ) into a run directory",
                    description=DESCRIPTION, add_arguments=add_arguments, run=run)

@@ -17,7 +17,7 @@ refused with the dotted key, before connecting)::
     path: {kind: star, size: 0.02, plane: xy, gain: 0.5, tol: 0.002, max_task_step: 0.005, steps: 500}
     out: runs/online_ur5e       # default runs/online_<config stem>; --out wins
 
-:func:`selfid_jax.robot.online.run_online` does the session under the run
+:func:`selfid_jax.robot.live.run_online` does the session under the run
 directory's lock; the session log ``session.jsonl`` is appended as it
 happens, and at the end this writes, each whole
 (:mod:`selfid_jax.runner.files`): ``online_config.json`` (the resolved
@@ -48,7 +48,7 @@ from selfid_jax.robot.options import FollowOptions, OnlineOptions
 from selfid_jax.runner.config import STRICT
 
 if TYPE_CHECKING:
-    from selfid_jax.robot.online import OnlineResult
+    from selfid_jax.robot.live import OnlineResult
 
 __all__ = ["OnlineConfig", "add_arguments", "command", "connect", "options", "run", "summary"]
 
@@ -293,7 +293,7 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # one estimator per process: float64, like `fit`
-    from selfid_jax.robot import online, session
+    from selfid_jax.robot import live, session
     from selfid_jax.robot.log import parse_task
 
     opts = options(cfg)
@@ -306,12 +306,12 @@ def run(args: argparse.Namespace) -> int:
         Path("runs") / f"online_{args.config.stem}"
     if (out / "config.yaml").exists():
         raise RunDirError(f"{out}: holds a sweep's run directory (config.yaml); choose another --out")
-    log = out / online.LOG_FILE
+    log = out / live.LOG_FILE
     if log.exists() and not args.resume:
-        raise RunDirError(f"{out}: already holds a session log ({online.LOG_FILE}); continue it with --resume or "
+        raise RunDirError(f"{out}: already holds a session log ({live.LOG_FILE}); continue it with --resume or "
                           "choose another --out")
     if args.resume and not log.exists():
-        raise RunDirError(f"{out}: no session log ({online.LOG_FILE}) to resume; run without --resume")
+        raise RunDirError(f"{out}: no session log ({live.LOG_FILE}) to resume; run without --resume")
 
     import threading
 
@@ -337,7 +337,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 with signals.graceful(f"selfid-jax online: interrupted; the session log {log} is intact "
                                       "(continue with --resume)", stop.set, interrupt=True):
-                    result = online.run_online(robot, opts, out, resume=args.resume, stop_requested=stop.is_set)
+                    result = live.run_online(robot, opts, out, resume=args.resume, stop_requested=stop.is_set)
             except ValueError as err:  # bad options, a log that disagrees: all before any motion
                 raise ConfigError(f"{args.config}: {' '.join(str(err).split())}") from None
         finally:
@@ -389,8 +389,8 @@ def _report(result: OnlineResult, files: dict[str, Path]) -> None:
 
 
 def command():
-    """The ``online`` subcommand for :func:`selfid_jax.runner.cli.main`."""
-    from selfid_jax.runner.cli import Command
+    """The ``online`` subcommand for :func:`selfid_jax.runner.command_line.main`."""
+    from selfid_jax.runner.command_line import Command
 
     return Command(help="self-ID a connected robot live (Algorithm 1), then follow a path; resumable",
                    description=DESCRIPTION, add_arguments=add_arguments, run=run)

@@ -178,8 +178,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def command():
-    """The ``robot-sim`` subcommand for :func:`selfid_jax.runner.cli.main`."""
-    from selfid_jax.runner.cli import Command
+    """The ``robot-sim`` subcommand for :func:`selfid_jax.runner.command_line.main`."""
+    from selfid_jax.runner.command_line import Command
 
     return Command(help="a virtual robot (any configured system) in real time, serving the robot protocol over TCP",
                    description=DESCRIPTION, add_arguments=add_arguments, run=run)

@@ -5,7 +5,7 @@ Algorithm 1 after each random actuation
 (:func:`selfid_jax.identify.algorithm.self_identify`), the batch closed form of
 the recursive estimator (:func:`selfid_jax.identify.recursive.exact_step`),
 self-ID from a recorded log (:func:`selfid_jax.robot.offline.fit_samples`) and
-the online runner (:mod:`selfid_jax.robot.online`). Pure: it jits, vmaps and
+the online runner (:mod:`selfid_jax.robot.live`). Pure: it jits, vmaps and
 differentiates; the per-sample diagnostics go out in a :class:`StepInfo`, not
 into the state.
 """

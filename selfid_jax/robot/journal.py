@@ -13,7 +13,7 @@ Every record is a mapping with an ``"e"`` (event) key; the first line is the
 ``"header"``. Numbers are written by ``json`` (``repr``: float64 round-trips
 exactly); a non-finite number is written as ``null`` and read back as NaN
 (:func:`floats`). What the events mean is the online runner's business
-(:mod:`selfid_jax.robot.online`); this module only writes and reads lines.
+(:mod:`selfid_jax.robot.live`); this module only writes and reads lines.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ A driver reads a timestamped actuator position and tracker pose
 reports its limits (:meth:`Robot.limits`) and closes (:meth:`Robot.close`).
 Everything else (drawing actuations within ``m_a`` and the limits, the
 estimator, the convergence test, the safety envelope, the log) belongs to the
-online runner (:mod:`selfid_jax.robot.online`), so a driver stays a few lines
+online runner (:mod:`selfid_jax.robot.live`), so a driver stays a few lines
 over the vendor's API. numpy in, numpy out; no JAX here.
 
 Units: actuator positions in the actuator's own units (rad for revolute

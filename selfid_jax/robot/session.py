@@ -14,13 +14,13 @@ as it happens, and raising :class:`Stopped` where a stop is found:
   estimate, the control step of the simulated follow loop
   (:func:`selfid_jax.control.loop.follow_law`) run on the host in float64.
   So a simulated tracking result with the same controller settings
-  (:meth:`selfid_jax.robot.online.FollowOptions.controller`) describes what
+  (:meth:`selfid_jax.robot.options.FollowOptions.controller`) describes what
   the robot does: the waypoint test, the twist clipped per part, the
   per-actuator cap, the limits, the divergence test, and a reading that is
   not fresh makes no command (the simulation's dropout does the same).
 * :meth:`Session.replay` folds a logged session back into the state (resume).
 
-:func:`selfid_jax.robot.online.run_online` builds and ends a session.
+:func:`selfid_jax.robot.live.run_online` builds and ends a session.
 """
 
 from __future__ import annotations
@@ -135,7 +135,9 @@ def _follow_command(Jinv, offsets, p0, R0, waypoint, q, p, R, ctrl, *, axes):
     law = inverse_jacobian_law(None, fixed(Jinv))
     task = Task.from_axes(offsets, (p0, R0), axes)
     state = law.init(q)
-    return command(law, task, ctrl, state, waypoint, q, (p, R), law.observe(state, q)), task.path_distance(p)
+    observe = law.observe
+    assert observe is not None  # a law on a fixed estimate observes without a model
+    return command(law, task, ctrl, state, waypoint, q, (p, R), observe(state, q)), task.path_distance(p)
 
 
 def follow_command(Jinv: np.ndarray, offsets: np.ndarray, anchor: Observation, waypoint: int, obs: Observation,
@@ -165,7 +167,7 @@ def follow_command(Jinv: np.ndarray, offsets: np.ndarray, anchor: Observation, w
 class Session:
     """One session's loop state; its methods raise :class:`Stopped` to end it.
 
-    ``opts`` is the session's :class:`selfid_jax.robot.online.OnlineOptions`
+    ``opts`` is the session's :class:`selfid_jax.robot.options.OnlineOptions`
     (read for ``seed``, ``max_samples``, ``settle_s``, ``poll_s``, ``eps``,
     ``eps_rel``, ``method``), ``env`` its checked :class:`Envelope`, ``axes``
     its task axes and ``m_a (n,)`` its self-ID magnitude.
@@ -294,7 +296,7 @@ class Session:
     # ---- following
 
     def follow(self, path) -> None:
-        """Follow ``path`` (:class:`selfid_jax.robot.online.FollowOptions`) with the converged estimate."""
+        """Follow ``path`` (:class:`selfid_jax.robot.options.FollowOptions`) with the converged estimate."""
         assert self.state is not None
         env = self.env
         Jinv = np.asarray(self.state.estimate, np.float64)
