@@ -40,8 +40,9 @@ def study_times(config) -> dict:
 
 def full_chunks(config, k: int) -> dict:
     """The first ``k`` chunks of a ``_full`` config (fewer configurations): peak RSS and projected wall time."""
-    from selfid_jax.runner.registry import load as load_config
     from whole_process import measure
+
+    from selfid_jax.runner.registry import load as load_config
 
     cfg = load_config(config)
     per_config = len(cfg.pose_noise) * len(cfg.m_a) * cfg.n_trials  # streams per configuration
@@ -58,9 +59,9 @@ def full_chunks(config, k: int) -> dict:
 def update_rates(cfg, batch=256, T=100, n=6, m=3, reps=3):
     import jax
     import jax.numpy as jnp
+    from timing import time_call
 
     from selfid_jax import baselines
-    from timing import time_call
 
     key = jax.random.key(0)
     kJ, kd, kn = jax.random.split(key, 3)

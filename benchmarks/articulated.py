@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import argparse
 
-import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import numpy as np
 from emit import emit
 from timing import time_call
 
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax.articulated import sim
 from selfid_jax.runner.execute import precision
 

@@ -26,17 +26,17 @@ from __future__ import annotations
 
 import argparse
 
-import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 from emit import emit
-from timing import time_call
 from mujoco import rollout as mj_rollout
+from timing import time_call
 
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax.systems.dynamic import dynamic_ur5e
-from selfid_jax.systems.ur5e import UR5E_HOME, UR5E_XML, _SAMPLE_HIGH, _SAMPLE_LOW
+from selfid_jax.systems.ur5e import _SAMPLE_HIGH, _SAMPLE_LOW, UR5E_HOME, UR5E_XML
 
 HOLD = 25  # control steps per target
 

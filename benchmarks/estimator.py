@@ -34,13 +34,13 @@ import argparse
 import statistics
 import sys
 
-import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import jax.numpy as jnp
 import numpy as np
 from emit import emit
 from timing import first_call, interleaved
 
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax import baselines
 from selfid_jax.identify import estimator as E
 

@@ -55,7 +55,6 @@ import copy
 import os
 import time
 
-import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -64,6 +63,7 @@ from emit import emit
 from mujoco import mjx
 from timing import time_call
 
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax.systems.hands.settle import cast_like
 
 #: native mjData timers, in the order of the MJX stages they match (None: no native timer of its own).

@@ -29,8 +29,9 @@ import os
 import platform
 import time
 
-import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
+
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 
 jax.config.update("jax_enable_x64", True)  # float64 rows; float32 rows pass float32 states
 

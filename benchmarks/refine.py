@@ -22,11 +22,11 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from timing import time_call  # noqa: E402
 
 import selfid_jax as sj  # noqa: E402
 from selfid_jax.identify import estimator as E  # noqa: E402
 from selfid_jax.identify.refine import slsqp_refine  # noqa: E402
-from timing import time_call  # noqa: E402
 
 N = M = 6
 K = 20

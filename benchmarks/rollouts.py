@@ -16,21 +16,20 @@ import sys
 import time
 from pathlib import Path
 
-import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax import control
-
 from selfid_jax.control import paths
 from selfid_jax.systems import ur5e
 from selfid_jax.systems.ur5e import UR5E_XML
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-import numpy_reference as ref  # noqa: E402
-from timing import time_call  # noqa: E402
+import numpy_reference as ref
+from timing import time_call
 
 STEPS = 200
 CTRL = dict(max_step=0.0025, tol=0.0005)
@@ -61,7 +60,7 @@ def mujoco_c_loop(q0s, path, system):
 
 def numpy_loop(q0s, path, system):
     lim = dict(dq_max=np.asarray(system.dq_max), q_low=np.asarray(system.q_low), q_high=np.asarray(system.q_high))
-    jinv = lambda q: ref.right_inverse(ref.ur5e_position_jacobian(q))  # noqa: E731
+    jinv = lambda q: ref.right_inverse(ref.ur5e_position_jacobian(q))
     return [ref.follow(ref.ur5e_position, jinv, path, q, steps=STEPS, **CTRL, **lim)[0] for q in q0s]
 
 

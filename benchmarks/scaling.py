@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 
-import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,6 +42,7 @@ from emit import emit
 from estimator import ours_step  # the full self-ID step the estimator benchmark times
 from timing import time_call
 
+import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax import control
 from selfid_jax.control import paths
 from selfid_jax.identify import estimator as E
@@ -99,7 +99,7 @@ def recursive_memory(batch: int, steps: int) -> dict:
     from selfid_jax.identify import recursive as R
 
     n, m = 6, 3
-    grow = lambda x: jnp.broadcast_to(x, (batch,) + jnp.shape(x))  # noqa: E731
+    grow = lambda x: jnp.broadcast_to(x, (batch,) + jnp.shape(x))
     s0 = jax.tree.map(grow, E.init(n, m, capacity=0, dtype=F32))
     r0 = jax.tree.map(grow, R.init(m, F32))
     size = sum(np.dtype(x.dtype).itemsize * int(np.prod(np.shape(x))) for x in jax.tree.leaves((s0, r0))) / batch

@@ -21,10 +21,10 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
+from timing import time_call  # noqa: E402
 
 from selfid_jax import baselines  # noqa: E402
 from selfid_jax.baselines import sogp  # noqa: E402
-from timing import time_call  # noqa: E402
 
 D, P = 4, 2
 

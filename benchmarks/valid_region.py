@@ -21,7 +21,7 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from whole_process import measure  # noqa: E402
+from whole_process import measure
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_COLD_S = 8.0

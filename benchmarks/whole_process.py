@@ -56,9 +56,10 @@ def main():
     ap.add_argument("--set", action="append", default=[])
     args = ap.parse_args()
 
-    import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
     import jax
     import jax.monitoring
+
+    import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 
     # seconds per compile stage, from JAX's own events: tracing to a jaxpr, lowering to MLIR, XLA's backend compile
     stages = {"/jax/core/compile/jaxpr_trace_duration": "trace", "/jax/core/compile/jaxpr_to_mlir_module_duration":

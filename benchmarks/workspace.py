@@ -18,6 +18,7 @@ import jax
 
 def rate(n: int, chunk: int, x64: bool) -> float:
     from selfid_jax.experiments import workspace
+
     from selfid_jax.runner.execute import precision
 
     cfg = workspace.WorkspaceConfig(n_configs=n, x64=x64, chunk_size=chunk)
@@ -35,6 +36,7 @@ def rate(n: int, chunk: int, x64: bool) -> float:
 
 def runner_rate(n: int, chunk: int) -> tuple[float, dict]:
     from selfid_jax.experiments import workspace
+
     from selfid_jax import runner as experiment
 
     cfg = workspace.WorkspaceConfig(n_configs=n, chunk_size=chunk)

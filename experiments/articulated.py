@@ -31,13 +31,13 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
-
-from selfid_jax.identify import algorithm as selfid
-from selfid_jax.articulated import scenes, sim, tactile
-from selfid_jax.experiments.common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_columns, m_a_summary
 from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.runner.config import STRICT
+from selfid_jax.experiments.common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_columns, m_a_summary
+
+from selfid_jax.articulated import scenes, sim, tactile
+from selfid_jax.identify import algorithm as selfid
 from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner.grids import grid_table, row_keys
 
 METRICS = ("time_s", "efficiency", "efficiency_60hz", "jerk", "jerk_tw", "path_dev_mm", "dev_mean_mm", "dev_max_mm")
@@ -308,12 +308,12 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
         meta["fit_error_mm"] = 1e3 * pop.fit_error[o]
         add_m_a_columns(meta, m_a)
         n = len(meta)
-        full = lambda v, n=n: np.full((n,), float(v))  # noqa: E731
+        full = lambda v, n=n: np.full((n,), float(v))
         res = meta["resistance"].to_numpy(float)
         obj = scenes.ObjectParams(*(np.asarray(a)[o] for a in pop))
         obj = obj._replace(damping=obj.damping * res, frictionloss=obj.frictionloss * res)
         reaim = (meta["controller"] == "tacman_reaim").to_numpy()
-        tac = lambda name, r=reaim: np.where(r, getattr(cfg.tacman_reaim, name), getattr(cfg.tacman, name))  # noqa: E731
+        tac = lambda name, r=reaim: np.where(r, getattr(cfg.tacman_reaim, name), getattr(cfg.tacman, name))
         rollout = sim.RolloutParams(
             obj=obj,
             controller=np.asarray([sim.Controller.parse(c) for c in meta["controller"]], np.int32),

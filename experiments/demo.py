@@ -18,22 +18,29 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import Field, field_validator, model_validator
+from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.experiments.common.schema import (
+    ControllerConfig,
+    HostOrDevice,
+    PathConfig,
+    SelfIdConfig,
+    StudyConfig,
+    add_m_a_columns,
+    controller_rows,
+    m_a_columns,
+    m_a_summary,
+)
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 from selfid_jax import control
-
-from selfid_jax.identify import estimator, algorithm as selfid
-
 from selfid_jax.control import paths
+from selfid_jax.identify import algorithm as selfid
+from selfid_jax.identify import estimator
 from selfid_jax.math.linalg import pseudo_inverse
-from selfid_jax.experiments.common.schema import (ControllerConfig, PathConfig, SelfIdConfig, StudyConfig,
-                                                  add_m_a_columns, m_a_columns, m_a_summary)
-from selfid_jax.runner.config import unique
 from selfid_jax.runner import Experiment, Part, part_threads, precision
+from selfid_jax.runner.config import unique
 from selfid_jax.runner.execute import side_by_side
-from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.systems import System
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
-from selfid_jax.experiments.common.lazy_figures import figures_plot
 
 
 class DemoRun(SelfIdConfig):

@@ -58,22 +58,33 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
+from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.experiments.common.schema import (
+    NOISE_COLUMNS,
+    ControllerConfig,
+    PathConfig,
+    SelfIdConfig,
+    StartsConfig,
+    StudyConfig,
+    check_noise_pairs,
+    controller_rows,
+    resolve_m_a,
+)
+from selfid_jax.experiments.common.specs import (
+    SystemSpec,
+    build_system,
+    needs_x64,
+    spec_or_run,
+    system_name,
+    unique_system_names,
+)
 
 from selfid_jax import control, design
-
 from selfid_jax.control import paths
-from selfid_jax.experiments.common.schema import (NOISE_COLUMNS, ControllerConfig, PathConfig, SelfIdConfig,
-                                                  StudyConfig, check_noise_pairs, resolve_m_a)
-from selfid_jax.runner.config import STRICT, stop_after_start
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import controller_rows
-from selfid_jax.experiments.common.schema import StartsConfig
+from selfid_jax.runner.config import STRICT, stop_after_start
 from selfid_jax.runner.grids import decimal_points, grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
-                                                 unique_system_names)
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-
 
 EVAL_DESIGNS = ("default", "grid", "scalar", "per_actuator")
 """The designs compared on held-out trials: the system's safe ``m_a``, the grid's best, the refined scalar, per

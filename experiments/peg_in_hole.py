@@ -39,20 +39,28 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, model_validator
+from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.experiments.common.schema import (
+    NOISE_COLUMNS,
+    ControllerConfig,
+    HostOrDevice,
+    SelfIdConfig,
+    StudyConfig,
+    TrackerNoiseConfig,
+    add_m_a_columns,
+    controller_rows,
+    m_a_columns,
+    m_a_summary,
+    realism_columns,
+)
 
 from selfid_jax import control
-
-from selfid_jax.identify import estimator
-
-from selfid_jax.math import geometry
 from selfid_jax.control import realism as realism_lib
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.schema import (NOISE_COLUMNS, ControllerConfig, HostOrDevice, SelfIdConfig,
-                                                  StudyConfig, TrackerNoiseConfig, add_m_a_columns, controller_rows,
-                                                  m_a_columns, m_a_summary, realism_columns)
-from selfid_jax.runner.config import STRICT
+from selfid_jax.identify import estimator
+from selfid_jax.math import geometry
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System, compose, hands
 from selfid_jax.systems.ur5e import ur5e
@@ -229,7 +237,7 @@ def compute(static: Static, p: Params) -> Outputs:
     # INVERSES' order: the estimates, then the truth
     (hand_conv, g, h, i, hr, pm, rd, failed, pos), drops = jax.vmap(pipeline)(jnp.array([False, True]),
                                                                              jnp.stack([k_est, k_true]))
-    safe = lambda x: jnp.where(failed, 0.0, x)  # noqa: E731 - metrics of failed pipelines are not read
+    safe = lambda x: jnp.where(failed, 0.0, x)
     out = Outputs(sid_arm.converged_at, hand_conv, g, h, i, safe(hr), safe(pm), safe(rd),
                   ~failed & (i >= 1.0) & (pm <= static.insert_tol_mm) & (rd <= static.insert_rot_tol_deg), failed, pos)
     if p.realism is None:
@@ -265,7 +273,7 @@ def _build(cfg: PegConfig) -> Part:
         q = np.asarray(cfg.arm_home) + np.array([lo.yaw, 0, 0, 0, 0, 0])
         if np.any(q < np.asarray(arm.q_low)) or np.any(q > np.asarray(arm.q_high)):
             raise ValueError(f"layouts[{i}]: start configuration {q} is outside the UR5e's joint limits")
-    full = lambda v: np.full((n,), v)  # noqa: E731
+    full = lambda v: np.full((n,), v)
     arm_m_a, hand_m_a = cfg.arm.magnitude(arm, "arm.m_a"), cfg.hand.magnitude(hand, "hand.m_a")
     add_m_a_columns(meta, arm_m_a, "arm_")
     add_m_a_columns(meta, hand_m_a, "hand_")

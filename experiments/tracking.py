@@ -24,25 +24,33 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, model_validator
+from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.experiments.common.schema import (
+    NOISE_COLUMNS,
+    ControllerConfig,
+    HostOrDevice,
+    SelfIdConfig,
+    StartsConfig,
+    StudyConfig,
+    TrackerNoiseConfig,
+    add_m_a_columns,
+    controller_rows,
+    m_a_columns,
+    m_a_summary,
+    realism_columns,
+)
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 from selfid_jax import control
-
-from selfid_jax.identify import estimator
-
-from selfid_jax.math import geometry
-
 from selfid_jax.control import metrics, paths
 from selfid_jax.control import realism as realism_lib
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.schema import (NOISE_COLUMNS, ControllerConfig, HostOrDevice, SelfIdConfig,
-                                                  StartsConfig, StudyConfig, TrackerNoiseConfig, add_m_a_columns,
-                                                  controller_rows, m_a_columns, m_a_summary, realism_columns)
-from selfid_jax.runner.config import STRICT
+from selfid_jax.identify import estimator
+from selfid_jax.math import geometry
 from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.config import STRICT
 from selfid_jax.runner.grids import grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
-from selfid_jax.experiments.common.lazy_figures import figures_plot
 from selfid_jax.systems.validation import AXIS_NAMES
 
 INVERSES = ("estimated", "analytical")

@@ -27,23 +27,35 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.experiments.common.region import valid_region_summary
+from selfid_jax.experiments.common.schema import (
+    ControllerConfig,
+    EpsLimits,
+    HostOrDevice,
+    PathConfig,
+    RealismConfig,
+    StartsConfig,
+    StudyConfig,
+    controller_rows,
+    realism_columns,
+)
+from selfid_jax.experiments.common.specs import (
+    SystemSpec,
+    build_system,
+    needs_x64,
+    spec_or_run,
+    system_name,
+    unique_system_names,
+)
 
 from selfid_jax import control
-
 from selfid_jax.control import paths
 from selfid_jax.control import realism as realism_lib
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.region import valid_region_summary
-from selfid_jax.experiments.common.schema import (ControllerConfig, EpsLimits, HostOrDevice, PathConfig, RealismConfig,
-                                                  StudyConfig, realism_columns)
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import controller_rows
-from selfid_jax.experiments.common.schema import StartsConfig
 from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
 from selfid_jax.systems import System
-from selfid_jax.experiments.common.specs import (SystemSpec, build_system, needs_x64, spec_or_run, system_name,
-                                                 unique_system_names)
-from selfid_jax.experiments.common.lazy_figures import figures_plot
 
 
 class SystemRun(BaseModel):

@@ -33,21 +33,23 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import Field
+from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.experiments.common.region import valid_region_bounds
+from selfid_jax.experiments.common.schema import (
+    ControllerConfig,
+    EpsLimits,
+    HostOrDevice,
+    PathConfig,
+    StudyConfig,
+    controller_rows,
+)
+from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 from selfid_jax import control
-
-from selfid_jax.systems import manipulability
-
 from selfid_jax.control import paths
-
-from selfid_jax.experiments.common.region import valid_region_bounds
-from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig, StudyConfig
 from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.experiments.common.schema import HostOrDevice, controller_rows
 from selfid_jax.runner.grids import grid_table, row_keys
-from selfid_jax.systems import System
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
-from selfid_jax.experiments.common.lazy_figures import figures_plot
+from selfid_jax.systems import System, manipulability
 
 
 class ValidRegionWorkspaceConfig(StudyConfig):

@@ -41,11 +41,9 @@ import numpy as np
 import pandas as pd
 
 from selfid_jax import baselines, control
-
-from selfid_jax.control import paths
-
-from selfid_jax.identify import algorithm as selfid
 from selfid_jax.baselines import ekm
+from selfid_jax.control import paths
+from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems.two_link import two_link
 
 CASES = {
@@ -140,7 +138,6 @@ def study_figure(completion: pd.DataFrame, error_mm: pd.DataFrame, out_dir: str 
       axis is logarithmic when the errors span more than 2 decades.
     """
     from matplotlib.figure import Figure
-
     from selfid_jax.experiments.common.figures import method_styles, save_figure
 
     if list(completion.index) != list(error_mm.index) or list(completion.columns) != list(error_mm.columns):

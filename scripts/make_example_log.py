@@ -17,12 +17,11 @@ import argparse
 from pathlib import Path
 
 import jax
+import numpy as np
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX starts)
 from selfid_jax.math import geometry
 from selfid_jax.systems.ur5e import UR5E_HOME, ur5e
-
-import numpy as np
 
 OUT = Path(__file__).resolve().parents[1] / "selfid_jax" / "robot" / "data" / "ur5e_example_log.csv"
 POS_NOISE = 1e-4  # m

@@ -107,7 +107,15 @@ if TYPE_CHECKING:
     from selfid_jax.identify.refine import refine
     from selfid_jax.robot.offline import fit
     from selfid_jax.systems import (
-        System, arm5, from_ets, from_mjcf, from_pose_fn, model_o, stewart_hand, two_link, ur5e,
+        System,
+        arm5,
+        from_ets,
+        from_mjcf,
+        from_pose_fn,
+        model_o,
+        stewart_hand,
+        two_link,
+        ur5e,
     )
 
 __version__ = "0.1.0"

@@ -59,7 +59,7 @@ def test_kabsch_flags_collinear_and_too_few_points():
 def test_constant_velocity_prediction_is_exact_on_a_screw_motion():
     xi = jnp.array([0.02, -0.01, 0.03, 0.3, -0.2, 0.5])  # [v, w] twist
     base = _random_pose(3, angle=1.0, shift=0.5)
-    T = lambda t: base @ jaxlie.SE3.exp(t * xi)  # noqa: E731
+    T = lambda t: base @ jaxlie.SE3.exp(t * xi)
     for t0, h in ((0.0, 0.1), (0.7, 0.02), (2.0, 0.5)):
         pred = jax.jit(tacman.predict)(T(t0), T(t0 + h))
         np.testing.assert_allclose(np.asarray(pred.as_matrix()), np.asarray(T(t0 + 2 * h).as_matrix()), atol=1e-12)
@@ -183,7 +183,7 @@ def _arm():
 
 def _params(obj, controllers, *, use_estimate=False, jinv=None):
     B = len(controllers)
-    full = lambda v: jnp.full((B,), v)  # noqa: E731
+    full = lambda v: jnp.full((B,), v)
     return sim.RolloutParams(
         obj=scenes.ObjectParams(*(jnp.asarray(a) for a in obj)), controller=jnp.asarray(controllers, jnp.int32),
         use_estimate=jnp.full((B,), use_estimate),

@@ -9,9 +9,9 @@ template has no friction loss). The reference is native MuJoCo.
 import jax
 import numpy as np
 import pytest
+from test_articulated import PADS, _arm, _params  # the closed-loop helpers (tests/ is on the path)
 
 from selfid_jax.articulated import scenes, sim
-from test_articulated import PADS, _arm, _params  # the closed-loop helpers (tests/ is on the path)
 
 
 def _drawers(frictionlosses):

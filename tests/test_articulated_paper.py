@@ -123,7 +123,6 @@ def test_spring_grasp_stiffness_is_the_configured_k_on_a_static_pull(k):
     """Gripper held 2 mm ahead of a drawer on a MuJoCo joint spring k_j: at rest k (d - x) = k_j x (MuJoCo's
     qfrc_spring), so the measured grasp stiffness k_j x / |p_t - p_h| is k."""
     import mujoco
-
     from selfid_jax.experiments.articulated import Grasp
 
     m, lay = scenes.compile_scene("prismatic", np.zeros(3), np.eye(3),
@@ -189,6 +188,7 @@ def test_spring_grasp_config_checks_the_timestep_and_the_backend():
 
 def test_population_ranges_from_yaml_lists_and_set_overrides(tmp_path):
     from selfid_jax.experiments.articulated import ArticulatedConfig
+
     from selfid_jax.runner.registry import load
 
     cfg = ArticulatedConfig(objects={"prismatic": 1}, population={"damping": [0, 0], "frictionloss": [0.5, 1]})
@@ -250,7 +250,6 @@ def _overlaps(boxes):
 
 def test_metrics_figure_tick_labels_do_not_overlap():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-
     from selfid_jax.experiments.articulated import METRICS
     from selfid_jax.experiments.figures.articulated import metrics_figure
 
@@ -269,7 +268,6 @@ def test_metrics_figure_tick_labels_do_not_overlap():
 
 def test_plane_figure_shows_every_cell():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-
     from selfid_jax.experiments.figures.articulated import plane_figure
 
     plane = [{"grasp_k": k, "resistance": res, "controller": c, "success_rate": 1.0 if k > 1e5 else 0.0,
@@ -296,6 +294,7 @@ def test_stop_and_go_tacman_in_the_loop_halts_the_object_while_it_recovers():
     stored shear released) the drawer, held by its friction, moves far less than in an exploration step. The
     literal Turbo beside it never recovers."""
     from selfid_jax.experiments.articulated import ArticulatedConfig, _build
+
     from selfid_jax.runner.execute import precision
 
     with precision(True):

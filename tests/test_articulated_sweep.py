@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from selfid_jax import runner as experiment
-
 from selfid_jax.runner import sweep
 
 

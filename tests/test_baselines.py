@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 from selfid_jax import baselines as B
-from selfid_jax.identify import estimator as E
 from selfid_jax.baselines import (
     METHOD_NAMES,
     METHODS,
@@ -21,6 +20,7 @@ from selfid_jax.baselines import (
     run_stream,
     scan,
 )
+from selfid_jax.identify import estimator as E
 from selfid_jax.identify.refine import refine
 
 run = jax.jit(run_stream, static_argnames=("estimator", "capacity"))

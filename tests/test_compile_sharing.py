@@ -7,13 +7,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from selfid_jax import control, runner as experiment
-
-from selfid_jax.control import paths
-
-from selfid_jax.runner import sweep
 from selfid_jax.experiments.common.schema import ControllerConfig
+
+from selfid_jax import control
+from selfid_jax import runner as experiment
+from selfid_jax.control import paths
+from selfid_jax.runner import sweep
 
 
 def _fn(p):
@@ -38,6 +37,7 @@ def test_compute_rows_matches_run_chunked_and_shares_its_compilation(tmp_path):
 @pytest.mark.slow
 def test_valid_region_feasibility_equals_control_feasible_starts():
     from selfid_jax.experiments import valid_region as vr
+
     from selfid_jax.systems import two_link
 
     system = two_link()

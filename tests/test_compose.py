@@ -5,8 +5,7 @@ import numpy as np
 import pytest
 
 from selfid_jax.math import geometry
-from selfid_jax.systems import compose, hands
-from selfid_jax.systems import from_pose_fn
+from selfid_jax.systems import compose, from_pose_fn, hands
 from selfid_jax.systems.ur5e import ur5e
 
 pytestmark = pytest.mark.slow  # compiles the closed-chain hand's implicit derivatives

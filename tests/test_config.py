@@ -8,8 +8,8 @@ import textwrap
 import numpy as np
 import pydantic
 import pytest
-
 from selfid_jax.experiments.valid_region import ValidRegionConfig
+
 from selfid_jax import runner as experiment
 from selfid_jax.runner.config import BaseConfig, apply_overrides, dump_config, parse_override
 from selfid_jax.runner.errors import ConfigError

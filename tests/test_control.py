@@ -4,16 +4,13 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy_reference as ref
 import pytest
 
 from selfid_jax import control
-
 from selfid_jax.control import paths
-
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems import from_pose_fn, two_link, ur5e
-
-import numpy_reference as ref
 
 UR5E = ur5e(task_dim=3)
 STAR = paths.star(size=0.05, dim=3)

@@ -12,7 +12,6 @@ import pytest
 import yaml
 
 from selfid_jax import control, design
-
 from selfid_jax.control import paths
 from selfid_jax.runner.errors import ConfigError
 from selfid_jax.runner.registry import load as load_config
@@ -126,6 +125,7 @@ def test_tabulate_reads_the_library_results_back_from_the_runner_columns():
     from types import SimpleNamespace
 
     from selfid_jax.experiments import design as exp
+
     from selfid_jax.runner.sweep import named_leaves
 
     B, G, K, E, n = 2, 3, 2, 4, 2

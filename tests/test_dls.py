@@ -11,7 +11,6 @@ import pytest  # noqa: E402
 from scipy.optimize import lsq_linear, minimize_scalar  # noqa: E402
 
 from selfid_jax.control import dls  # noqa: E402
-
 from selfid_jax.identify import algorithm as selfid  # noqa: E402
 from selfid_jax.systems.ets import ARM5_HOME, arm5, from_ets  # noqa: E402
 

@@ -15,12 +15,12 @@ import mujoco
 import numpy as np
 import pydantic
 import pytest
+from selfid_jax.experiments.common import realism as realistic
+from selfid_jax.experiments.tracking import TrackingConfig
 
 from selfid_jax import control
 from selfid_jax.control import loop
 from selfid_jax.control import realism as realism_lib
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.tracking import TrackingConfig
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems.dynamic import dynamic_ur5e
 from selfid_jax.systems.two_link import two_link

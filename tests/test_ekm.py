@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 
 from selfid_jax import baselines, control
-
-from selfid_jax.control import paths
 from selfid_jax.baselines import ekm
+from selfid_jax.control import paths
 from selfid_jax.systems.two_link import two_link
 
 HARD = dict(scale=(1.5, 0.6), offset=(0.6, -0.6))

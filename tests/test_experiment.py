@@ -17,12 +17,13 @@ import numpy as np
 import pandas as pd
 import pydantic
 import pytest
+from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig
 
 import selfid_jax
-from selfid_jax import cli, runner as experiment
+from selfid_jax import cli
+from selfid_jax import runner as experiment
 from selfid_jax.runner.config import BaseConfig
 from selfid_jax.runner.errors import ConfigError
-from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig
 
 PACKAGE = Path(selfid_jax.__file__).resolve().parent
 
@@ -124,7 +125,6 @@ def _compute(static, p):
 
 def _plot(table, summary, out_dir):
     from matplotlib.figure import Figure
-
     from selfid_jax.experiments.common.figures import save_figure
 
     fig = Figure(figsize=(2, 2))
@@ -185,9 +185,10 @@ def test_demo_takes_any_system_from_a_config(tmp_path, capsys):
 def test_demo_law_is_the_inverse_jacobian_law_and_keeps_the_start_jacobian():
     """The demo's step law moves as control.follow with estimate_or_true does, and its state is the Jacobian at
     the start (MuJoCo-free closed form: the two-link arm's), read by the loop's first step."""
+    from selfid_jax.experiments import demo
+
     from selfid_jax import control
     from selfid_jax.control import paths
-    from selfid_jax.experiments import demo
     from selfid_jax.systems import two_link
 
     arm, q0, path = two_link(), jnp.array([0.4, 1.2]), paths.star(size=0.05, dim=2)

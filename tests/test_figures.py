@@ -21,13 +21,13 @@ import pandas as pd
 import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgba
-
-from selfid_jax.control import paths
 from selfid_jax.experiments import ablation, demo, tracking, valid_region
 from selfid_jax.experiments.common import figures
+from selfid_jax.experiments.common.specs import system_name
 from selfid_jax.experiments.figures import demo as demo_figures
 from selfid_jax.experiments.figures import tracking as tracking_figures
-from selfid_jax.experiments.common.specs import system_name
+
+from selfid_jax.control import paths
 from selfid_jax.runner import registry
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"

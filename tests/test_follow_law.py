@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from selfid_jax import control
-
 from selfid_jax.control import paths, qp
 from selfid_jax.math import geometry
 from selfid_jax.systems import from_pose_fn, two_link

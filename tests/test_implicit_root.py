@@ -147,7 +147,7 @@ def test_differentiated_hand_pose_has_no_host_callback(name):
 
 def test_jacfwd_with_value_is_the_closed_form_jacobian_and_value_under_jit_and_vmap():
     """f(x) = (x0^2, x0 x1, sin x1): value and Jacobian ((2 x0, 0), (x1, x0), (0, cos x1)) from one call."""
-    f = lambda x: jnp.stack([x[0] ** 2, x[0] * x[1], jnp.sin(x[1])])  # noqa: E731
+    f = lambda x: jnp.stack([x[0] ** 2, x[0] * x[1], jnp.sin(x[1])])
     xs = jnp.array([[0.3, -1.2], [2.0, 0.5]])
     J, v = jax.jit(jax.vmap(jacfwd_with_value(f)))(xs)
     for x, Jx, vx in zip(np.asarray(xs), np.asarray(J), np.asarray(v)):

@@ -3,9 +3,9 @@ per actuator) unless the experiment's m_a key overrides it; checked on the built
 
 import numpy as np
 import pytest
+from selfid_jax.experiments.common.schema import m_a_summary, resolve_m_a
 
 from selfid_jax import runner as experiment
-from selfid_jax.experiments.common.schema import m_a_summary, resolve_m_a
 from selfid_jax.systems.two_link import two_link
 
 ARM = """

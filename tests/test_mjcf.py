@@ -8,9 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from selfid_jax import control
-
 from selfid_jax.control import paths
-
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems import from_mjcf
 

@@ -4,19 +4,19 @@ log (selfid_jax.robot.journal), and the ``selfid-jax online`` command."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import shutil
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 
 from selfid_jax.math import geometry
-from selfid_jax.robot import offline as fit_mod
 from selfid_jax.robot import live, options, safety, session
+from selfid_jax.robot import offline as fit_mod
 from selfid_jax.robot.journal import Journal, JournalError, floats, read_journal
 from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, RobotLimits
 
@@ -504,7 +504,8 @@ def test_cli_and_api_give_the_same_defaults_for_every_online_option():
     """`selfid-jax online` with an empty config section runs exactly run_online's defaults (one source each)."""
     import inspect
 
-    from selfid_jax.commands.online import OnlineConfig, options as cli_options
+    from selfid_jax.commands.online import OnlineConfig
+    from selfid_jax.commands.online import options as cli_options
 
     cfg = OnlineConfig(robot={"host": "127.0.0.1", "port": 50007}, path={})
     assert cli_options(cfg) == options.OnlineOptions(path=options.FollowOptions())

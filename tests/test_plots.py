@@ -7,7 +7,6 @@ import itertools
 import numpy as np
 import pandas as pd
 import pytest
-
 from selfid_jax.experiments.common.figures import valid_region_figure
 from selfid_jax.experiments.common.region import VALID_REGION_COLUMNS, valid_region_bounds, valid_region_summary
 

@@ -1,9 +1,9 @@
 """Property tests (hypothesis) of laws the estimator must satisfy for any input."""
 
-import pytest
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 

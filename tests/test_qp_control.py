@@ -9,8 +9,8 @@ import pytest
 from scipy.optimize import lsq_linear, minimize
 
 from selfid_jax import control
-
-from selfid_jax.control import paths, qp as qp_control
+from selfid_jax.control import paths
+from selfid_jax.control import qp as qp_control
 from selfid_jax.systems.two_link import two_link
 
 solve = jax.jit(jax.vmap(qp_control.solve))

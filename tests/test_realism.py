@@ -12,11 +12,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from selfid_jax.experiments.common import realism as realistic
 
 from selfid_jax import cli, control, runner
 from selfid_jax.control import paths
 from selfid_jax.control import realism as R
-from selfid_jax.experiments.common import realism as realistic
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.math import geometry
 from selfid_jax.runner.config import dump_config

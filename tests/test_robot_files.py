@@ -129,7 +129,6 @@ def test_home_comes_from_keyframes_and_qpos0_outside_a_range_is_named():
 
 def test_configs_accept_body_offset_joints_and_keyframes(tmp_path):
     import pydantic
-
     from selfid_jax.experiments.common.specs import MjcfSystem, build_system
 
     (tmp_path / "arm3.urdf").write_text(URDF)

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 import pydantic
 import pytest
+from selfid_jax.experiments.common import figures as plots
 from test_sweep import (
     TESTS,
     SyntheticConfig,
@@ -31,11 +32,9 @@ from test_sweep import (
     synthetic_fn,
 )
 
-from selfid_jax import cli, runner as experiment
+from selfid_jax import cli
+from selfid_jax import runner as experiment
 from selfid_jax.runner import command_line as runner_cli
-
-from selfid_jax.experiments.common import figures as plots
-
 from selfid_jax.runner import sweep
 from selfid_jax.runner.config import BaseConfig
 from selfid_jax.runner.lock import RunDirBusy, RunDirError, hold

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from test_model_o import MJX_BATCH, POSES  # one compiled MJX settle per hand (tests/ is on the path)
 
 import selfid_jax as sj
 from selfid_jax.systems.hands import settle
@@ -20,7 +21,6 @@ from selfid_jax.systems.hands.stewart import (
     stewart_inverse_jacobian,
     stewart_native_batch,
 )
-from test_model_o import MJX_BATCH, POSES  # one compiled MJX settle per hand (tests/ is on the path)
 
 HOME = stewart_home()
 
@@ -233,14 +233,14 @@ def test_settle_options_keep_the_settled_pose(name):
         q = _box(11, MJX_BATCH)
         fast = stewart_hand(backend="mjx")
         inner = fast.params
-        with_model = lambda model: fast.replace(params=dataclasses.replace(inner, model=model))  # noqa: E731
+        with_model = lambda model: fast.replace(params=dataclasses.replace(inner, model=model))
     else:
         mj, steps, tol = mo.model_o_mjmodel(), mo.MODEL_O_SETTLE_STEPS, mo.MODEL_O_SETTLE_TOL
         qpos0, home = mo.model_o_keyframe()
         q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (MJX_BATCH, 3))
         fast = mo.model_o(backend="mjx")
         inner, max_tilt = fast.params
-        with_model = lambda model: fast.replace(params=(dataclasses.replace(inner, model=model), max_tilt))  # noqa: E731
+        with_model = lambda model: fast.replace(params=(dataclasses.replace(inner, model=model), max_tilt))
     mjcf = settle.mjx_model(mj, iterations=None, ls_iterations=None, sparse=False)
     assert (int(inner.model.opt.iterations), int(inner.model.opt.ls_iterations)) == (1, 4)
     assert (int(mjcf.opt.iterations), int(mjcf.opt.ls_iterations)) == (mj.opt.iterations, mj.opt.ls_iterations)

@@ -19,11 +19,12 @@ import numpy as np
 import pandas as pd
 import pydantic
 import pytest
+from selfid_jax.experiments.common.figures import save_figure
 
 import selfid_jax.runner.sweep as sweep
-from selfid_jax import cli, runner as experiment
+from selfid_jax import cli
+from selfid_jax import runner as experiment
 from selfid_jax.runner.config import BaseConfig
-from selfid_jax.experiments.common.figures import save_figure
 from selfid_jax.runner.rundir import load_results, read_summary
 from selfid_jax.runner.sweep import SweepResumeError, grid_table, row_keys, run_chunked
 

@@ -417,8 +417,9 @@ def test_ur5e_asset_and_metadata(ur6):
 
 
 def test_builtin_registry_is_the_one_list_configs_and_the_cli_read():
-    from selfid_jax import systems
     from selfid_jax.experiments.common import specs
+
+    from selfid_jax import systems
 
     assert specs.BUILTIN_FACTORIES == tuple(systems.REGISTRY) == tuple(systems.BUILTIN)
     assert specs.X64_BUILTINS == {"stewart_hand", "model_o"}

@@ -6,10 +6,8 @@ import numpy as np
 import pytest
 
 from selfid_jax import control
-
-from selfid_jax.math import geometry
-
 from selfid_jax.control import paths
+from selfid_jax.math import geometry
 from selfid_jax.systems.ur5e import ur5e
 from selfid_jax.systems.validation import check_task_axes
 

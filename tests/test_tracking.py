@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from selfid_jax import runner as experiment
-
 from selfid_jax.control import paths
 from selfid_jax.runner.errors import ConfigError
 

@@ -7,9 +7,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from test_mjcf import XML
 
 from selfid_jax import cli
-from test_mjcf import XML
 
 pytestmark = pytest.mark.slow  # end-to-end sweep through the CLI
 

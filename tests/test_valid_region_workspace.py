@@ -10,10 +10,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import pytest  # noqa: E402
-
 from selfid_jax.experiments import valid_region_workspace as vrw  # noqa: E402
-from selfid_jax import runner as experiment  # noqa: E402
 from selfid_jax.experiments.common.schema import ControllerConfig, EpsLimits, PathConfig  # noqa: E402
+
+from selfid_jax import runner as experiment  # noqa: E402
 from selfid_jax.systems.ets import arm5  # noqa: E402
 
 

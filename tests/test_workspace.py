@@ -10,8 +10,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import pytest  # noqa: E402
-
 from selfid_jax.experiments import workspace  # noqa: E402
+
 from selfid_jax import runner as experiment  # noqa: E402
 from selfid_jax.runner.errors import ConfigError  # noqa: E402
 from selfid_jax.runner.registry import load as load_config  # noqa: E402

@@ -7,8 +7,15 @@ import sys
 
 import pytest
 
-from selfid_jax._xla import (DEFAULT_XLA_FLAGS, MIN_JAXLIB, defaults_for, jaxlib_version, merged_xla_flags,
-                             release_tuple, request_quick_compile)
+from selfid_jax._xla import (
+    DEFAULT_XLA_FLAGS,
+    MIN_JAXLIB,
+    defaults_for,
+    jaxlib_version,
+    merged_xla_flags,
+    release_tuple,
+    request_quick_compile,
+)
 
 ALL = {flag: value for flag, value in DEFAULT_XLA_FLAGS.items()}
 

@@ -30,11 +30,10 @@ import jax.numpy as jnp
 from pydantic import BaseModel
 
 from selfid_jax import baselines
-
-from selfid_jax.identify import estimator
 from selfid_jax.baselines import ekm
 from selfid_jax.baselines.base import check_choice
 from selfid_jax.baselines.registry import MODEL_BASED
+from selfid_jax.identify import estimator
 from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems import System
 
@@ -137,7 +136,7 @@ def rollouts(group: EKMGroup, system: System, path, q0, controller, sid, checkpo
         return jax.tree.map(lambda a: a[checkpoints], states), conv
 
     at, converged = jax.vmap(fold)(group.models)  # states (G, C, ...), (G,)
-    flat = lambda a: a.reshape((G * C,) + a.shape[2:])  # noqa: E731
+    flat = lambda a: a.reshape((G * C,) + a.shape[2:])
     models = jax.tree.map(lambda a: jnp.repeat(a, C, axis=0), group.models)
     res = jax.vmap(lambda m, s: ekm.follow(m, s, system, path, controller, mode=group.mode, steps=steps)[0])(
         models, jax.tree.map(flat, at))

@@ -249,7 +249,7 @@ def _import(target: str):
         fn = getattr(importlib.import_module(module), attr)
     except KeyboardInterrupt:
         raise
-    except BaseException as err:  # the module's own code runs here: a SyntaxError, any exception or a sys.exit
+    except BaseException as err:  # noqa: BLE001 - the module's own code runs here: a SyntaxError, anything, sys.exit
         what = f"exit({err.code!r})" if isinstance(err, SystemExit) else f"{type(err).__name__}: {err}"
         raise ValueError(f"pose_fn {target!r}: importing module {module!r} failed ({_one_line(what)})") from None
     if not callable(fn):

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-
 from selfid_jax.experiments.articulated import METRICS
+
 from selfid_jax.runner.figures import save_figure
 
 __all__ = ["metrics_figure", "plane_figure", "plot"]

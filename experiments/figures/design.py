@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-
 from selfid_jax.experiments.design import best_point
+
 from selfid_jax.runner.figures import save_figure
 
 __all__ = ["plot"]

@@ -11,7 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pandas as pd
-
 from selfid_jax.experiments.common.figures import valid_region_figure
 from selfid_jax.experiments.valid_region import series
 

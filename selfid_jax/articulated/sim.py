@@ -271,7 +271,7 @@ def _native_host(static: Static):
                                       d.xquat[lay.handle]])
         # float64 travels as uint32 pairs: the callback's return check canonicalises float64 to float32
         # when x64 is enabled by a (thread-local) context rather than globally.
-        out = lambda a: np.ascontiguousarray(a, np.float64).view(np.uint32).reshape(lead + a.shape[1:] + (2,))  # noqa: E731
+        out = lambda a: np.ascontiguousarray(a, np.float64).view(np.uint32).reshape(lead + a.shape[1:] + (2,))
         return out(qpos), out(qvel), out(warm), out(sens)
 
     _NATIVE[key] = host
@@ -309,7 +309,7 @@ def _phys_step(static: Static, obj, phys: _Phys, mpos, mquat, active, grasp):
     if static.backend == "native":
         host = _native_host(static)
         f = phys.qpos.dtype
-        u = lambda n: jax.ShapeDtypeStruct((n, 2), jnp.uint32)  # noqa: E731
+        u = lambda n: jax.ShapeDtypeStruct((n, 2), jnp.uint32)
         shapes = (u(phys.qpos.shape[0]), u(phys.qvel.shape[0]), u(phys.warm.shape[0]), u(14))
         outs = jax.pure_callback(host, shapes, phys.qpos, phys.qvel, phys.warm, mpos, mquat, active, grasp, *obj,
                                  vmap_method="expand_dims")
@@ -389,7 +389,7 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
                    T_g0.inverse() @ T_h0, jnp.zeros((), bool), jnp.zeros((), bool), jnp.zeros((), bool),
                    jnp.zeros((), bool), zero_i, zero_i, jnp.ones((), f), jax.random.wrap_key_data(jnp.asarray(p.key)),
                    zero_i, jnp.zeros(n, f), jnp.ones((), f))
-    keep = lambda new, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(new, x, y), a, b)  # noqa: E731
+    keep = lambda new, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(new, x, y), a, b)
 
     def body(c: _Carry, _):
         T_s, T_h = _poses(c.sens)  # the gripper body carrying the sensor, and the handle (physics)

@@ -62,13 +62,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
-from selfid_jax.control import qp as qp_control
-from selfid_jax.math.checks import check_array, check_positive_int
 from selfid_jax.baselines import sogp
 from selfid_jax.baselines.base import Estimator, assemble, check_bool, check_choice, check_number
+from selfid_jax.control import qp as qp_control
 from selfid_jax.control.loop import FollowResult
 from selfid_jax.control.task import DEFAULT_STEPS, ControllerParams
 from selfid_jax.identify.estimator import guarded_update
+from selfid_jax.math.checks import check_array, check_positive_int
 from selfid_jax.math.linalg import pseudo_inverse
 from selfid_jax.systems.kinematics import ChainModel
 from selfid_jax.systems.system import System
@@ -244,7 +244,7 @@ def linearise(mdl: EKMModel, state: EKMState, q) -> tuple[jax.Array, jax.Array]:
     J_nom = nom.jacobian(q)
     if mdl.formulation == "incremental":
         n = nom.n_act
-        g = lambda da: sogp.mean(state.gp, jnp.concatenate([q, da]))  # noqa: E731
+        g = lambda da: sogp.mean(state.gp, jnp.concatenate([q, da]))
         zero = jnp.zeros((n,), J_nom.dtype)
         # symmetric: the model is the odd part (g(q, da) - g(q, -da)) / 2, zero at da = 0 (same slope there)
         offset = jnp.zeros_like(J_nom[:, 0]) if mdl.symmetric else g(zero)

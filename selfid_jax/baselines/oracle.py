@@ -13,8 +13,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from selfid_jax.identify import estimator
 from selfid_jax.baselines.base import Estimator, assemble, check_number
+from selfid_jax.identify import estimator
 
 
 def _init_for(v_tol):

@@ -26,8 +26,6 @@ import jax
 import jax.numpy as jnp
 from jax.typing import ArrayLike
 
-from selfid_jax.identify import estimator
-from selfid_jax.identify import magnitude as _magnitude
 from selfid_jax.baselines.base import (
     Estimator,
     assemble,
@@ -36,6 +34,8 @@ from selfid_jax.baselines.base import (
     check_count,
     check_number,
 )
+from selfid_jax.identify import estimator
+from selfid_jax.identify import magnitude as _magnitude
 from selfid_jax.identify.estimator import EstimatorState
 from selfid_jax.identify.refine import refine as _refine
 

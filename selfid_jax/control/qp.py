@@ -49,9 +49,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
 from selfid_jax.control.law import StepLaw
 from selfid_jax.control.loop import DEFAULT_STEPS, ControllerParams, FollowResult, follow_law
+from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
 from selfid_jax.systems.system import System
 
 __all__ = ["QPResult", "solve", "step_box", "constrained_law", "follow"]

@@ -32,12 +32,10 @@ import numpy as np
 import optax
 
 from selfid_jax import control
-
 from selfid_jax.control import metrics
-
+from selfid_jax.control.task import DEFAULT_STEPS, ControllerParams
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.math.checks import check_array, check_positive_int, check_scalar, is_traced
-from selfid_jax.control.task import DEFAULT_STEPS, ControllerParams
 from selfid_jax.systems.system import System
 
 __all__ = ["FOLLOW_FROM", "DesignInfo", "DesignParams", "DesignResult", "GridResult", "RefineResult",

@@ -19,10 +19,10 @@ from jax.typing import ArrayLike
 
 from selfid_jax.identify import estimator
 from selfid_jax.identify import recursive as rec_mod
-from selfid_jax.math.geometry import noisy_pose
-from selfid_jax.math.checks import check_magnitude, check_positive_int, check_scalar, float_dtype
 from selfid_jax.identify.refine import needs_samples
 from selfid_jax.identify.step import sample_step
+from selfid_jax.math.checks import check_magnitude, check_positive_int, check_scalar, float_dtype
+from selfid_jax.math.geometry import noisy_pose
 
 if TYPE_CHECKING:  # the systems package loads the shipped robots (MuJoCo): not at run time
     from selfid_jax.systems.system import SelfIDSystem

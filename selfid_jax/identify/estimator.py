@@ -29,12 +29,18 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.typing import ArrayLike
 import numpy as np
+from jax.typing import ArrayLike
 
+from selfid_jax.math.checks import (
+    check_array,
+    check_float_dtype,
+    check_positive_int,
+    check_scalar,
+    float_dtype,
+    is_traced,
+)
 from selfid_jax.math.kernels import small_sum
-from selfid_jax.math.checks import (check_array, check_float_dtype, check_positive_int, check_scalar, float_dtype,
-                                    is_traced)
 
 
 class EstimatorState(NamedTuple):

@@ -30,8 +30,8 @@ import jax
 import jax.numpy as jnp
 
 from selfid_jax.identify import estimator
-from selfid_jax.math.kernels import sort_axis0
 from selfid_jax.identify.estimator import EstimatorState
+from selfid_jax.math.kernels import sort_axis0
 
 Variant = Literal["mean", "median", "weighted", "kalman"]
 VARIANTS: tuple[Variant, ...] = ("mean", "median", "weighted", "kalman")

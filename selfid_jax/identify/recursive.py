@@ -77,7 +77,6 @@ from selfid_jax.math.checks import check_array, check_positive_int, check_scalar
 from selfid_jax.math.kernels import small_sum
 from selfid_jax.math.linalg import default_rcond, psd_pinv
 
-
 ENTER_TOL = 1e-3
 """The rank-one steps start from a batch solve only where ``eps tr(P) tr(S_vv)`` (a bound on its relative round-off)
 is below this: in float32 a Gram matrix of condition number up to about 17,000, in float64 any the rank test keeps."""

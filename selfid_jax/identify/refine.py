@@ -43,12 +43,12 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from jax.typing import ArrayLike
 import numpy as np
 import optax
+from jax.typing import ArrayLike
 
-from selfid_jax.math.checks import check_array, check_scalar, is_traced
 from selfid_jax.identify.estimator import EstimatorState, samples, signed_inverse_jacobian, sizes
+from selfid_jax.math.checks import check_array, check_scalar, is_traced
 from selfid_jax.math.kernels import small_matmul
 from selfid_jax.math.linalg import _ldl_null_space, _spd_right_solve, default_rcond, psd_pinv  # noqa: F401
 

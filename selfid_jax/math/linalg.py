@@ -19,7 +19,6 @@ import jax.numpy as jnp
 
 from selfid_jax.math.kernels import ldl, small_matmul
 
-
 __all__ = ["default_rcond", "implicit_root", "jacfwd_with_value", "newton_root", "pseudo_inverse", "psd_pinv",
            "small_inverse"]
 

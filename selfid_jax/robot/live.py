@@ -77,8 +77,8 @@ from selfid_jax.identify import estimator
 from selfid_jax.math.checks import check_magnitude, float_dtype
 from selfid_jax.robot.journal import Journal, read_journal
 from selfid_jax.robot.log import parse_task
-from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.options import ONLINE_METHODS, OnlineOptions
+from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.safety import envelope
 from selfid_jax.robot.session import ResumeError, Session, Stop, Stopped, init_state, sample_step
 

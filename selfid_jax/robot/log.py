@@ -130,7 +130,7 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
         df = pd.read_csv(path, skipinitialspace=True) if suffix == ".csv" else pd.read_parquet(path)
     except LogError:
         raise
-    except Exception as err:  # pandas/pyarrow/numpy raise many types for a corrupt file
+    except Exception as err:  # noqa: BLE001 - pandas/pyarrow/numpy raise many types for a corrupt file
         detail = " ".join(str(err).split())[:200] or type(err).__name__
         raise LogError(f"{path}: cannot read as {suffix[1:]}: {detail}") from None
     return {str(k): df[k].to_numpy() for k in df.columns}

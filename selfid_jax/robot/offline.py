@@ -23,8 +23,8 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.typing import ArrayLike
 import numpy as np
+from jax.typing import ArrayLike
 
 from selfid_jax.identify import estimator
 from selfid_jax.identify.refine import METHODS, needs_samples, refine

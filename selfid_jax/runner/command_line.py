@@ -32,11 +32,11 @@ from __future__ import annotations
 import argparse
 import contextlib
 import errno
+import functools
 import signal
 import sys
 import threading
 import time
-import functools
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -214,12 +214,11 @@ def _build(exp, cfg, source: str):
 def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progress: bool) -> int:
     """Build the parts (every check before the run directory is made), run the experiment into ``run_dir``
     (:func:`selfid_jax.runner.execute.run`, which locks it) under SIGTERM handling, report, draw."""
-    from selfid_jax.runner.execute import part_threads, run
-
     from selfid_jax.runner import signals
-    from selfid_jax.runner.sweep import clear_stop, request_stop, stop_requested as sweep_stop_requested
-
+    from selfid_jax.runner.execute import part_threads, run
     from selfid_jax.runner.lock import check_free, check_run_dir
+    from selfid_jax.runner.sweep import clear_stop, request_stop
+    from selfid_jax.runner.sweep import stop_requested as sweep_stop_requested
 
     signals.phase("setup")
     check_run_dir(run_dir)  # before any compute: a file in the way, an unwritable folder (RunDirError, exit 2)

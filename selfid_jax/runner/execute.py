@@ -20,10 +20,10 @@ import pandas as pd
 from selfid_jax.runner import lock
 from selfid_jax.runner.config import dump_config
 from selfid_jax.runner.contract import Experiment, Part, UndocumentedColumns
+from selfid_jax.runner.errors import ConfigError, SweepResumeError
 from selfid_jax.runner.fingerprint import fingerprint
 from selfid_jax.runner.layout import PARTS_DIR
 from selfid_jax.runner.rundir import create_run_dir, record_refused, write_results, write_summary
-from selfid_jax.runner.errors import ConfigError, SweepResumeError
 from selfid_jax.runner.sweep import run_chunked
 
 T = TypeVar("T")

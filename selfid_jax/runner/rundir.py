@@ -30,9 +30,8 @@ import yaml
 
 from selfid_jax.runner.config import dump_config, flatten_dict, yaml_load
 from selfid_jax.runner.errors import RunDirError
-from selfid_jax.runner.fingerprint import PACKAGE_ROOT, package_source
 from selfid_jax.runner.files import atomic_write_bytes, atomic_write_text, write_json
-from selfid_jax.strict_json import jsonable
+from selfid_jax.runner.fingerprint import PACKAGE_ROOT, package_source
 from selfid_jax.runner.layout import (
     CHUNKS_DIR,
     CONFIG_FILE,
@@ -44,6 +43,7 @@ from selfid_jax.runner.layout import (
 )
 from selfid_jax.runner.lock import is_held
 from selfid_jax.runner.manifest import finished_tables
+from selfid_jax.strict_json import jsonable
 
 __all__ = [
     "RESULTS_FILE",

@@ -74,8 +74,8 @@ from selfid_jax.runner import lock
 from selfid_jax.runner import manifest as chunks
 from selfid_jax.runner.errors import SweepResumeError
 from selfid_jax.runner.files import atomic_write_bytes
-from selfid_jax.runner.layout import CHUNKS_DIR, PARTS_DIR, RESULTS_FILE
 from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.runner.layout import CHUNKS_DIR, PARTS_DIR, RESULTS_FILE
 from selfid_jax.runner.limits import check_memory, check_rows
 from selfid_jax.runner.manifest import params_hash
 from selfid_jax.runner.signals import phase
@@ -275,7 +275,7 @@ def run_chunked(
                 held.enter_context(lock.hold(_run_root(out_dir)))
                 manifest = chunks.prepare_dir(out_dir, manifest, fresh)
                 done = chunks.verify(out_dir, manifest)
-            except Exception as err:  # broadcast before raising so other hosts do not hang
+            except Exception as err:  # noqa: BLE001 - broadcast before raising so other hosts do not hang
                 error = err
         done, failed = _sync_done(done, error is not None)
         if failed:

@@ -1,16 +1,16 @@
 """Systems: the ``System`` pytree, builders, and the shipped robots."""
 
-from functools import partial
 from collections.abc import Callable
+from functools import partial
 from typing import NamedTuple
 
+from selfid_jax.systems import manipulability  # noqa: F401
 from selfid_jax.systems.dynamic import DynamicArm, dynamic_arm, dynamic_ur5e
 from selfid_jax.systems.ets import arm5, from_ets
 from selfid_jax.systems.hands import model_o, stewart_hand
 from selfid_jax.systems.mjcf import from_mjcf
 from selfid_jax.systems.system import System, from_pose_fn
 from selfid_jax.systems.two_link import two_link
-from selfid_jax.systems import manipulability  # noqa: E402,F401
 from selfid_jax.systems.ur5e import ur5e
 from selfid_jax.systems.validation import Limits
 

@@ -107,7 +107,7 @@ def mount(arm: System, hand: System, *, offset=(0.0, 0.0, 0.0), rotation_vector=
         raise ValueError("arm and hand each need a pose_fn")
     dtype = jnp.result_type(float)
     mount_tf = (jnp.asarray(t, dtype), geometry.so3_exp(jnp.asarray(r, dtype)))
-    cat = lambda f: np.concatenate([np.asarray(getattr(arm, f)), np.asarray(getattr(hand, f))])  # noqa: E731
+    cat = lambda f: np.concatenate([np.asarray(getattr(arm, f)), np.asarray(getattr(hand, f))])
     return make_system(
         name=name or f"{arm.name}+{hand.name}", params=(arm.params, hand.params, mount_tf),
         pose_fn=MountedPose(arm_pose, hand_pose, arm.n_act), has_rotation=True,

@@ -35,10 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selfid_jax.systems.validation import Values
-
 from selfid_jax.systems.system import System, make_system
-from selfid_jax.systems.validation import Limits
+from selfid_jax.systems.validation import Limits, Values
 
 __all__ = ["ARM5_ETS", "ARM5_HOME", "ARM5_Q_HIGH", "ARM5_Q_LOW", "EtsModel", "EtsPose", "arm5", "from_ets", "parse_ets"]
 

@@ -14,8 +14,6 @@ import warnings
 
 import numpy as np
 
-from selfid_jax.systems.validation import Values
-
 from selfid_jax.systems.actuation import build_actuation
 from selfid_jax.systems.kinematics import (
     ChainModel,
@@ -25,7 +23,7 @@ from selfid_jax.systems.kinematics import (
     kinematic_mjx_model,
 )
 from selfid_jax.systems.system import System, make_system
-from selfid_jax.systems.validation import Limits, check_task_dim, vector
+from selfid_jax.systems.validation import Limits, Values, check_task_dim, vector
 
 __all__ = ["from_mjcf", "POM_SITE", "resolve_home", "MjxSitePose", "ChainSitePose", "ChainModel", "HINGE_HALF_WIDTH",
            "RANGE_FRACTION"]
@@ -74,7 +72,7 @@ def _load_mjmodel(path_or_model, *, body: str | None = None, offset=None):
         spec = mujoco.MjSpec.from_file(label) if is_file else mujoco.MjSpec.from_string(path_or_model)
         if kind == "URDF":
             spec.compiler.fusestatic = False  # keep fixed-joint links (a tool flange) as bodies
-    except Exception as e:  # noqa: BLE001 - mujoco raises ValueError/Exception
+    except Exception as e:
         what = f"{kind} file {label!r}" if is_file else f"{kind} XML string"
         raise ValueError(f"could not load {what}: {e}") from e
     if body is not None:
@@ -85,7 +83,7 @@ def _load_mjmodel(path_or_model, *, body: str | None = None, offset=None):
         b.add_site(name=POM_SITE, pos=[float(v) for v in offset])
     try:
         return spec.compile(), label
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         raise ValueError(f"could not compile {kind} {label}: {e}") from e
 
 

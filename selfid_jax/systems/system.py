@@ -37,14 +37,12 @@ from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
-from jax.typing import ArrayLike
 import numpy as np
-
-from selfid_jax.systems.validation import Values
+from jax.typing import ArrayLike
 
 from selfid_jax.math import geometry
 from selfid_jax.math.linalg import pseudo_inverse
-from selfid_jax.systems.validation import Limits, check_task_axes, check_task_dim, default_axes, validate
+from selfid_jax.systems.validation import Limits, Values, check_task_axes, check_task_dim, default_axes, validate
 
 __all__ = ["System", "SelfIDSystem", "from_pose_fn", "PositionOnlyPose"]
 
@@ -423,7 +421,7 @@ def from_pose_fn(
     q0 = jax.ShapeDtypeStruct((int(n_act),), jnp.result_type(float))
     try:
         out = jax.eval_shape(fn, params, q0)
-    except Exception as e:  # noqa: BLE001 - report any tracing failure as bad input
+    except Exception as e:
         raise ValueError(f"fn(params, q) failed on q of shape ({n_act},): {type(e).__name__}: {e}") from e
     if isinstance(out, (tuple, list)) and len(out) == 2:
         p_s, r_s = out

@@ -9,6 +9,15 @@ MJCF hand with position actuators and a POM site);
 ``with jax.enable_x64(True):``.
 """
 
+from selfid_jax.systems.hands.model_o_hand import (  # noqa: F401
+    MODEL_O_XML,
+    ModelOKinematicPose,
+    ModelOParams,
+    TiltGuardedPose,
+    model_o,
+    model_o_home,
+    model_o_keyframe,
+)
 from selfid_jax.systems.hands.settle import (  # noqa: F401
     MjxSettlePose,
     NativeSettlePose,
@@ -24,13 +33,4 @@ from selfid_jax.systems.hands.stewart import (  # noqa: F401
     stewart_home,
     stewart_inverse_jacobian,
     stewart_native_batch,
-)
-from selfid_jax.systems.hands.model_o_hand import (  # noqa: F401
-    MODEL_O_XML,
-    ModelOKinematicPose,
-    ModelOParams,
-    TiltGuardedPose,
-    model_o,
-    model_o_home,
-    model_o_keyframe,
 )
