@@ -2,7 +2,8 @@
 
 selfid_jax's subpackages and data folders (systems/assets, robot/data) are found in selfid_jax/; the top-level
 experiments/ and its subpackages install as selfid_jax.experiments (``[tool.setuptools.package-dir]`` in
-pyproject.toml) and configs/ as the data package selfid_jax.configs, so a wheel holds the same files that a
+pyproject.toml) and configs/ as the data package selfid_jax.configs (its folders, one per experiment, as data
+subpackages: without them setuptools warns that it may drop their YAML), so a wheel holds the same files that a
 checkout and an editable install import.
 """
 
@@ -14,5 +15,6 @@ setup(
         "selfid_jax.experiments",
         *(f"selfid_jax.experiments.{name}" for name in find_packages("experiments")),
         "selfid_jax.configs",
+        *(f"selfid_jax.configs.{name}" for name in find_namespace_packages("configs")),
     ]
 )
