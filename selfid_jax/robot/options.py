@@ -25,9 +25,9 @@ __all__ = ["DIVERGE_DIST", "ONLINE_METHODS", "STALE_S", "FollowOptions", "Online
 ONLINE_METHODS = ("closed_form", "optax")
 """The Eq. 14 refinements the live runner's jitted per-sample step supports."""
 STALE_S = 1.0
-"""s: the watchdog's default: a tracker pose older than this stops the session."""
+"""The watchdog's default in seconds (a tracker pose older than this stops the session)."""
 DIVERGE_DIST = 0.05
-"""m: the default distance from the path (its position axes) that stops following."""
+"""The default distance in metres from the path (its position axes) that stops following."""
 
 
 class FollowOptions(NamedTuple):
