@@ -172,6 +172,46 @@ def test_two_sweeps_into_one_directory(tmp_path, capsys):
     assert json.loads((out / "versions.json").read_text()).get("refused") is None
 
 
+PROBE = textwrap.dedent(
+    """
+    import fcntl, os, sys
+    fd = os.open(sys.argv[1], os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        print("busy")
+    else:
+        print("free")
+    """
+)
+
+
+def _plot_probing_the_lock(df, summary, fig_dir: Path) -> list[Path]:
+    """A figure hook that records whether another process could take the run directory's lock while it draws."""
+    run_dir = fig_dir.parent
+    probe = subprocess.run([sys.executable, "-c", PROBE, str(run_dir / ".lock")], capture_output=True, text=True,
+                           timeout=60, check=True)
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    (fig_dir / "probe.txt").write_text(probe.stdout.strip())
+    return [fig_dir / "probe.txt"]
+
+
+PLOTTING = experiment.register(experiment.Experiment(
+    name="plotting_cli_test", config=SyntheticConfig, build=synthetic_build, compute=_slow_compute,
+    summarize=lambda df, cfg: {"mean_final": float(df["final"].mean())}, plot=_plot_probing_the_lock,
+))
+
+
+def test_lock_is_held_while_the_figures_are_drawn(tmp_path, capsys):
+    """sweep and demo draw the figures under the run's lock: a second process asking for it then is refused."""
+    cfg, out = _config(tmp_path, "plotting_cli_test"), tmp_path / "run"
+    assert _sweep(cfg, out) == 0
+    assert (out / "figures" / "probe.txt").read_text() == "busy"
+    assert "figure:  " in capsys.readouterr().out
+    with _lock_held_elsewhere(out):  # released once the figures are written
+        pass
+
+
 # --------------------------------------------------------------------------- 2. corrupt chunks
 
 

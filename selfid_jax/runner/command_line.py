@@ -212,11 +212,14 @@ def _build(exp, cfg, source: str):
 
 
 def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progress: bool) -> int:
-    """Build the parts (every check before the run directory is made), run the experiment into ``run_dir``
-    (:func:`selfid_jax.runner.execute.run`, which locks it) under SIGTERM handling, report, draw."""
+    """Build the parts (every check before the run directory is made), then, holding the run directory's lock
+    throughout, run the experiment into ``run_dir`` (:func:`selfid_jax.runner.execute.run`) under SIGTERM handling,
+    report and draw the figures."""
+    import jax
+
     from selfid_jax.runner import signals
     from selfid_jax.runner.execute import part_threads, run
-    from selfid_jax.runner.lock import check_free, check_run_dir
+    from selfid_jax.runner.lock import check_free, check_run_dir, hold
     from selfid_jax.runner.sweep import clear_stop, request_stop
     from selfid_jax.runner.sweep import stop_requested as sweep_stop_requested
 
@@ -230,32 +233,36 @@ def _run(exp, cfg, run_dir: Path, *, config_path, overrides, fresh: bool, progre
     again = ("run the same command again to resume (add --fresh to start over)" if config_path is not None
              else f"{_PROG} {exp.name} always starts fresh: run it again")
     message = f"{_PROG}: interrupted; finished chunks are kept in {run_dir}; {again}"
-    try:
-        if signals.installed():
+    # One hold from before the run directory is touched until its figures are written: execute.run takes the same
+    # (re-entrant) lock again, and releasing it before the figures would let another sweep into a directory still
+    # being written. Only process 0 of a jax.distributed run locks (it alone writes the shared files).
+    with hold(run_dir) if jax.process_index() == 0 else contextlib.nullcontext():
+        try:
+            if signals.installed():
+                clear_stop()
+                with signals.graceful(message, request_stop):
+                    out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts,
+                              config_path=config_path, overrides=overrides)
+            else:
+                with _graceful_sigterm() as received:
+                    out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts,
+                              config_path=config_path, overrides=overrides)
+            stopped = signals.installed() and sweep_stop_requested()
+        except (KeyboardInterrupt, _Terminated):
+            print(message, file=sys.stderr)
+            return 143 if (received or signals.installed()) else 130
+        finally:
             clear_stop()
-            with signals.graceful(message, request_stop):
-                out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts, config_path=config_path,
-                          overrides=overrides)
-        else:
-            with _graceful_sigterm() as received:
-                out = run(exp, cfg, run_dir, fresh=fresh, progress=progress, parts=parts, config_path=config_path,
-                          overrides=overrides)
-        stopped = signals.installed() and sweep_stop_requested()
-    except (KeyboardInterrupt, _Terminated):
-        print(message, file=sys.stderr)
-        return 143 if (received or signals.installed()) else 130
-    finally:
-        clear_stop()
-    if stopped:  # SIGTERM during the last chunk: every chunk is saved, but the user asked to stop
-        print(message, file=sys.stderr)
-        return 143
-    if out is None:  # not process 0 of a jax.distributed run
-        return 0
-    _, summary = out
-    if exp.report is not None:
-        print(exp.report(summary))
-    signals.phase("figures")
-    figures = _draw(exp, run_dir)
+        if stopped:  # SIGTERM during the last chunk: every chunk is saved, but the user asked to stop
+            print(message, file=sys.stderr)
+            return 143
+        if out is None:  # not process 0 of a jax.distributed run
+            return 0
+        _, summary = out
+        if exp.report is not None:
+            print(exp.report(summary))
+        signals.phase("figures")
+        figures = _draw(exp, run_dir)  # still under the lock: the run is not finished until its figures are
     print(f"results: {run_dir} ({time.perf_counter() - t0:.1f} s)")
     for f in figures:
         print(f"figure:  {f}")

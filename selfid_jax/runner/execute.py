@@ -1,10 +1,12 @@
 """Running an experiment into a run directory: the lock taken once, the parts chunked and resumable, table and summary
 written.
 
-:func:`run` is the one place that takes the run directory's lock
-(:func:`selfid_jax.runner.lock.hold`) for a run; everything below it (creating or
-reopening the directory, each part's :func:`~selfid_jax.runner.sweep.run_chunked`,
-the results and summary) runs under that hold.
+:func:`run` takes the run directory's lock (:func:`selfid_jax.runner.lock.hold`)
+for a run; everything below it (creating or reopening the directory, each part's
+:func:`~selfid_jax.runner.sweep.run_chunked`, the results and summary) runs under
+that hold. The lock is re-entrant within a process, so a caller with more to write
+after the run (``selfid-jax sweep`` and ``demo`` draw the figures) holds it around
+:func:`run` and releases it only once that is written too.
 """
 
 from __future__ import annotations
