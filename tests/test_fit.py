@@ -14,7 +14,7 @@ from selfid_jax.cli import main
 from selfid_jax.identify import estimator
 from selfid_jax.identify.refine import refine
 from selfid_jax.robot import offline as fit_mod
-from selfid_jax.robot.log import LogError, samples_from_table
+from selfid_jax.robot.log import LogError, read_table, samples_from_table
 from selfid_jax.systems.ur5e import UR5E_HOME
 
 TOL = 1e-9
@@ -208,6 +208,40 @@ def _one_line_error(capsys, argv):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in err, err
     return lines[0]
+
+
+def test_duplicated_column_names_exit_2_naming_the_column(tmp_path, capsys):
+    """Two columns of one name: refused (pandas would read the second as q_0.1 and fit the first), in every format."""
+    import zipfile
+
+    import pandas as pd
+
+    Jinv, V, dtheta = _linear(T=6)
+    quat, _ = _time_series(np.pad(Jinv, ((0, 0), (0, 3))), np.pad(V, ((0, 0), (0, 3))))
+    path = _write_csv(tmp_path / "twice.csv", quat)
+    keys = list(quat)
+    text = path.read_text().splitlines()
+    text[0] = ",".join(k if k != "q_3" else "q_0" for k in keys)  # the second q_0 where q_3 was
+    path.write_text("\n".join(text) + "\n")
+    line = _one_line_error(capsys, ["fit", str(path), "--out", str(tmp_path / "o")])
+    assert str(path) in line and "column q_0 appears 2 times" in line, line
+    assert f"header columns {keys.index('q_0') + 1} and {keys.index('q_3') + 1}" in line
+    spaced = tmp_path / "spaced.csv"  # the space after a comma is skipped, as when the file is read
+    spaced.write_text("dtheta_0, V_0, dtheta_0\n0.1, 0.2, 0.3\n0.3, 0.1, 0.2\n")
+    assert "column dtheta_0 appears 2 times" in _one_line_error(capsys, ["fit", str(spaced)])
+    legit = tmp_path / "legit.csv"  # a column really named q_0.1 next to q_0 is no duplicate
+    legit.write_text("dtheta_0,V_0,dtheta_0.1\n0.1,0.2,0.3\n0.3,0.1,0.2\n")
+    assert list(read_table(legit)) == ["dtheta_0", "V_0", "dtheta_0.1"]
+
+    npz = tmp_path / "twice.npz"  # a zip may hold two members of one name
+    np.savez(npz, **quat)
+    with zipfile.ZipFile(npz, "a") as z, pytest.warns(UserWarning, match="Duplicate name"):
+        z.writestr("q_0.npy", z.read("q_3.npy"))
+    assert "column q_0 appears 2 times" in _one_line_error(capsys, ["fit", str(npz), "--out", str(tmp_path / "o")])
+    frame = pd.DataFrame(quat).rename(columns={"q_3": "q_0"})  # from Python: a DataFrame may repeat a name
+    with pytest.raises(LogError, match="column q_0 appears 2 times"):
+        samples_from_table(frame)
+    assert not (tmp_path / "o" / "summary.json").exists()
 
 
 def test_unusable_logs_exit_2_with_one_line(tmp_path, capsys):

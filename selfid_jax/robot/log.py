@@ -21,8 +21,8 @@ Bad rows are dropped and counted, one :class:`Rejection` per kind: a
 non-finite entry in a used column, a zero quaternion, a timestamp equal to
 (duplicated) or before (non-monotonic) the latest kept one, and, for the
 time series, a pair spanning more than ``max_gap`` seconds. A log that cannot
-be used at all (unreadable, a missing or misnumbered column, text in a number
-column, too few rows) raises :class:`LogError`, one line naming the file,
+be used at all (unreadable, a missing, misnumbered or duplicated column, text in
+a number column, too few rows) raises :class:`LogError`, one line naming the file,
 column and row.
 """
 
@@ -124,16 +124,37 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
     try:
         if suffix == ".npz":
             with np.load(path, allow_pickle=False) as z:
+                _refuse_duplicates(str(path), z.files, "arrays")  # a zip may hold two members of one name
                 return {k: z[k] for k in z.files}
         import pandas as pd
 
-        df = pd.read_csv(path, skipinitialspace=True) if suffix == ".csv" else pd.read_parquet(path)
+        if suffix == ".csv":
+            # pandas renames a repeated header name (the second q_0 becomes q_0.1), so read the header as it is
+            header = pd.read_csv(path, header=None, nrows=1, dtype=str, keep_default_na=False,
+                                 skipinitialspace=True)
+            _refuse_duplicates(str(path), [str(v) for v in header.iloc[0]] if len(header) else [], "header columns")
+            df = pd.read_csv(path, skipinitialspace=True)
+        else:
+            df = pd.read_parquet(path)
+            _refuse_duplicates(str(path), [str(c) for c in df.columns], "columns")
     except LogError:
         raise
     except Exception as err:  # noqa: BLE001 - pandas/pyarrow/numpy raise many types for a corrupt file
         detail = " ".join(str(err).split())[:200] or type(err).__name__
         raise LogError(f"{path}: cannot read as {suffix[1:]}: {detail}") from None
     return {str(k): df[k].to_numpy() for k in df.columns}
+
+
+def _refuse_duplicates(source: str, names: Sequence[str], what: str = "columns") -> None:
+    """:class:`LogError` naming the first column name that ``names`` holds more than once (where they are)."""
+    seen: dict[str, list[int]] = {}
+    for i, name in enumerate(names):
+        seen.setdefault(name, []).append(i + 1)
+    for name, where in seen.items():
+        if len(where) > 1 and name != "":  # an unnamed CSV column is not a name pandas would merge
+            at = ", ".join(map(str, where[:-1])) + f" and {where[-1]}"
+            raise LogError(f"{source}: column {name} appears {len(where)} times ({what} {at}); which one is meant "
+                           "is ambiguous: give every column its own name")
 
 
 def _numeric(source: str, name: str, values: Any, rows: int) -> np.ndarray:
@@ -238,6 +259,7 @@ def samples_from_table(
       source: the file name used in messages.
     """
     columns = [str(c) for c in table.keys()]
+    _refuse_duplicates(source, columns)  # a DataFrame may hold two columns of one name
     rows = -1
     for c in columns:
         rows = int(np.shape(table[c])[0]) if np.ndim(table[c]) >= 1 else 0
