@@ -34,6 +34,9 @@ def arm_pose(q):
     return p, np.array([cz * cy, -sz * sy, cz * sy, sz * cy])  # Rz(q0) Ry(-b)
 
 
+VENDOR_ERRORS = {"TimeoutError": TimeoutError, "ValueError": ValueError, "OSError": OSError}
+
+
 class FakeArm:
     """A protocol driver around :func:`arm_pose`, with faults; records every command it is given.
 
@@ -41,10 +44,17 @@ class FakeArm:
     read on the tracker_t and pose stop advancing. ``fail_move_at``: 0-based move index raising
     RobotConnectionError (the move is not made); ``interrupt_at``: the same with KeyboardInterrupt.
     ``mirror``: the kinematics are mirrored about the start (the Jacobian's sign flips: a grasp that changed).
+    ``fail_read_at`` / ``fail_move_with``: a vendor's own exception (not a RobotError) from that read / that move.
+    ``valid_as``: ``valid`` reported as this (e.g. the string "False"). ``in_place``: read returns the same arrays
+    every time, updated in place.
     """
 
     def __init__(self, q0=START, *, lower=(-3.0, -3.0, -3.0), upper=(3.0, 3.0, 3.0), max_step=0.2, dropouts=(),
-                 freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5):
+                 freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5, fail_move_with=None,
+                 fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False):
+        self.fail_move_with, self.fail_read_at, self.fail_read_with = fail_move_with, fail_read_at, fail_read_with
+        self.valid_as, self.in_place = valid_as, in_place
+        self._buffers = (np.zeros(3), np.zeros(3), np.zeros(4))  # in_place: one set of arrays, updated each read
         self.q = np.array(q0, np.float64)
         self.lim = RobotLimits(np.array(lower, np.float64), np.array(upper, np.float64), np.full(3, max_step))
         self.dropouts, self.freeze_at = set(dropouts), freeze_at
@@ -62,7 +72,19 @@ class FakeArm:
         return self.lim
 
     def read(self):
+        obs = self._read()
+        if self.valid_as is not None:  # a driver that reports validity as something other than a bool
+            obs = obs._replace(valid=self.valid_as)
+        if self.in_place:  # a driver that hands out its own arrays and updates them on the next read
+            for buf, new in zip(self._buffers, (obs.q, obs.position, obs.quaternion)):
+                buf[:] = new
+            obs = obs._replace(q=self._buffers[0], position=self._buffers[1], quaternion=self._buffers[2])
+        return obs
+
+    def _read(self):
         self.reads += 1
+        if self.reads == self.fail_read_at:
+            raise VENDOR_ERRORS[self.fail_read_with]("fake: the vendor library failed")
         t = self._t = max(time.monotonic(), self._t + 1e-9)
         qk = self.q if self.centre is None else 2 * self.centre - self.q
         p, quat = arm_pose(qk)
@@ -78,6 +100,8 @@ class FakeArm:
 
     def move(self, target):
         if len(self.moves) == self.fail_move_at:
+            if self.fail_move_with is not None:
+                raise VENDOR_ERRORS[self.fail_move_with]("fake: the vendor library refused the move")
             raise RobotConnectionError("fake: connection reset")
         if len(self.moves) == self.interrupt_at:
             raise KeyboardInterrupt
@@ -258,6 +282,33 @@ def test_journal_tolerates_only_a_cut_last_line(tmp_path):
         read_journal(path)
 
 
+def test_a_driver_that_updates_its_arrays_in_place_is_copied(tmp_path):
+    """The runner copies every reading: a driver reusing its arrays gives the very session a copying one gives."""
+    ref = live.run_online(FakeArm(noise=0.0), opts(), tmp_path / "copying")
+    res = live.run_online(FakeArm(noise=0.0, in_place=True), opts(), tmp_path / "in_place")
+    assert ref.status == res.status == live.Stop.CONVERGED and res.converged_at == ref.converged_at
+    np.testing.assert_array_equal(res.estimate, ref.estimate)
+
+
+@pytest.mark.parametrize("valid", ["False", float("nan")])
+def test_valid_must_be_a_real_bool(tmp_path, valid):
+    fake = FakeArm(valid_as=valid)
+    res = live.run_online(fake, opts(), tmp_path)
+    assert res.status == live.Stop.ROBOT_ERROR and "valid=" in res.detail, res.detail
+    assert fake.moves == [] and res.samples == 0 and fake.closed
+
+
+@pytest.mark.parametrize("kw, kind", [(dict(fail_read_at=6), "TimeoutError"),
+                                      (dict(fail_read_at=6, fail_read_with="OSError"), "OSError"),
+                                      (dict(fail_move_at=3, fail_move_with="ValueError"), "ValueError")])
+def test_any_driver_exception_is_a_logged_stop_and_a_closed_robot(tmp_path, kw, kind):
+    fake = FakeArm(**kw)
+    res = live.run_online(fake, opts(), tmp_path)
+    assert res.status == live.Stop.DRIVER_ERROR and kind in res.detail and fake.closed, res.detail
+    last = read_journal(res.log).records[-1]
+    assert last["e"] == "stop" and last["reason"] == "driver_error" and last["kind"] == kind
+
+
 # --------------------------------------------------------------------------- following
 
 
@@ -400,6 +451,24 @@ def test_cli_runs_resumes_and_writes_the_estimate(tmp_path, driver_module, capsy
     assert "seed" in capsys.readouterr().err
 
 
+def test_cli_driver_exception_exits_3_and_writes_no_estimate(tmp_path, driver_module, capsys):
+    """A vendor's ValueError mid-session: exit 3 (the robot's class, not 2), a summary, no estimate file."""
+    from selfid_jax.cli import main
+
+    cfg = _config(tmp_path, """
+        robot: {driver: "fake_driver:make", args: {fail_move_at: 3, fail_move_with: ValueError}}
+        selfid: {task: "x,y,z", m_a: 0.03, eps_rel: 0.05, max_samples: 40, seed: 3, settle_s: 0.0, poll_s: 0.001}
+    """)
+    out = tmp_path / "run"
+    assert main(["online", str(cfg), "--out", str(out)]) == 3
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "driver_error" and not summary["converged"] and summary["samples"] == 3
+    assert np.shape(summary["estimate_so_far"]) == (3, 3)
+    assert not (out / "inverse_jacobian.npz").exists() and not (out / "inverse_jacobian.json").exists()
+    assert "not converged: no inverse Jacobian written" in capsys.readouterr().out
+    assert driver_module.CREATED[-1].closed
+
+
 @pytest.mark.parametrize("body, key", [
     ("robot: {driver: 'fake_driver:make'}\nselfid: {m_a: 0.03, bogus: 1}\n", "selfid.bogus"),
     ("robot: {driver: 'fake_driver:make'}\nsafety: {stale_s: -1}\n", "safety.stale_s"),
@@ -490,6 +559,36 @@ def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "max_samples" and summary["replayed"] == summary["samples"] - 3 >= 5
     assert len(driver_module.CREATED[-1].moves) == 3
+
+
+@pytest.mark.slow
+def test_cli_two_sigterms_50_ms_apart_still_leave_a_stop_record(tmp_path, driver_module, console):
+    """The second signal ends the process at once (143); the log still ends with a stop record (killed)."""
+    import os
+    import signal
+    import subprocess
+
+    cfg = _config(tmp_path, """
+        robot: {driver: "fake_driver:make"}
+        selfid: {m_a: 0.03, eps_rel: 1.0e-15, max_samples: 100000, settle_s: 0.4, poll_s: 0.001}
+    """)  # a long settle: the first signal's stop is seen only after it, so the second one ends the process
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).parent),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([*console, "online", str(cfg), "--out", str(out)], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    log = out / live.LOG_FILE
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < deadline and \
+            not (log.exists() and log.read_bytes().count(b'"e":"move"') >= 2):
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=60)
+    assert proc.returncode == 143
+    last = read_journal(log).records[-1]
+    assert last["e"] == "stop" and last["reason"] == "killed", last
 
 
 def test_the_step_compiles_once_per_shape(tmp_path, converged_run):

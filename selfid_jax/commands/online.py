@@ -25,13 +25,19 @@ config), ``summary.json`` (status, counts, step latency) and
 ``inverse_jacobian.npz`` / ``.json`` (the estimate, as ``selfid-jax fit``
 writes it). ``--resume`` continues a stopped session from its log.
 
-Exit codes: 0 converged (or path completed), 1 another stop (max_samples,
-stale, box, limits, divergence, connection, robot_error: the summary says
-which), 2 bad input (config, run directory, a log that disagrees), 130
-interrupted. A first SIGTERM or Ctrl-C stops the session cleanly after the
-move in flight (the robot is closed, the log ends with the stop); a second
-one ends the process at once, like a crash: the log then lacks at most the
-line in flight and ``--resume`` continues.
+Exit codes: 0 converged (or path completed); 1 a stop of the session's own
+(max_samples, max_steps, stale, box, limits, divergence: the summary says
+which); 2 bad input (config, run directory, a log that disagrees), before any
+motion; 3 the robot or its driver failed (connection, robot_error, and
+driver_error for any exception a driver raises that is not a RobotError);
+4 the runner itself failed (error; the log keeps the traceback); 130
+interrupted. Every one of these is a stop record in the log, a closed robot
+and a ``summary.json``; only a converged session writes
+``inverse_jacobian.npz`` / ``.json``. A first SIGTERM or Ctrl-C stops the
+session cleanly after the move in flight (the robot is closed, the log ends
+with the stop); a second one ends the process at once, like a crash, after
+appending a ``killed`` stop record: the log then lacks at most the line in
+flight and ``--resume`` continues.
 """
 
 from __future__ import annotations
@@ -293,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # one estimator per process: float64, like `fit`
-    from selfid_jax.robot import live, session
+    from selfid_jax.robot import live
     from selfid_jax.robot.log import parse_task
 
     opts = options(cfg)
@@ -336,7 +342,8 @@ def run(args: argparse.Namespace) -> int:
             signals.phase("online")
             try:
                 with signals.graceful(f"selfid-jax online: interrupted; the session log {log} is intact "
-                                      "(continue with --resume)", stop.set, interrupt=True):
+                                      "(continue with --resume)", stop.set, interrupt=True,
+                                      last_words=lambda: _log_killed(log)):
                     result = live.run_online(robot, opts, out, resume=args.resume, stop_requested=stop.is_set)
             except ValueError as err:  # bad options, a log that disagrees: all before any motion
                 raise ConfigError(f"{args.config}: {' '.join(str(err).split())}") from None
@@ -345,13 +352,37 @@ def run(args: argparse.Namespace) -> int:
         signals.phase("write")
         files = write_run(result, cfg, out)
     _report(result, files)
-    if result.status == session.Stop.INTERRUPTED:
+    return exit_code(result.status)
+
+
+def exit_code(status) -> int:
+    """The exit code of a session that ended with ``status`` (a :class:`selfid_jax.robot.session.Stop`): 0 converged
+    or path completed; 1 a stop of the session's own (max_samples, max_steps, stale, box, limits, divergence);
+    3 the robot or its driver failed (connection, robot_error, driver_error); 4 the runner failed (error); 130
+    interrupted. Bad input (config, run directory, a log that disagrees) exits 2 before any motion."""
+    from selfid_jax.robot.session import Stop
+
+    if status in (Stop.CONVERGED, Stop.COMPLETED):
+        return 0
+    if status == Stop.INTERRUPTED:
         return 130
-    return 0 if result.status in (session.Stop.CONVERGED, session.Stop.COMPLETED) else 1
+    if status in (Stop.CONNECTION, Stop.ROBOT_ERROR, Stop.DRIVER_ERROR):
+        return 3
+    return 4 if status == Stop.ERROR else 1
+
+
+def _log_killed(log: Path) -> None:
+    """Append the stop record of a process that a second signal ends at once (called from the signal thread)."""
+    from selfid_jax.robot.journal import Journal
+
+    with Journal(log) as journal:
+        journal.append({"e": "stop", "reason": "killed", "detail": "a second signal ended the process at once; the "
+                        "robot's connection closes with it (continue with --resume)"})
 
 
 def write_run(result: OnlineResult, cfg: OnlineConfig, out: Path) -> dict[str, Path]:
-    """Write ``summary.json`` and ``inverse_jacobian.npz``/``.json`` into ``out`` (each atomically)."""
+    """Write ``summary.json`` and, for a converged session only, ``inverse_jacobian.npz``/``.json`` into ``out`` (each
+    atomically); a session that did not converge has its estimate so far in the summary (``estimate_so_far``)."""
     import numpy as np
 
     from selfid_jax.identify import estimator
@@ -361,12 +392,16 @@ def write_run(result: OnlineResult, cfg: OnlineConfig, out: Path) -> dict[str, P
     meta = {k: info[k] for k in ("n", "m", "task_axes", "converged_at", "converged", "samples", "eps", "eps_rel",
                                  "status")}
     guess = np.asarray(estimator.initial_guess(result.state))
-    paths = {name: out / name for name in (SUMMARY_FILE, JINV_NPZ, JINV_JSON)}
-    atomic_write_bytes(paths[JINV_NPZ], _npz(
-        inverse_jacobian=result.estimate, initial_guess=guess, task_axes=np.array(info["task_axes"]),
-        **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"}))
-    write_json(paths[JINV_JSON], {"inverse_jacobian": result.estimate, "initial_guess": guess, **meta,
-                                  "log": str(result.log)})
+    paths = {SUMMARY_FILE: out / SUMMARY_FILE}
+    if result.converged:  # a session that never converged writes no file that could be taken for a result
+        paths.update({name: out / name for name in (JINV_NPZ, JINV_JSON)})
+        atomic_write_bytes(paths[JINV_NPZ], _npz(
+            inverse_jacobian=result.estimate, initial_guess=guess, task_axes=np.array(info["task_axes"]),
+            **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"}))
+        write_json(paths[JINV_JSON], {"inverse_jacobian": result.estimate, "initial_guess": guess, **meta,
+                                      "log": str(result.log)})
+    else:
+        info["estimate_so_far"] = result.estimate if result.samples else None  # not converged: not a result
     write_json(paths[SUMMARY_FILE], info)
     return paths
 
@@ -385,7 +420,11 @@ def _report(result: OnlineResult, files: dict[str, Path]) -> None:
         print(f"estimator step: p50 {np.percentile(result.step_ms, 50):.3f} ms, "
               f"p99 {np.percentile(result.step_ms, 99):.3f} ms per sample")
     print(f"stopped: {result.status.value}: {result.detail}")
-    print(f"inverse Jacobian: {files[JINV_NPZ]} (and {JINV_JSON}); log: {result.log}")
+    if JINV_NPZ in files:
+        print(f"inverse Jacobian: {files[JINV_NPZ]} (and {JINV_JSON}); log: {result.log}")
+    else:
+        print(f"not converged: no inverse Jacobian written (the estimate so far is in {files[SUMMARY_FILE]}); "
+              f"log: {result.log}")
 
 
 def command():

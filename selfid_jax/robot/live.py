@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import math
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -80,7 +81,7 @@ from selfid_jax.robot.log import parse_task
 from selfid_jax.robot.options import ONLINE_METHODS, OnlineOptions
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.safety import envelope
-from selfid_jax.robot.session import ResumeError, Session, Stop, Stopped, init_state, sample_step
+from selfid_jax.robot.session import DriverFault, ResumeError, Session, Stop, Stopped, init_state, sample_step
 
 __all__ = ["LOG_FILE", "OnlineResult", "run_online"]
 
@@ -232,6 +233,7 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                         "wall_time": time.time(), "lower": env.lower, "upper": env.upper, "max_step": env.max_step,
                         "box_low": env.box_low, "box_high": env.box_high, "stale_s": env.stale_s})
         session.last_advance_wall = time.monotonic()  # the watchdog's clock starts now, not before the replay
+        kind = trace = None
         try:
             if int(session.state.converged_at) < 1:
                 session.selfid()
@@ -245,9 +247,15 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             status, detail = Stop.CONNECTION, f"connection lost: {err}"
         except RobotError as err:
             status, detail = Stop.ROBOT_ERROR, f"the robot refused or faulted: {err}"
+        except DriverFault as err:
+            status, detail, kind = Stop.DRIVER_ERROR, f"the driver failed: {err}", err.kind
         except KeyboardInterrupt:
             status, detail = Stop.INTERRUPTED, "interrupted (KeyboardInterrupt)"
-        journal.append({"e": "stop", "reason": status.value, "detail": detail})
+        except Exception as err:  # noqa: BLE001 - a bug of the runner's own: still a logged stop, no further command
+            status, detail, kind = Stop.ERROR, f"internal error: {type(err).__name__}: {err}", type(err).__name__
+            trace = traceback.format_exc()
+        extra = {k: v for k, v in (("kind", kind), ("traceback", trace)) if v is not None}
+        journal.append({"e": "stop", "reason": status.value, "detail": detail, **extra})
     finally:
         try:
             robot.close()

@@ -100,17 +100,21 @@ def actuation_target(seed: int, k: int, q: np.ndarray, m_a: np.ndarray, lower: n
 def check_observation(obs: Any, n: int) -> Observation:
     """The driver's reading as new float64 arrays of the protocol's shapes; RobotError if it is malformed.
 
-    The arrays are copies (a driver may reuse and update its own). A
-    reading flagged valid whose pose is not finite, or whose quaternion is
-    zero, is a dropout (``valid`` False).
+    The arrays are copies (a driver may reuse and update its own). ``valid``
+    must be a real boolean (``"False"`` or NaN is a RobotError naming it, not
+    a valid reading). A reading flagged valid whose pose is not finite, or
+    whose quaternion is zero, is a dropout (``valid`` False).
     """
     try:
         q = np.array(obs.q, np.float64).reshape(-1)
         p = np.array(obs.position, np.float64).reshape(-1)
         quat = np.array(obs.quaternion, np.float64).reshape(-1)
-        t, tt, valid = float(obs.t), float(obs.tracker_t), bool(obs.valid)
+        t, tt, valid = float(obs.t), float(obs.tracker_t), obs.valid
     except (AttributeError, TypeError, ValueError) as err:
         raise RobotError(f"driver returned a malformed observation: {err}") from None
+    if not isinstance(valid, (bool, np.bool_)):  # bool("False") and bool(nan) are True: no coercion
+        raise RobotError(f"driver returned valid={valid!r} ({type(valid).__name__}); expected True or False")
+    valid = bool(valid)
     if q.shape != (n,) or p.shape != (3,) or quat.shape != (4,):
         raise RobotError(f"driver returned q {q.shape}, position {p.shape}, quaternion {quat.shape}; "
                          f"expected ({n},), (3,), (4,)")

@@ -45,11 +45,11 @@ from selfid_jax.math import geometry
 from selfid_jax.math.checks import float_dtype
 from selfid_jax.robot.journal import Journal, JournalContents, JournalError, floats
 from selfid_jax.robot.log import pairs_from_time_series, rotations
-from selfid_jax.robot.protocol import Observation, Robot
+from selfid_jax.robot.protocol import Observation, Robot, RobotError
 from selfid_jax.robot.safety import Envelope, actuation_target, check_observation
 
-__all__ = ["ResumeError", "Session", "Stop", "Stopped", "follow_command", "host_step", "init_state", "sample_step",
-           "task_difference"]
+__all__ = ["DriverFault", "ResumeError", "Session", "Stop", "Stopped", "follow_command", "host_step", "init_state",
+           "sample_step", "task_difference"]
 
 
 class Stop(enum.StrEnum):
@@ -65,11 +65,22 @@ class Stop(enum.StrEnum):
     DIVERGENCE = "divergence"  # while following, farther than diverge_dist from the path
     CONNECTION = "connection"  # the driver raised RobotConnectionError
     ROBOT_ERROR = "robot_error"  # the driver raised another RobotError (a refused command, a fault)
+    DRIVER_ERROR = "driver_error"  # the driver raised an exception that is not a RobotError (a vendor's own)
+    ERROR = "error"  # the runner itself failed (a bug): the session stopped with no further command
     INTERRUPTED = "interrupted"  # KeyboardInterrupt or a stop request
+    KILLED = "killed"  # in the log only: a second signal ended the process at once (selfid-jax online)
 
 
 class ResumeError(JournalError):
     """A session log that cannot be resumed with these options; the message names the disagreeing field."""
+
+
+class DriverFault(Exception):
+    """A driver's ``read`` or ``move`` raised something other than a RobotError (``kind`` names its type)."""
+
+    def __init__(self, call: str, err: BaseException):
+        super().__init__(f"{call}() raised {type(err).__name__}: {err}")
+        self.kind = type(err).__name__
 
 
 class Stopped(Exception):
@@ -195,13 +206,22 @@ class Session:
 
     # ---- robot I/O, each logged as it happens
 
+    def _call(self, name: str, *args):
+        """``robot.<name>(*args)``; an exception other than RobotError (or KeyboardInterrupt) becomes a DriverFault."""
+        try:
+            return getattr(self.robot, name)(*args)
+        except RobotError:
+            raise
+        except Exception as err:  # a vendor's TimeoutError, ValueError, OSError...: a logged stop, not a traceback
+            raise DriverFault(name, err) from err
+
     def check_interrupt(self) -> None:
         if self.stop_requested is not None and self.stop_requested():
             raise Stopped(Stop.INTERRUPTED, "stop requested")
 
     def read(self, phase: str) -> Observation:
         """Read, log, and apply the watchdog, the limits and the box (valid poses only)."""
-        obs = check_observation(self.robot.read(), self.n)
+        obs = check_observation(self._call("read"), self.n)
         now = time.monotonic()
         self.journal.append({"e": "obs", "phase": phase, "t": obs.t, "q": obs.q, "p": obs.position,
                              "quat": obs.quaternion, "tracker_t": obs.tracker_t, "valid": obs.valid})
@@ -247,7 +267,7 @@ class Session:
         self.check_interrupt()
         self.journal.append({"e": "move", "phase": phase, "k": k, "target": target, "from": base.q})
         self.last_cmd_t = base.t
-        self.robot.move(target)
+        self._call("move", target.copy())  # a copy: the driver may keep or change what it is handed
 
     # ---- the estimator
 

@@ -40,6 +40,7 @@ class _State:
     message: str | None = None  # the line for an interruption inside graceful(); None outside
     stop: Callable[[], None] | None = None  # asks the sweep to stop after the chunk in flight
     interrupt = False  # a first SIGINT also calls stop (a command that moves a robot)
+    last_words: Callable[[], None] | None = None  # called before a second signal ends the process
     terms = 0
 
 
@@ -79,22 +80,31 @@ def _wait() -> None:
                 stop()  # the sweep saves the chunk in flight, then raises SweepInterrupted in the main thread
                 continue
             line = _State.message or f"{_State.prog}: {'interrupted' if signum == signal.SIGINT else 'terminated'}"
+            last_words = _State.last_words
+        if last_words is not None:
+            try:
+                last_words()
+            except Exception:  # noqa: BLE001 - the process ends now whatever the record's fate
+                pass
         os.write(2, (line + "\n").encode(errors="replace"))
         os._exit(128 + signum)
 
 
 @contextlib.contextmanager
-def graceful(message: str, stop: Callable[[], None], *, interrupt: bool = False) -> Iterator[None]:
+def graceful(message: str, stop: Callable[[], None], *, interrupt: bool = False,
+             last_words: Callable[[], None] | None = None) -> Iterator[None]:
     """Inside the block: an interruption prints ``message``; a first SIGTERM calls ``stop`` instead of exiting.
 
     ``interrupt``: a first SIGINT (Ctrl-C) calls ``stop`` too, for a command that moves a robot, which
     must stop it and close the connection rather than vanish mid-move; a second signal of either kind
-    ends the process at once.
+    ends the process at once, after ``last_words()`` (from the signal thread: it must be quick and
+    thread-safe, e.g. one appended line; the robot commands record the stop in the session log).
     """
     with _lock:
         _State.message, _State.stop, _State.terms, _State.interrupt = message, stop, 0, interrupt
+        _State.last_words = last_words
     try:
         yield
     finally:
         with _lock:
-            _State.message, _State.stop, _State.interrupt = None, None, False
+            _State.message, _State.stop, _State.interrupt, _State.last_words = None, None, False, None
