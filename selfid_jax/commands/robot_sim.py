@@ -19,7 +19,9 @@ refused with the dotted key, before the port is bound)::
     port: 50007
 
 :class:`selfid_jax.robot.virtual.VirtualRobot` ticks at ``realism.period``;
-:class:`selfid_jax.robot.transport.RobotServer` answers one client at a time.
+:class:`selfid_jax.robot.transport.RobotServer` answers one client at a time; it reads each frame whole (a
+client stalling inside one is dropped) and checks every move (a list of numbers of the right length, finite,
+within the limits and ``max_step`` of the actuators' position) before the virtual robot sees it.
 Once listening it prints ``robot-sim: serving SYSTEM on HOST:PORT`` (and
 writes the port to ``--port-file`` atomically), and serves until SIGTERM or
 Ctrl-C, which stop the clock where the actuators are.
@@ -142,6 +144,13 @@ def build(cfg: RobotSimConfig, *, start: bool = True):
         raise ConfigError(f"cannot build the virtual robot: {' '.join(str(err).split())}") from None
 
 
+def _position(robot):
+    """The virtual actuators' position now, for the server's ``max_step`` check: read without ``read``, which
+    draws the tracker's noise and dropouts from the robot's random stream and sleeps through a latency spike."""
+    with robot._lock:
+        return robot._q.copy()
+
+
 def run(args: argparse.Namespace) -> int:
     """``selfid-jax robot-sim``: build, bind, announce, serve until a signal."""
     from selfid_jax.robot.transport import RobotServer
@@ -156,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
     signals.phase("build")
     robot = build(cfg, start=False)
     try:
-        server = RobotServer(robot, cfg.host, port, info=robot.info())
+        server = RobotServer(robot, cfg.host, port, info=robot.info(), position=lambda: _position(robot))
     except OSError as err:
         robot.close()
         raise ConfigError(f"cannot listen on {cfg.host}:{port}: {err}") from None
