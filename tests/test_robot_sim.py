@@ -223,6 +223,9 @@ def test_server_answers_bad_requests_without_moving(tmp_path):
     server = RobotServer(Recorder())
     assert server.handle({"op": "move", "target": "x"})["ok"] is False
     assert server.handle({"op": "launch"})["error"].startswith("unknown op 'launch'")
+    reply = server.handle({"op": "move", "target": [0.5], "id": 4})  # wrong length: refused here, id echoed
+    assert reply["ok"] is False and reply["id"] == 4 and "target has 1 entries" in reply["error"]
+    assert server.handle({"op": "move", "target": [float("nan"), 0.5]})["ok"] is False
     assert moves == []
     assert server.handle({"op": "limits"})["upper"] == [1.0, 1.0]
     server.shutdown()
