@@ -46,12 +46,16 @@ class FakeArm:
     ``mirror``: the kinematics are mirrored about the start (the Jacobian's sign flips: a grasp that changed).
     ``fail_read_at`` / ``fail_move_with``: a vendor's own exception (not a RobotError) from that read / that move.
     ``valid_as``: ``valid`` reported as this (e.g. the string "False"). ``in_place``: read returns the same arrays
-    every time, updated in place.
+    every time, updated in place. ``frozen_pose_at``: from this read on the pose stays put while its stamp
+    advances. ``tracker_clock``: the tracker's stamp as a function of the driver's time. ``stuck`` / ``slow``:
+    an actuator that does not move / covers a tenth of each command.
     """
 
     def __init__(self, q0=START, *, lower=(-3.0, -3.0, -3.0), upper=(3.0, 3.0, 3.0), max_step=0.2, dropouts=(),
                  freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5, fail_move_with=None,
-                 fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False):
+                 fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False,
+                 frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None):
+        self.frozen_pose_at, self.tracker_clock, self.stuck, self.slow = frozen_pose_at, tracker_clock, stuck, slow
         self.fail_move_with, self.fail_read_at, self.fail_read_with = fail_move_with, fail_read_at, fail_read_with
         self.valid_as, self.in_place = valid_as, in_place
         self._buffers = (np.zeros(3), np.zeros(3), np.zeros(4))  # in_place: one set of arrays, updated each read
@@ -95,8 +99,12 @@ class FakeArm:
         if self.reads in self.dropouts:  # the marker was lost 1 ms before this read; tracker_t stays there
             self._lost = self._lost if self._lost is not None else t - 1e-3
             return Observation(t, self.q.copy(), np.full(3, np.nan), np.full(4, np.nan), self._lost, False)
-        self._tt, self._pose, self._lost = t, (p, quat), None
-        return Observation(t, self.q.copy(), p, quat, t, True)
+        if self.frozen_pose_at is not None and self.reads >= self.frozen_pose_at:  # the pose freezes, stamps go on
+            self._frozen = getattr(self, "_frozen", None) or self._pose or (p, quat)
+            p, quat = self._frozen
+        tt = t if self.tracker_clock is None else self.tracker_clock(t)
+        self._tt, self._pose, self._lost = tt, (p, quat), None
+        return Observation(t, self.q.copy(), p, quat, tt, True)
 
     def move(self, target):
         if len(self.moves) == self.fail_move_at:
@@ -106,7 +114,12 @@ class FakeArm:
         if len(self.moves) == self.interrupt_at:
             raise KeyboardInterrupt
         self.moves.append((self.q.copy(), np.array(target, np.float64)))
-        self.q = np.array(target, np.float64)
+        q = np.array(target, np.float64)
+        if self.stuck is not None:  # a joint that does not move, whatever it is told
+            q[self.stuck] = self.q[self.stuck]
+        if self.slow is not None:  # a joint that covers a tenth of each command before the reading
+            q[self.slow] = self.q[self.slow] + 0.1 * (q[self.slow] - self.q[self.slow])
+        self.q = q
 
     def close(self):
         self.closed, self.closed_at = True, time.monotonic()
@@ -307,6 +320,42 @@ def test_any_driver_exception_is_a_logged_stop_and_a_closed_robot(tmp_path, kw, 
     assert res.status == live.Stop.DRIVER_ERROR and kind in res.detail and fake.closed, res.detail
     last = read_journal(res.log).records[-1]
     assert last["e"] == "stop" and last["reason"] == "driver_error" and last["kind"] == kind
+
+
+def test_a_tracker_frozen_while_the_arm_moves_stops_self_id(tmp_path):
+    """A pose re-sent unchanged with advancing stamps: stopped within 3 m_a of actuator motion, not learned."""
+    fake = FakeArm(frozen_pose_at=4)
+    res = live.run_online(fake, opts(), tmp_path)
+    assert res.status == live.Stop.TRACKER_FROZEN and "does not see the arm move" in res.detail, res.detail
+    moved = sum(np.max(np.abs(t - q)) for q, t in fake.moves[2:])
+    assert len(fake.moves) <= 12 and moved <= 3 * 0.03 + 0.03 and fake.closed
+
+
+def test_a_tracker_frozen_while_following_stops_within_frozen_dist(tmp_path, converged_run):
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    fake = FakeArm(q0=ref_fake.q, frozen_pose_at=3)
+    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.05)), tmp_path / "r", resume=True)
+    assert res.status == live.Stop.TRACKER_FROZEN, res.detail
+    unseen = np.linalg.norm(arm_pose(fake.q)[0] - arm_pose(fake.moves[1][0])[0])  # since the last pose seen
+    assert len(fake.moves) == 3 and unseen < 0.005 + 0.005 + 5e-4  # frozen_dist and the move that passed it
+
+
+@pytest.mark.parametrize("clock", [lambda t: t + 5.0, lambda t: time.time()])
+def test_tracker_stamps_ahead_or_on_another_clock_stop_before_any_move(tmp_path, clock):
+    fake = FakeArm(tracker_clock=clock)
+    res = live.run_online(fake, opts(), tmp_path)
+    assert res.status == live.Stop.CLOCK and "ahead of the driver's clock" in res.detail and fake.moves == []
+
+
+@pytest.mark.parametrize("kw", [dict(stuck=1), dict(slow=2)])
+def test_an_actuator_that_does_not_follow_its_commands_stops_self_id(tmp_path, kw):
+    """A stuck joint and a joint 10x slower: stopped naming the actuator, before Sec. IV-D could accept a wrong fit."""
+    fake = FakeArm(**kw)
+    res = live.run_online(fake, opts(), tmp_path)
+    i = next(iter(kw.values()))
+    assert res.status == live.Stop.ACTUATOR and f"actuator {i} moved" in res.detail, res.detail
+    assert len(fake.moves) == 5 and not res.converged
 
 
 # --------------------------------------------------------------------------- following

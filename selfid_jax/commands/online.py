@@ -147,6 +147,18 @@ class SafetySection(BaseModel):
     limits_lower: list[float] | None = Field(_SELFID["lower"], description="actuator units, narrows the driver's "
                                              "limits")
     limits_upper: list[float] | None = _SELFID["upper"]
+    seen_min: float = Field(_SELFID["seen_min"], gt=0, description="m, a tracked position change below this is "
+                            "not seen (motion versus sight)")
+    seen_min_rad: float = Field(_SELFID["seen_min_rad"], gt=0, description="rad, an orientation change below this "
+                                "is not seen")
+    frozen_motion: Positive | None = Field(_SELFID["frozen_motion"], description="actuator units moved with no "
+                                           "change seen that stop (tracker_frozen); default 3 max(m_a)")
+    frozen_dist: float = Field(_SELFID["frozen_dist"], gt=0, description="m of motion the estimate predicts, while "
+                               "following, with no change seen that stop (tracker_frozen)")
+    follow_min_ratio: float = Field(_SELFID["follow_min_ratio"], gt=0, le=1, description="an actuator that moves "
+                                    "less than this fraction of its commands stops the session (actuator)")
+    follow_min_moves: int = Field(_SELFID["follow_min_moves"], ge=1, description="moves before the command-"
+                                  "following check applies")
 
 
 class PathSection(BaseModel):
@@ -188,7 +200,9 @@ def options(cfg: OnlineConfig) -> OnlineOptions:
     return OnlineOptions(task=s.task, m_a=s.m_a, eps=s.eps, eps_rel=s.eps_rel, max_samples=s.max_samples, seed=s.seed,
                          settle_s=s.settle_s, poll_s=s.poll_s, method=s.method, v_tol=s.v_tol, lower=f.limits_lower,
                          upper=f.limits_upper, max_step=f.max_step, box_low=f.box_low, box_high=f.box_high,
-                         stale_s=f.stale_s, diverge_dist=f.diverge_dist, path=path)
+                         stale_s=f.stale_s, diverge_dist=f.diverge_dist, seen_min=f.seen_min,
+                         seen_min_rad=f.seen_min_rad, frozen_motion=f.frozen_motion, frozen_dist=f.frozen_dist,
+                         follow_min_ratio=f.follow_min_ratio, follow_min_moves=f.follow_min_moves, path=path)
 
 
 def connect(section: RobotSection):

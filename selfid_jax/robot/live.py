@@ -145,6 +145,16 @@ def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.nda
         v = getattr(opts, name)
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (1 if name == "max_samples" else 0):
             raise ValueError(f"{name}: expected an integer >= {1 if name == 'max_samples' else 0}, got {v!r}")
+    for name in ("seen_min", "seen_min_rad", "frozen_dist", "follow_min_ratio") + \
+            (("frozen_motion",) if opts.frozen_motion is not None else ()):
+        v = getattr(opts, name)
+        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+            raise ValueError(f"{name}: must be a finite number > 0, got {v!r}")
+    if opts.follow_min_ratio > 1:
+        raise ValueError(f"follow_min_ratio: must be in (0, 1], got {opts.follow_min_ratio!r}")
+    v = opts.follow_min_moves
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        raise ValueError(f"follow_min_moves: expected an integer >= 1, got {v!r}")
     for name, lo in (("settle_s", 0.0), ("poll_s", 1e-6)):
         v = getattr(opts, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= lo):

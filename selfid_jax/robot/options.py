@@ -118,6 +118,17 @@ class OnlineOptions(NamedTuple):
     box_high: Sequence[float] | None = None
     stale_s: float = STALE_S  # s, watchdog
     diverge_dist: float = DIVERGE_DIST  # m, divergence stop while following (distance to the path's positions)
+    # motion versus sight: a tracked pose that moved less than seen_min [m] and seen_min_rad [rad] while the
+    # actuators moved frozen_motion [actuator units; None: 3 max(m_a)] in all, or (following) while the estimate
+    # predicts frozen_dist [m] of motion, stops the session (tracker_frozen)
+    seen_min: float = 1e-5
+    seen_min_rad: float = 1e-4
+    frozen_motion: float | None = None
+    frozen_dist: float = 0.005
+    # command following: an actuator whose measured motion along its commands (recent moves weigh most) is below
+    # follow_min_ratio of the commanded, after follow_min_moves moves, stops the session (actuator)
+    follow_min_ratio: float = 0.5
+    follow_min_moves: int = 5
     path: FollowOptions | None = None  # follow this path after convergence; None: stop at convergence
 
 

@@ -30,6 +30,7 @@ import functools
 import math
 import time
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -63,6 +64,9 @@ class Stop(enum.StrEnum):
     BOX = "box"  # the tracked position left the task-space box (or the path would)
     LIMITS = "limits"  # a measured actuator position outside the limits
     DIVERGENCE = "divergence"  # while following, farther than diverge_dist from the path
+    TRACKER_FROZEN = "tracker_frozen"  # the actuators moved and the tracked pose did not (Sight)
+    CLOCK = "clock"  # a tracker stamp ahead of the driver's clock: a future stamp or another clock
+    ACTUATOR = "actuator"  # an actuator does not do what it is told (it moved much less than commanded)
     CONNECTION = "connection"  # the driver raised RobotConnectionError
     ROBOT_ERROR = "robot_error"  # the driver raised another RobotError (a refused command, a fault)
     DRIVER_ERROR = "driver_error"  # the driver raised an exception that is not a RobotError (a vendor's own)
@@ -172,6 +176,44 @@ def follow_command(Jinv: np.ndarray, offsets: np.ndarray, anchor: Observation, w
     return cmd, float(dist)
 
 
+# --------------------------------------------------------------------------- motion versus sight
+
+
+class Sight(NamedTuple):
+    """What the runner has seen since the tracked pose last changed (the motion-versus-sight check).
+
+    A change is seen when the tracked position moves more than ``seen_min``
+    [m] or the orientation more than ``seen_min_rad`` from ``p``/``quat``;
+    until then ``moved`` sums the measured actuator motion ``max_i |dq_i|``
+    of every move [actuator units] and ``predicted`` the position change an
+    estimate predicts for them, ``||pinv(Jinv) dq||`` [m] (while following).
+    """
+
+    p: np.ndarray  # (3,) m, the tracked position when a change was last seen
+    quat: np.ndarray  # (4,) its quaternion (w, x, y, z)
+    moved: float = 0.0  # actuator units of measured motion since
+    predicted: float = 0.0  # m of position change the estimate predicts since (following only)
+    moves: int = 0  # moves since
+
+
+def _angle(qa: np.ndarray, qb: np.ndarray) -> float:
+    """Angle [rad] between two orientations given as quaternions (w, x, y, z), any norm."""
+    c = abs(float(np.dot(qa, qb))) / (float(np.linalg.norm(qa)) * float(np.linalg.norm(qb)))
+    return 2.0 * math.acos(min(1.0, c))
+
+
+COMMAND_MEMORY = 0.8
+"""Weight of the previous moves in the command-following sums, per move (an effective memory of about 5 moves)."""
+
+
+class Commanded(NamedTuple):
+    """Per actuator, the commanded and the measured motion of the recent moves (the command-following check)."""
+
+    commanded: np.ndarray  # (n,) sum of |target_i - q_i| over the moves, each older one times COMMAND_MEMORY
+    along: np.ndarray  # (n,) the same sum of the measured motion along each command, (q'_i - q_i) sign(target_i - q_i)
+    moves: int = 0
+
+
 # --------------------------------------------------------------------------- the session
 
 
@@ -203,6 +245,10 @@ class Session:
         self.offsets: np.ndarray | None = None
         self.waypoint = 0
         self.step_ms: list[float] = []
+        self.clock_offset = math.inf  # min over readings of (runner's monotonic clock - driver's clock) [s]
+        self.sight: Sight | None = None
+        self.commanded = Commanded(np.zeros(self.n), np.zeros(self.n))
+        self.predict: np.ndarray | None = None  # (P, n) pinv of the estimate while following: dq -> predicted dp
 
     # ---- robot I/O, each logged as it happens
 
@@ -225,10 +271,17 @@ class Session:
         now = time.monotonic()
         self.journal.append({"e": "obs", "phase": phase, "t": obs.t, "q": obs.q, "p": obs.position,
                              "quat": obs.quaternion, "tracker_t": obs.tracker_t, "valid": obs.valid})
+        ahead = obs.tracker_t - obs.t
+        if ahead > self.env.stale_s:
+            raise Stopped(Stop.CLOCK, f"the tracker's stamp {obs.tracker_t:.6f} s is {ahead:.6g} s ahead of the "
+                          f"driver's clock {obs.t:.6f} s: a future stamp, or the tracker and the encoders on two "
+                          "clocks (stamp both on one, e.g. time.monotonic())")
         if obs.valid and obs.tracker_t > self.last_tracker_t:
             self.last_tracker_t, self.last_advance_wall = obs.tracker_t, now
-        # the driver's age of the pose, and a lower bound on it from our clock (the same pose seen since then)
-        age = max(obs.t - obs.tracker_t, now - self.last_advance_wall)
+        # the pose's age on the runner's clock: the driver's clock mapped by its smallest offset seen (so the
+        # transport's delay beyond its fastest counts), and a lower bound from our clock (the same pose seen since)
+        self.clock_offset = min(self.clock_offset, now - obs.t)
+        age = max(now - self.clock_offset - obs.tracker_t, now - self.last_advance_wall)
         if age > self.env.stale_s:
             raise Stopped(Stop.STALE, f"tracker pose {age:.3f} s old (stale_s = {self.env.stale_s:g} s)")
         env = self.env
@@ -269,6 +322,46 @@ class Session:
         self.last_cmd_t = base.t
         self._call("move", target.copy())  # a copy: the driver may keep or change what it is handed
 
+    # ---- after each move: did the actuators do it, did the tracker see it
+
+    def after_move(self, base: Observation, target: np.ndarray, obs: Observation) -> None:
+        """The command-following and motion-versus-sight checks of one move from ``base`` towards ``target``, read
+        back as ``obs``; raises :class:`Stopped` (``actuator``, ``tracker_frozen``) before any further move."""
+        opts, dq, d = self.opts, obs.q - base.q, target - base.q
+        c, w = self.commanded, COMMAND_MEMORY  # recent moves weigh most: a joint that sticks later is seen too
+        c = self.commanded = Commanded(w * c.commanded + np.abs(d), w * c.along + dq * np.sign(d), c.moves + 1)
+        if c.moves >= opts.follow_min_moves:
+            ratio = c.along / np.maximum(c.commanded, 1e-300)
+            bad = np.flatnonzero((c.commanded > 0) & (ratio < opts.follow_min_ratio))
+            if bad.size:
+                i = bad[0]
+                raise Stopped(Stop.ACTUATOR, f"actuator {i} moved {100 * ratio[i]:.0f}% of what it was commanded "
+                              f"over {c.moves} moves ({c.along[i]:.4g} of {c.commanded[i]:.4g}; follow_min_ratio "
+                              f"{opts.follow_min_ratio:g}): stuck, slow or not settled")
+        if not obs.valid:
+            return
+        sight = self.sight if self.sight is not None else Sight(base.position, base.quaternion)
+        if np.linalg.norm(obs.position - sight.p) > opts.seen_min or \
+                _angle(obs.quaternion, sight.quat) > opts.seen_min_rad:
+            self.sight = Sight(obs.position, obs.quaternion)
+            return
+        moved = sight.moved + float(np.max(np.abs(dq)))
+        predicted = sight.predicted + (0.0 if self.predict is None else float(np.linalg.norm(self.predict @ dq)))
+        self.sight = sight._replace(moved=moved, predicted=predicted, moves=sight.moves + 1)
+        limit = self.frozen_motion
+        if moved > limit or predicted > opts.frozen_dist:
+            what = (f"{moved:.4g} of actuator motion (frozen_motion {limit:.4g})" if moved > limit else
+                    f"{1e3 * predicted:.3g} mm of predicted motion (frozen_dist {1e3 * opts.frozen_dist:.3g} mm)")
+            raise Stopped(Stop.TRACKER_FROZEN, f"the tracked pose moved less than {1e3 * opts.seen_min:.3g} mm and "
+                          f"{opts.seen_min_rad:g} rad over {sight.moves + 1} moves and {what}: the tracker does "
+                          "not see the arm move")
+
+    @property
+    def frozen_motion(self) -> float:
+        """Actuator motion [actuator units] with no seen change that stops: the option, or 3 max(m_a)."""
+        v = self.opts.frozen_motion
+        return 3.0 * float(np.max(self.m_a)) if v is None else float(v)
+
     # ---- the estimator
 
     def step(self, dtheta: np.ndarray, V: np.ndarray):
@@ -294,6 +387,7 @@ class Session:
             self.move(target, base, "selfid", self.k)
             self.sleep(opts.settle_s)
             obs = self.read("selfid")
+            self.after_move(base, target, obs)
             k, self.k = self.k, self.k + 1
             reason = None if obs.valid and obs.tracker_t > base.t else ("dropout" if not obs.valid else "stale")
             if reason is not None:
@@ -336,6 +430,7 @@ class Session:
         assert offsets is not None and anchor is not None
         W = offsets.shape[0]
         ctrl = path.controller(env)
+        self.predict = np.linalg.pinv(Jinv)[[i for i, a in enumerate(self.axes) if a < 3]]  # dq -> predicted dp
         while True:
             cmd, dist = follow_command(Jinv, offsets, anchor, self.waypoint, obs, ctrl, self.axes)
             if cmd.reached:
@@ -353,12 +448,13 @@ class Session:
             self.follow_steps += 1
             self.move(target, obs, "follow", self.follow_steps - 1)
             self.sleep(self.opts.settle_s)
-            obs = self.read("follow")
+            base, obs = obs, self.read("follow")
             if not self.is_fresh(obs):
                 self.follow_rejected += 1
                 self.journal.append({"e": "rejected", "phase": "follow", "k": self.follow_steps - 1,
                                      "reason": "dropout" if not obs.valid else "stale"})
                 obs = self.fresh("follow")
+            self.after_move(base, target, obs)
 
     # ---- resume
 
