@@ -276,6 +276,22 @@ def test_resume_refuses_a_disagreeing_header(tmp_path, converged_run):
         live.run_online(FakeArm(), opts(), tmp_path / "none", resume=True)
 
 
+def test_resume_with_another_path_after_following_started_is_refused(tmp_path, converged_run):
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    fake = FakeArm(q0=ref_fake.q, fail_move_at=2)  # following starts, then the connection drops
+    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.02)), tmp_path / "r", resume=True)
+    assert res.status == live.Stop.CONNECTION and res.follow_steps == 3
+    for other in (options.FollowOptions(size=0.03), options.FollowOptions(size=0.02, plane="xz")):
+        fake = FakeArm(q0=fake.q)
+        with pytest.raises(live.ResumeError, match="path differs"):
+            live.run_online(fake, opts(path=other), tmp_path / "r", resume=True)
+        assert fake.moves == [] and fake.closed
+    fake = FakeArm(q0=fake.q)  # the logged path itself continues
+    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.02)), tmp_path / "r", resume=True)
+    assert res.status == live.Stop.COMPLETED, res.detail
+
+
 def test_journal_tolerates_only_a_cut_last_line(tmp_path):
     path = tmp_path / "log.jsonl"
     with Journal(path) as j:

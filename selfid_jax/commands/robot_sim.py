@@ -144,13 +144,6 @@ def build(cfg: RobotSimConfig, *, start: bool = True):
         raise ConfigError(f"cannot build the virtual robot: {' '.join(str(err).split())}") from None
 
 
-def _position(robot):
-    """The virtual actuators' position now, for the server's ``max_step`` check: read without ``read``, which
-    draws the tracker's noise and dropouts from the robot's random stream and sleeps through a latency spike."""
-    with robot._lock:
-        return robot._q.copy()
-
-
 def run(args: argparse.Namespace) -> int:
     """``selfid-jax robot-sim``: build, bind, announce, serve until a signal."""
     from selfid_jax.robot.transport import RobotServer
@@ -165,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     signals.phase("build")
     robot = build(cfg, start=False)
     try:
-        server = RobotServer(robot, cfg.host, port, info=robot.info(), position=lambda: _position(robot))
+        server = RobotServer(robot, cfg.host, port, info=robot.info(), position=robot.position)
     except OSError as err:
         robot.close()
         raise ConfigError(f"cannot listen on {cfg.host}:{port}: {err}") from None

@@ -78,7 +78,7 @@ from selfid_jax.identify import estimator
 from selfid_jax.math.checks import check_magnitude, float_dtype
 from selfid_jax.robot.journal import Journal, read_journal
 from selfid_jax.robot.log import parse_task
-from selfid_jax.robot.options import ONLINE_METHODS, OnlineOptions
+from selfid_jax.robot.options import ONLINE_METHODS, FollowOptions, OnlineOptions
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.safety import envelope
 from selfid_jax.robot.session import DriverFault, ResumeError, Session, Stop, Stopped, init_state, sample_step
@@ -129,6 +129,18 @@ def _check_header(path: Path, logged: dict[str, Any], expected: dict[str, Any]) 
         if got != want:
             raise ResumeError(f"{path}: cannot resume: the log's {key} is {got!r}, this session's is {want!r}; "
                               "use the log's value or start a new run directory")
+
+
+def _check_path(path: Path, logged, follow: FollowOptions | None, axes) -> None:
+    """ResumeError unless a session whose log started following resumes with the same path (its waypoints)."""
+    if logged is None or follow is None:
+        return
+    planned = follow.offsets(axes)
+    if planned.shape != logged.shape or not np.allclose(planned, logged, rtol=0, atol=1e-12):
+        raise ResumeError(f"{path}: cannot resume: the log started following a path of {logged.shape[0]} waypoints "
+                          f"(extent {np.ptp(logged, axis=0).round(6).tolist()} m), this session's path differs "
+                          "(path.size, path.plane or path.kind); resume with the logged path, or start a new run "
+                          "directory")
 
 
 def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.ndarray]:
@@ -239,6 +251,7 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                                           method=options.method))
         if contents is not None:
             replayed = session.replay(contents)
+            _check_path(log_path, session.offsets, options.path, axes)
         journal.append({"e": "session", "resume": resume, "replayed": replayed, "truncated": truncated,
                         "wall_time": time.time(), "lower": env.lower, "upper": env.upper, "max_step": env.max_step,
                         "box_low": env.box_low, "box_high": env.box_high, "stale_s": env.stale_s})

@@ -312,6 +312,12 @@ class VirtualRobot:
         self._fault_delay()
         return RobotLimits(*(x.copy() for x in self._limits))
 
+    def position(self) -> np.ndarray:
+        """The actuators' positions ``(n,)`` at the latest tick, without a tracker reading (no random draw, no
+        injected delay): what a server checks a move's ``max_step`` against."""
+        with self._lock:
+            return self._q.copy()
+
     def read(self) -> Observation:
         """Actuator positions of the latest tick and the tracker's reading (module docstring)."""
         self._check_open()
