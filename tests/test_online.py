@@ -442,6 +442,18 @@ def test_simulated_follow_commands_what_the_live_runner_commands(tmp_path, conve
     assert live_steps == sim_steps and len(live_steps) == 10
 
 
+def test_an_estimate_that_no_longer_predicts_the_motion_stops_following(tmp_path, converged_run):
+    """Each following move is a held-out sample: with the Jacobian flipped after self-ID (a changed grasp) the
+    predicted motion misses the tracked one and the session stops at the 5th move, before any divergence stop."""
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "e")
+    fake = FakeArm(q0=ref_fake.q, mirror=True)
+    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.05), diverge_dist=0.5), tmp_path / "e",
+                          resume=True)
+    assert res.status == live.Stop.ESTIMATE and "no longer moves as it was self-identified" in res.detail, res.detail
+    assert len(fake.moves) == 5
+
+
 def test_follow_divergence_and_box_stop(tmp_path, converged_run):
     run, ref_fake, _ = converged_run
     shutil.copytree(run, tmp_path / "d")

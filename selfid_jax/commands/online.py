@@ -158,7 +158,10 @@ class SafetySection(BaseModel):
     follow_min_ratio: float = Field(_SELFID["follow_min_ratio"], gt=0, le=1, description="an actuator that moves "
                                     "less than this fraction of its commands stops the session (actuator)")
     follow_min_moves: int = Field(_SELFID["follow_min_moves"], ge=1, description="moves before the command-"
-                                  "following check applies")
+                                  "following and held-out checks apply")
+    follow_max_residual: float = Field(_SELFID["follow_max_residual"], gt=0, description="while following, the "
+                                       "estimate's prediction error of the tracked motion, relative, that stops "
+                                       "(estimate)")
 
 
 class PathSection(BaseModel):
@@ -202,7 +205,8 @@ def options(cfg: OnlineConfig) -> OnlineOptions:
                          upper=f.limits_upper, max_step=f.max_step, box_low=f.box_low, box_high=f.box_high,
                          stale_s=f.stale_s, diverge_dist=f.diverge_dist, seen_min=f.seen_min,
                          seen_min_rad=f.seen_min_rad, frozen_motion=f.frozen_motion, frozen_dist=f.frozen_dist,
-                         follow_min_ratio=f.follow_min_ratio, follow_min_moves=f.follow_min_moves, path=path)
+                         follow_min_ratio=f.follow_min_ratio, follow_min_moves=f.follow_min_moves,
+                         follow_max_residual=f.follow_max_residual, path=path)
 
 
 def connect(section: RobotSection):

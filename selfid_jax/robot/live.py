@@ -157,7 +157,7 @@ def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.nda
         v = getattr(opts, name)
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (1 if name == "max_samples" else 0):
             raise ValueError(f"{name}: expected an integer >= {1 if name == 'max_samples' else 0}, got {v!r}")
-    for name in ("seen_min", "seen_min_rad", "frozen_dist", "follow_min_ratio") + \
+    for name in ("seen_min", "seen_min_rad", "frozen_dist", "follow_min_ratio", "follow_max_residual") + \
             (("frozen_motion",) if opts.frozen_motion is not None else ()):
         v = getattr(opts, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):

@@ -129,6 +129,9 @@ class OnlineOptions(NamedTuple):
     # follow_min_ratio of the commanded, after follow_min_moves moves, stops the session (actuator)
     follow_min_ratio: float = 0.5
     follow_min_moves: int = 5
+    # held out while following: the position change pinv(estimate) predicts for each move's measured dq against
+    # the tracked one; recent-weighted error above follow_max_residual times the predicted motion stops (estimate)
+    follow_max_residual: float = 0.75
     path: FollowOptions | None = None  # follow this path after convergence; None: stop at convergence
 
 

@@ -67,6 +67,7 @@ class Stop(enum.StrEnum):
     TRACKER_FROZEN = "tracker_frozen"  # the actuators moved and the tracked pose did not (Sight)
     CLOCK = "clock"  # a tracker stamp ahead of the driver's clock: a future stamp or another clock
     ACTUATOR = "actuator"  # an actuator does not do what it is told (it moved much less than commanded)
+    ESTIMATE = "estimate"  # while following, the estimate does not predict the tracked motion (held-out moves)
     CONNECTION = "connection"  # the driver raised RobotConnectionError
     ROBOT_ERROR = "robot_error"  # the driver raised another RobotError (a refused command, a fault)
     DRIVER_ERROR = "driver_error"  # the driver raised an exception that is not a RobotError (a vendor's own)
@@ -249,6 +250,7 @@ class Session:
         self.sight: Sight | None = None
         self.commanded = Commanded(np.zeros(self.n), np.zeros(self.n))
         self.predict: np.ndarray | None = None  # (P, n) pinv of the estimate while following: dq -> predicted dp
+        self.residual = (0.0, 0.0, 0)  # following: recent-weighted sums of |dp - predicted dp|, |predicted dp|; moves
 
     # ---- robot I/O, each logged as it happens
 
@@ -325,8 +327,9 @@ class Session:
     # ---- after each move: did the actuators do it, did the tracker see it
 
     def after_move(self, base: Observation, target: np.ndarray, obs: Observation) -> None:
-        """The command-following and motion-versus-sight checks of one move from ``base`` towards ``target``, read
-        back as ``obs``; raises :class:`Stopped` (``actuator``, ``tracker_frozen``) before any further move."""
+        """The command-following, held-out prediction and motion-versus-sight checks of one move from ``base``
+        towards ``target``, read back as ``obs``; raises :class:`Stopped` (``actuator``, ``estimate``,
+        ``tracker_frozen``) before any further move."""
         opts, dq, d = self.opts, obs.q - base.q, target - base.q
         c, w = self.commanded, COMMAND_MEMORY  # recent moves weigh most: a joint that sticks later is seen too
         c = self.commanded = Commanded(w * c.commanded + np.abs(d), w * c.along + dq * np.sign(d), c.moves + 1)
@@ -340,6 +343,17 @@ class Session:
                               f"{opts.follow_min_ratio:g}): stuck, slow or not settled")
         if not obs.valid:
             return
+        if self.predict is not None:  # following: each move is a held-out sample of the estimate
+            axes = [i for i, a in enumerate(self.axes) if a < 3]
+            pred = self.predict @ dq
+            miss = float(np.linalg.norm((obs.position - base.position)[[self.axes[i] for i in axes]] - pred))
+            r = self.residual
+            r = self.residual = (w * r[0] + miss, w * r[1] + float(np.linalg.norm(pred)), r[2] + 1)
+            if r[2] >= opts.follow_min_moves and r[0] > opts.follow_max_residual * r[1]:
+                raise Stopped(Stop.ESTIMATE, f"the estimate predicts the tracked motion of the last moves with "
+                              f"{100 * r[0] / r[1]:.0f}% error (follow_max_residual {opts.follow_max_residual:g}): "
+                              "the robot no longer moves as it was self-identified (a changed grasp or load, a "
+                              "joint, the tracker's frame); self-identify again")
         sight = self.sight if self.sight is not None else Sight(base.position, base.quaternion)
         if np.linalg.norm(obs.position - sight.p) > opts.seen_min or \
                 _angle(obs.quaternion, sight.quat) > opts.seen_min_rad:
