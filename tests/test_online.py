@@ -48,14 +48,16 @@ class FakeArm:
     ``valid_as``: ``valid`` reported as this (e.g. the string "False"). ``in_place``: read returns the same arrays
     every time, updated in place. ``frozen_pose_at``: from this read on the pose stays put while its stamp
     advances. ``tracker_clock``: the tracker's stamp as a function of the driver's time. ``stuck`` / ``slow``:
-    an actuator that does not move / covers a tenth of each command.
+    an actuator that does not move / covers a tenth of each command. ``delay_at``: from this read on each reading
+    arrives ``delay_s`` after it was stamped (a slow transport).
     """
 
     def __init__(self, q0=START, *, lower=(-3.0, -3.0, -3.0), upper=(3.0, 3.0, 3.0), max_step=0.2, dropouts=(),
                  freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5, fail_move_with=None,
                  fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False,
-                 frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None):
+                 frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None, delay_at=None, delay_s=0.0):
         self.frozen_pose_at, self.tracker_clock, self.stuck, self.slow = frozen_pose_at, tracker_clock, stuck, slow
+        self.delay_at, self.delay_s = delay_at, delay_s
         self.fail_move_with, self.fail_read_at, self.fail_read_with = fail_move_with, fail_read_at, fail_read_with
         self.valid_as, self.in_place = valid_as, in_place
         self._buffers = (np.zeros(3), np.zeros(3), np.zeros(4))  # in_place: one set of arrays, updated each read
@@ -77,6 +79,8 @@ class FakeArm:
 
     def read(self):
         obs = self._read()
+        if self.delay_at is not None and self.reads >= self.delay_at:  # the reply is delayed in transport
+            time.sleep(self.delay_s)
         if self.valid_as is not None:  # a driver that reports validity as something other than a bool
             obs = obs._replace(valid=self.valid_as)
         if self.in_place:  # a driver that hands out its own arrays and updates them on the next read
@@ -362,6 +366,13 @@ def test_tracker_stamps_ahead_or_on_another_clock_stop_before_any_move(tmp_path,
     fake = FakeArm(tracker_clock=clock)
     res = live.run_online(fake, opts(), tmp_path)
     assert res.status == live.Stop.CLOCK and "ahead of the driver's clock" in res.detail and fake.moves == []
+
+
+def test_staleness_counts_the_transport_delay(tmp_path):
+    """A reading stamped 0.6 s before it arrives is stale at stale_s 0.5, though its two stamps agree."""
+    fake = FakeArm(delay_at=4, delay_s=0.6)
+    res = live.run_online(fake, opts(stale_s=0.5), tmp_path)
+    assert res.status == live.Stop.STALE and len(fake.moves) <= 3, res.detail
 
 
 @pytest.mark.parametrize("kw", [dict(stuck=1), dict(slow=2)])
