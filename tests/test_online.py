@@ -49,13 +49,16 @@ class FakeArm:
     every time, updated in place. ``frozen_pose_at``: from this read on the pose stays put while its stamp
     advances. ``tracker_clock``: the tracker's stamp as a function of the driver's time. ``stuck`` / ``slow``:
     an actuator that does not move / covers a tenth of each command. ``delay_at``: from this read on each reading
-    arrives ``delay_s`` after it was stamped (a slow transport).
+    arrives ``delay_s`` after it was stamped (a slow transport). ``pose_lag``: the tracker shows the arm one move
+    late (its latency longer than the settle time).
     """
 
     def __init__(self, q0=START, *, lower=(-3.0, -3.0, -3.0), upper=(3.0, 3.0, 3.0), max_step=0.2, dropouts=(),
                  freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5, fail_move_with=None,
                  fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False,
-                 frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None, delay_at=None, delay_s=0.0):
+                 frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None, delay_at=None, delay_s=0.0,
+                 pose_lag=False):
+        self.pose_lag, self._q_before = pose_lag, None
         self.frozen_pose_at, self.tracker_clock, self.stuck, self.slow = frozen_pose_at, tracker_clock, stuck, slow
         self.delay_at, self.delay_s = delay_at, delay_s
         self.fail_move_with, self.fail_read_at, self.fail_read_with = fail_move_with, fail_read_at, fail_read_with
@@ -95,6 +98,8 @@ class FakeArm:
             raise VENDOR_ERRORS[self.fail_read_with]("fake: the vendor library failed")
         t = self._t = max(time.monotonic(), self._t + 1e-9)
         qk = self.q if self.centre is None else 2 * self.centre - self.q
+        if self.pose_lag and self._q_before is not None:  # the tracker shows the arm as it was one move ago
+            qk = self._q_before
         p, quat = arm_pose(qk)
         p = p + self.noise * np.sin(1e3 * self.q.sum() + np.arange(3))  # deterministic "noise": a function of q
         if self.freeze_at is not None and self.reads >= self.freeze_at:
@@ -118,6 +123,7 @@ class FakeArm:
         if len(self.moves) == self.interrupt_at:
             raise KeyboardInterrupt
         self.moves.append((self.q.copy(), np.array(target, np.float64)))
+        self._q_before = self.q.copy()
         q = np.array(target, np.float64)
         if self.stuck is not None:  # a joint that does not move, whatever it is told
             q[self.stuck] = self.q[self.stuck]
@@ -366,6 +372,17 @@ def test_tracker_stamps_ahead_or_on_another_clock_stop_before_any_move(tmp_path,
     fake = FakeArm(tracker_clock=clock)
     res = live.run_online(fake, opts(), tmp_path)
     assert res.status == live.Stop.CLOCK and "ahead of the driver's clock" in res.detail and fake.moves == []
+
+
+def test_samples_whose_motion_is_not_explained_stop_before_following(tmp_path, converged_run):
+    """A tracker one move late (latency beyond settle_s): the samples' held-out error stops the session at
+    convergence, before any following move; the shipped fake arm's own samples pass the check."""
+    _, _, ref = converged_run
+    assert ref.quality is not None and ref.quality.heldout_error < 0.1 and np.all(ref.quality.effect > 0.005)
+    fake = FakeArm(pose_lag=True)
+    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.02), max_samples=200), tmp_path)
+    assert res.status == live.Stop.ESTIMATE and "held-out error" in res.detail, res.detail
+    assert res.follow_steps == 0 and res.quality is not None and res.quality.heldout_error > 0.5
 
 
 def test_staleness_counts_the_transport_delay(tmp_path):

@@ -162,6 +162,9 @@ class SafetySection(BaseModel):
     follow_max_residual: float = Field(_SELFID["follow_max_residual"], gt=0, description="while following, the "
                                        "estimate's prediction error of the tracked motion, relative, that stops "
                                        "(estimate)")
+    max_heldout_error: float = Field(_SELFID["max_heldout_error"], gt=0, description="at convergence, the "
+                                     "samples' leave-one-out error of the tracked motion, relative, that stops "
+                                     "before following (estimate)")
 
 
 class PathSection(BaseModel):
@@ -206,7 +209,8 @@ def options(cfg: OnlineConfig) -> OnlineOptions:
                          stale_s=f.stale_s, diverge_dist=f.diverge_dist, seen_min=f.seen_min,
                          seen_min_rad=f.seen_min_rad, frozen_motion=f.frozen_motion, frozen_dist=f.frozen_dist,
                          follow_min_ratio=f.follow_min_ratio, follow_min_moves=f.follow_min_moves,
-                         follow_max_residual=f.follow_max_residual, path=path)
+                         follow_max_residual=f.follow_max_residual, max_heldout_error=f.max_heldout_error,
+                         path=path)
 
 
 def connect(section: RobotSection):
@@ -275,6 +279,8 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
         "moves": result.moves,
         "follow_steps": result.follow_steps,
         "follow_rejected": result.follow_rejected,
+        "heldout_error": None if result.quality is None else result.quality.heldout_error,
+        "actuator_effect": None if result.quality is None else result.quality.effect,
         "waypoints": result.waypoints,
         "waypoints_total": result.waypoints_total,
         "replayed": result.replayed,

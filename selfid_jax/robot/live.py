@@ -81,7 +81,16 @@ from selfid_jax.robot.log import parse_task
 from selfid_jax.robot.options import ONLINE_METHODS, FollowOptions, OnlineOptions
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.safety import envelope
-from selfid_jax.robot.session import DriverFault, ResumeError, Session, Stop, Stopped, init_state, sample_step
+from selfid_jax.robot.session import (
+    DriverFault,
+    Quality,
+    ResumeError,
+    Session,
+    Stop,
+    Stopped,
+    init_state,
+    sample_step,
+)
 
 __all__ = ["LOG_FILE", "OnlineResult", "run_online"]
 
@@ -107,6 +116,7 @@ class OnlineResult(NamedTuple):
     replayed: int  # accepted samples replayed from the log on resume (0 for a fresh session)
     truncated: int  # cut-short log lines dropped on resume (0 or 1)
     step_ms: np.ndarray  # (k,) latency of each estimator step run in this session, ms (replays excluded)
+    quality: Quality | None  # the converged samples' held-out error and actuator effects; None before convergence
     axes: tuple[int, ...]  # task axes into (x, y, z, rx, ry, rz)
     log: Path  # the session log
 
@@ -157,7 +167,8 @@ def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.nda
         v = getattr(opts, name)
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (1 if name == "max_samples" else 0):
             raise ValueError(f"{name}: expected an integer >= {1 if name == 'max_samples' else 0}, got {v!r}")
-    for name in ("seen_min", "seen_min_rad", "frozen_dist", "follow_min_ratio", "follow_max_residual") + \
+    for name in ("seen_min", "seen_min_rad", "frozen_dist", "follow_min_ratio", "follow_max_residual",
+                 "max_heldout_error") + \
             (("frozen_motion",) if opts.frozen_motion is not None else ()):
         v = getattr(opts, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -260,6 +271,7 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         try:
             if int(session.state.converged_at) < 1:
                 session.selfid()
+            session.check_quality()
             if options.path is None:
                 raise Stopped(Stop.CONVERGED, f"converged at sample {int(session.state.converged_at)}; "
                               "no path to follow, the robot stays where it is")
@@ -294,4 +306,4 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         converged_at=int(state.converged_at), samples=session.samples, rejected=dict(session.rejected),
         moves=session.moves, follow_steps=session.follow_steps, follow_rejected=session.follow_rejected,
         waypoints=session.waypoint, waypoints_total=path_total, replayed=replayed, truncated=truncated,
-        step_ms=np.asarray(session.step_ms, np.float64), axes=axes, log=log_path)
+        step_ms=np.asarray(session.step_ms, np.float64), quality=session.quality, axes=axes, log=log_path)

@@ -132,6 +132,9 @@ class OnlineOptions(NamedTuple):
     # held out while following: the position change pinv(estimate) predicts for each move's measured dq against
     # the tracked one; recent-weighted error above follow_max_residual times the predicted motion stops (estimate)
     follow_max_residual: float = 0.75
+    # at convergence: the leave-one-out error of the tracked motion predicted from the actuators' (forward least
+    # squares over the samples) above this stops before following (estimate)
+    max_heldout_error: float = 0.5
     path: FollowOptions | None = None  # follow this path after convergence; None: stop at convergence
 
 

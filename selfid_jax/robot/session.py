@@ -49,8 +49,8 @@ from selfid_jax.robot.log import pairs_from_time_series, rotations
 from selfid_jax.robot.protocol import Observation, Robot, RobotError
 from selfid_jax.robot.safety import Envelope, actuation_target, check_observation
 
-__all__ = ["DriverFault", "ResumeError", "Session", "Stop", "Stopped", "follow_command", "host_step", "init_state",
-           "sample_step", "task_difference"]
+__all__ = ["DriverFault", "Quality", "ResumeError", "Session", "Stop", "Stopped", "follow_command", "held_out",
+           "host_step", "init_state", "sample_step", "task_difference"]
 
 
 class Stop(enum.StrEnum):
@@ -67,7 +67,7 @@ class Stop(enum.StrEnum):
     TRACKER_FROZEN = "tracker_frozen"  # the actuators moved and the tracked pose did not (Sight)
     CLOCK = "clock"  # a tracker stamp ahead of the driver's clock: a future stamp or another clock
     ACTUATOR = "actuator"  # an actuator does not do what it is told (it moved much less than commanded)
-    ESTIMATE = "estimate"  # while following, the estimate does not predict the tracked motion (held-out moves)
+    ESTIMATE = "estimate"  # the samples' or the following moves' tracked motion is not predicted (held out)
     CONNECTION = "connection"  # the driver raised RobotConnectionError
     ROBOT_ERROR = "robot_error"  # the driver raised another RobotError (a refused command, a fault)
     DRIVER_ERROR = "driver_error"  # the driver raised an exception that is not a RobotError (a vendor's own)
@@ -215,6 +215,33 @@ class Commanded(NamedTuple):
     moves: int = 0
 
 
+class Quality(NamedTuple):
+    """How well a converged session's samples are explained (:func:`held_out`), checked before following."""
+
+    heldout_error: float  # leave-one-out error of the tracked motion predicted from the measured actuator motion:
+    #   sum_k |V_k - F_(-k) dtheta_k| / sum_k |V_k| with F_(-k) the least-squares forward map without sample k;
+    #   NaN with no more samples than actuators
+    effect: np.ndarray  # (n,) each actuator's task motion for a move of max(m_a), |F[:, i]| max(m_a) [task units]
+    samples: int
+
+
+def held_out(pairs: Sequence[tuple[np.ndarray, np.ndarray]], m_a: np.ndarray) -> Quality:
+    """:class:`Quality` of sample pairs ``(dtheta (n,), V (m,))``: the forward least-squares map ``V = F dtheta``
+    and its leave-one-out prediction error (the hat-matrix form, exact for least squares), float64 numpy."""
+    D = np.array([p[0] for p in pairs], np.float64).reshape(len(pairs), -1)
+    V = np.array([p[1] for p in pairs], np.float64).reshape(len(pairs), -1)
+    k, n = D.shape
+    if k <= n:
+        return Quality(float("nan"), np.full(n, np.nan), k)
+    G = D.T @ D
+    Ginv = np.linalg.pinv(G)
+    F = (Ginv @ D.T @ V).T
+    h = np.einsum("ki,ij,kj->k", D, Ginv, D)
+    r = (V - D @ F.T) / np.maximum(1.0 - h, 1e-12)[:, None]
+    err = float(np.linalg.norm(r, axis=1).sum() / max(float(np.linalg.norm(V, axis=1).sum()), 1e-300))
+    return Quality(err, np.linalg.norm(F, axis=0) * float(np.max(m_a)), k)
+
+
 # --------------------------------------------------------------------------- the session
 
 
@@ -251,6 +278,8 @@ class Session:
         self.commanded = Commanded(np.zeros(self.n), np.zeros(self.n))
         self.predict: np.ndarray | None = None  # (P, n) pinv of the estimate while following: dq -> predicted dp
         self.residual = (0.0, 0.0, 0)  # following: recent-weighted sums of |dp - predicted dp|, |predicted dp|; moves
+        self.pairs: list[tuple[np.ndarray, np.ndarray]] = []  # the accepted samples (dtheta (n,), V (m,))
+        self.quality: Quality | None = None
 
     # ---- robot I/O, each logged as it happens
 
@@ -376,6 +405,20 @@ class Session:
         v = self.opts.frozen_motion
         return 3.0 * float(np.max(self.m_a)) if v is None else float(v)
 
+    def check_quality(self) -> None:
+        """After convergence, before any following move: the held-out error of the samples (:func:`held_out`),
+        logged; above ``max_heldout_error`` the session stops (estimate)."""
+        q = self.quality = held_out(self.pairs, self.m_a)
+        self.journal.append({"e": "quality", "heldout_error": q.heldout_error, "effect": q.effect,
+                             "samples": q.samples})
+        if q.heldout_error > self.opts.max_heldout_error:  # NaN (too few samples) passes: nothing to hold out
+            weakest = int(np.argmin(q.effect))
+            raise Stopped(Stop.ESTIMATE, f"the samples' tracked motion is predicted from the actuators' with "
+                          f"{100 * q.heldout_error:.0f}% held-out error (max_heldout_error "
+                          f"{self.opts.max_heldout_error:g}); the weakest actuator, {weakest}, moves the point "
+                          f"{q.effect[weakest]:.3g} per m_a move: settle_s too short for the tracker's latency, "
+                          "an actuator that does not act, or a tracker that is not on the robot")
+
     # ---- the estimator
 
     def step(self, dtheta: np.ndarray, V: np.ndarray):
@@ -386,6 +429,7 @@ class Session:
         self.step_ms.append(1e3 * (time.perf_counter() - t0))
         self.state = state
         self.samples += 1
+        self.pairs.append((np.array(dtheta, np.float64), np.array(V, np.float64)))
         return info, conv
 
     # ---- Algorithm 1
@@ -485,6 +529,7 @@ class Session:
                     self.state, _ = sample_step(self.state, floats(rec["dtheta"]), floats(rec["V"]), self.opts.eps,
                                                 self.opts.eps_rel, method=self.opts.method)
                     self.samples += 1
+                    self.pairs.append((floats(rec["dtheta"]), floats(rec["V"])))
                     replayed += 1
                     logged_conv = int(rec["converged_at"])
                 else:
