@@ -283,6 +283,7 @@ def test_example_converges_and_writes_every_file(tmp_path, capsys):
     assert {r["reason"].split(" (")[0] for r in summary["rejected"]} == {
         "non-finite value", "duplicated timestamp", "gap longer than 0.3 s"}
     assert all(r["count"] == 1 for r in summary["rejected"])
+    assert summary["heldout_error"] < 0.2 and len(summary["actuator_effect"]) == 6  # the samples explain each other
     with np.load(out / "inverse_jacobian.npz") as z:
         J = z["inverse_jacobian"]
         assert J.shape == (6, 3) and int(z["converged_at"]) == summary["converged_at"]
@@ -329,3 +330,20 @@ def test_refine_methods():
         np.testing.assert_allclose(sj.fit(table, method=method).estimate, Jinv, atol=1e-4)  # SLSQP: ftol 1e-12
     with pytest.raises(ValueError, match="refine method"):
         sj.fit(table, method="newton")
+
+
+def test_held_out_error_is_exact_leave_one_out_and_sees_samples_that_do_not_explain_each_other():
+    """robot.quality.held_out against a numpy refit without each sample; unrelated V gives an error near 1 or more."""
+    from selfid_jax.robot.quality import held_out
+
+    rng = np.random.default_rng(0)
+    D = rng.uniform(-0.03, 0.03, (20, 4))
+    F = rng.normal(size=(3, 4))
+    V = D @ F.T + 1e-4 * rng.normal(size=(20, 3))
+    q = held_out(D, V, 0.03)
+    loo = [np.linalg.norm(V[k] - np.linalg.lstsq(np.delete(D, k, 0), np.delete(V, k, 0), rcond=None)[0].T @ D[k])
+           for k in range(20)]
+    np.testing.assert_allclose(q.heldout_error, np.sum(loo) / np.linalg.norm(V, axis=1).sum(), rtol=1e-9)
+    np.testing.assert_allclose(q.effect, np.linalg.norm(F, axis=0) * 0.03, rtol=0.02)
+    assert held_out(D, rng.normal(size=(20, 3)), 0.03).heldout_error > 0.9
+    assert np.isnan(held_out(D[:4], V[:4], 0.03).heldout_error)  # no more samples than actuators: nothing held out

@@ -98,10 +98,16 @@ def _npz(**arrays) -> bytes:
 
 
 def summary(result: FitResult, *, log: Path | str) -> dict[str, Any]:
-    """``summary.json`` of a fit: options, sample counts, rejected rows, convergence."""
+    """``summary.json`` of a fit: options, sample counts, rejected rows, convergence, the samples' held-out error."""
+    import numpy as np
+
+    from selfid_jax.robot.quality import held_out
+
     s = result.samples
     n, m = result.estimate.shape
     T = int(result.deltas.shape[0])
+    ok = np.asarray(result.accepted, bool)
+    quality = held_out(s.dtheta[ok], s.V[ok], float(np.max(np.abs(s.dtheta[ok]), initial=0.0)))
     return {
         "command": "fit",
         "log": str(log),
@@ -126,6 +132,10 @@ def summary(result: FitResult, *, log: Path | str) -> dict[str, Any]:
         "converged_row": int(s.row[result.converged_at - 1]) if result.converged else None,
         "final_delta": float(result.deltas[-1]),
         "final_threshold": float(result.thresholds[-1]),
+        # how far to trust the samples (selfid_jax.robot.quality): the forward map's leave-one-out error, and each
+        # actuator's task motion for the largest sample step
+        "heldout_error": quality.heldout_error,
+        "actuator_effect": quality.effect,
     }
 
 

@@ -80,10 +80,10 @@ from selfid_jax.robot.journal import Journal, read_journal
 from selfid_jax.robot.log import parse_task
 from selfid_jax.robot.options import ONLINE_METHODS, FollowOptions, OnlineOptions
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
+from selfid_jax.robot.quality import Quality
 from selfid_jax.robot.safety import envelope
 from selfid_jax.robot.session import (
     DriverFault,
-    Quality,
     ResumeError,
     Session,
     Stop,

@@ -47,10 +47,11 @@ from selfid_jax.math.checks import float_dtype
 from selfid_jax.robot.journal import Journal, JournalContents, JournalError, floats
 from selfid_jax.robot.log import pairs_from_time_series, rotations
 from selfid_jax.robot.protocol import Observation, Robot, RobotError
+from selfid_jax.robot.quality import Quality, held_out
 from selfid_jax.robot.safety import Envelope, actuation_target, check_observation
 
-__all__ = ["DriverFault", "Quality", "ResumeError", "Session", "Stop", "Stopped", "follow_command", "held_out",
-           "host_step", "init_state", "sample_step", "task_difference"]
+__all__ = ["DriverFault", "ResumeError", "Session", "Stop", "Stopped", "follow_command", "host_step", "init_state",
+           "sample_step", "task_difference"]
 
 
 class Stop(enum.StrEnum):
@@ -213,33 +214,6 @@ class Commanded(NamedTuple):
     commanded: np.ndarray  # (n,) sum of |target_i - q_i| over the moves, each older one times COMMAND_MEMORY
     along: np.ndarray  # (n,) the same sum of the measured motion along each command, (q'_i - q_i) sign(target_i - q_i)
     moves: int = 0
-
-
-class Quality(NamedTuple):
-    """How well a converged session's samples are explained (:func:`held_out`), checked before following."""
-
-    heldout_error: float  # leave-one-out error of the tracked motion predicted from the measured actuator motion:
-    #   sum_k |V_k - F_(-k) dtheta_k| / sum_k |V_k| with F_(-k) the least-squares forward map without sample k;
-    #   NaN with no more samples than actuators
-    effect: np.ndarray  # (n,) each actuator's task motion for a move of max(m_a), |F[:, i]| max(m_a) [task units]
-    samples: int
-
-
-def held_out(pairs: Sequence[tuple[np.ndarray, np.ndarray]], m_a: np.ndarray) -> Quality:
-    """:class:`Quality` of sample pairs ``(dtheta (n,), V (m,))``: the forward least-squares map ``V = F dtheta``
-    and its leave-one-out prediction error (the hat-matrix form, exact for least squares), float64 numpy."""
-    D = np.array([p[0] for p in pairs], np.float64).reshape(len(pairs), -1)
-    V = np.array([p[1] for p in pairs], np.float64).reshape(len(pairs), -1)
-    k, n = D.shape
-    if k <= n:
-        return Quality(float("nan"), np.full(n, np.nan), k)
-    G = D.T @ D
-    Ginv = np.linalg.pinv(G)
-    F = (Ginv @ D.T @ V).T
-    h = np.einsum("ki,ij,kj->k", D, Ginv, D)
-    r = (V - D @ F.T) / np.maximum(1.0 - h, 1e-12)[:, None]
-    err = float(np.linalg.norm(r, axis=1).sum() / max(float(np.linalg.norm(V, axis=1).sum()), 1e-300))
-    return Quality(err, np.linalg.norm(F, axis=0) * float(np.max(m_a)), k)
 
 
 # --------------------------------------------------------------------------- the session
@@ -408,7 +382,9 @@ class Session:
     def check_quality(self) -> None:
         """After convergence, before any following move: the held-out error of the samples (:func:`held_out`),
         logged; above ``max_heldout_error`` the session stops (estimate)."""
-        q = self.quality = held_out(self.pairs, self.m_a)
+        D, V = (np.array([p[i] for p in self.pairs], np.float64) for i in (0, 1))
+        q = self.quality = held_out(D.reshape(len(self.pairs), self.n), V.reshape(len(self.pairs), -1),
+                                    float(np.max(self.m_a)))
         self.journal.append({"e": "quality", "heldout_error": q.heldout_error, "effect": q.effect,
                              "samples": q.samples})
         if q.heldout_error > self.opts.max_heldout_error:  # NaN (too few samples) passes: nothing to hold out
@@ -416,7 +392,7 @@ class Session:
             raise Stopped(Stop.ESTIMATE, f"the samples' tracked motion is predicted from the actuators' with "
                           f"{100 * q.heldout_error:.0f}% held-out error (max_heldout_error "
                           f"{self.opts.max_heldout_error:g}); the weakest actuator, {weakest}, moves the point "
-                          f"{q.effect[weakest]:.3g} per m_a move: settle_s too short for the tracker's latency, "
+                          f"{q.effect[weakest]:.3g} per max(m_a) move: settle_s too short for the tracker's latency, "
                           "an actuator that does not act, or a tracker that is not on the robot")
 
     # ---- the estimator
