@@ -57,7 +57,8 @@ class FakeArm:
                  freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5, fail_move_with=None,
                  fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False,
                  frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None, delay_at=None, delay_s=0.0,
-                 pose_lag=False):
+                 pose_lag=False, no_quaternion=False):
+        self.no_quaternion = no_quaternion
         self.pose_lag, self._q_before = pose_lag, None
         self.frozen_pose_at, self.tracker_clock, self.stuck, self.slow = frozen_pose_at, tracker_clock, stuck, slow
         self.delay_at, self.delay_s = delay_at, delay_s
@@ -84,6 +85,8 @@ class FakeArm:
         obs = self._read()
         if self.delay_at is not None and self.reads >= self.delay_at:  # the reply is delayed in transport
             time.sleep(self.delay_s)
+        if self.no_quaternion:  # a position-only tracker
+            obs = obs._replace(quaternion=None)
         if self.valid_as is not None:  # a driver that reports validity as something other than a bool
             obs = obs._replace(valid=self.valid_as)
         if self.in_place:  # a driver that hands out its own arrays and updates them on the next read
@@ -716,3 +719,194 @@ def test_cli_and_api_give_the_same_defaults_for_every_online_option():
     for name, p in inspect.signature(safety.envelope).parameters.items():
         if p.default is not inspect.Parameter.empty and name in options.OnlineOptions._fields:
             assert p.default == options.OnlineOptions._field_defaults[name], name
+
+
+def test_a_position_only_tracker_serves_a_position_task_and_is_refused_for_rotation(tmp_path):
+    res = live.run_online(FakeArm(no_quaternion=True), opts(), tmp_path / "p")
+    assert res.status == live.Stop.CONVERGED, res.detail
+    fake = FakeArm(no_quaternion=True)
+    res = live.run_online(fake, opts(task="x,y,rz"), tmp_path / "r")
+    assert res.status == live.Stop.ROBOT_ERROR and "quaternion None" in res.detail and fake.moves == []
+
+
+def test_scalar_limits_broadcast_beside_a_vector_and_are_refused_alone():
+    from selfid_jax.robot.protocol import check_limits
+
+    lim = check_limits(RobotLimits(np.full(3, -3.0), 3.0, 0.2))
+    assert [x.shape for x in lim] == [(3,)] * 3 and np.all(lim.upper == 3.0) and np.all(lim.max_step == 0.2)
+    with pytest.raises(ValueError, match="all single numbers"):
+        check_limits(RobotLimits(-3.0, 3.0, 0.2))
+    with pytest.raises(ValueError, match="different lengths"):
+        check_limits(RobotLimits(np.full(3, -3.0), np.full(2, 3.0), 0.2))
+
+
+@pytest.mark.parametrize("where", ["config_folder", "cwd"])
+def test_a_driver_module_beside_the_config_or_in_the_current_directory_is_found(tmp_path, monkeypatch, where):
+    from selfid_jax.cli import main
+
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))  # the driver wraps this file's FakeArm
+    name = f"lab_driver_{where}"
+    folder = tmp_path / "lab"
+    folder.mkdir()
+    (folder / f"{name}.py").write_text("from test_online import FakeArm\n\ndef make(**kw):\n    return FakeArm(**kw)\n")
+    cfg_dir = folder if where == "config_folder" else tmp_path / "configs"
+    cfg_dir.mkdir(exist_ok=True)
+    if where == "cwd":
+        monkeypatch.chdir(folder)
+    cfg = cfg_dir / "online.yaml"
+    cfg.write_text(f"robot: {{driver: '{name}:make'}}\n"
+                   "selfid: {m_a: 0.03, max_samples: 40, seed: 3, settle_s: 0.0, poll_s: 0.001}\n")
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    assert main(["online", str(cfg), "--out", str(tmp_path / "run")]) == 0
+    assert name not in " ".join(sys.path)  # looked there for the import only
+
+
+# --------------------------------------------------------------------------- a loop a lab can watch (issue 42, item 3)
+
+
+def test_progress_events_arrive_in_order_and_match_the_log(tmp_path):
+    events = []
+    fake = FakeArm(dropouts=(6,))
+    path = options.FollowOptions(size=0.02, tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
+    result = live.run_online(fake, opts(path=path, max_step=0.03, m_a=0.02), tmp_path / "run", progress=events.append)
+    assert result.status == live.Stop.COMPLETED, result.detail
+    phases = [e["phase"] for e in events]
+    n_sel, n_fol = phases.count("selfid"), phases.count("follow")
+    assert phases == ["selfid"] * n_sel + ["follow"] * n_fol + ["stop"]  # in order, one stop, last
+    sel, fol = events[:n_sel], events[n_sel:-1]
+    assert n_sel == result.moves and [e["move"] for e in sel] == list(range(1, n_sel + 1))
+    accepted = [e for e in sel if e["accepted"]]
+    assert len(accepted) == result.samples and [e["sample"] for e in accepted] == list(range(1, result.samples + 1))
+    assert [e["reason"] for e in sel if not e["accepted"]] == ["dropout"] * result.rejected["dropout"]
+    logged = [r for r in read_journal(result.log).records if r["e"] == "sample" and r["accepted"]]
+    assert [e["delta"] for e in accepted] == [r["delta"] for r in logged]
+    assert [e["threshold"] for e in accepted] == [r["threshold"] for r in logged]
+    assert accepted[-1]["converged_at"] == result.converged_at and accepted[-2]["converged_at"] < 1
+    assert [e["step"] for e in fol] == list(range(1, result.follow_steps + 1))
+    assert all(e["waypoints"] == 10 for e in fol) and fol[-1]["waypoint"] == 10
+    assert [e["waypoint"] for e in fol] == sorted(e["waypoint"] for e in fol)
+    assert events[-1] == {"phase": "stop", "status": "completed", "detail": result.detail}
+    # the tracking error and wall times of the result: the events' path distances, each logged
+    d = np.array([e["distance"] for e in fol])
+    np.testing.assert_array_equal(result.track, d)
+    assert [r["distance"] for r in read_journal(result.log).records if r["e"] == "track"] == d.tolist()
+    assert 0 < d.max() < 0.01 and result.selfid_s > 0 and result.follow_s > 0
+
+
+def test_tracking_error_and_wall_times_add_up_over_a_resume(tmp_path, converged_run):
+    run, ref_fake, ref = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    path = options.FollowOptions(size=0.02, tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
+    fake = FakeArm(q0=ref_fake.q, max_step=0.05, fail_move_at=5)
+    first = live.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert first.status == live.Stop.CONNECTION and first.track.size == 5
+    stops = [r for r in read_journal(first.log).records if r["e"] == "times"]  # one per session, before its stop
+    assert len(stops) == 2 and all("selfid_s" in r and "follow_s" in r for r in stops)
+    fake = FakeArm(q0=fake.q, max_step=0.05)
+    second = live.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert second.status == live.Stop.COMPLETED, second.detail
+    # one distance per move read back: the move the connection lost has none
+    assert second.track.size == second.follow_steps - 1 and np.array_equal(second.track[:5], first.track)
+    assert second.selfid_s == pytest.approx(sum(r["selfid_s"] for r in stops), rel=0.5)  # no self-ID since
+    assert second.follow_s > first.follow_s
+
+
+def _follow_config(tmp_path):
+    return _config(tmp_path, """
+        robot: {driver: "fake_driver:make", args: {noise: 0.0}}
+        selfid: {task: "x,y,z", m_a: 0.02, eps_rel: 0.05, max_samples: 60, seed: 3, settle_s: 0.0, poll_s: 0.001}
+        safety: {stale_s: 1.0, max_step: 0.03}
+        path: {size: 0.02, tol: 0.001, max_task_step: 0.004, gain: 0.7, steps: 400}
+    """)
+
+
+def test_cli_prints_progress_and_quiet_prints_only_the_report(tmp_path, driver_module, capsys):
+    from selfid_jax.cli import main
+
+    cfg = _follow_config(tmp_path)
+    assert main(["online", str(cfg), "--out", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    sel = [ln for ln in out if ln.startswith("self-ID  move")]
+    fol = [ln for ln in out if ln.startswith("follow   move")]
+    assert len(sel) == summary["moves"] and len(fol) == summary["follow_steps"]  # one line per event, not a tty
+    assert "threshold" in sel[0] and sel[-1].endswith("converged") and "waypoint 10/10" in fol[-1]
+    assert "path distance" in fol[0] and out.index(sel[-1]) < out.index(fol[0])
+    assert any(ln.startswith("stop: completed") for ln in out) and any(ln.startswith("tracking error") for ln in out)
+    # the summary: tracking error and wall times
+    assert 0 < summary["track_mean_m"] <= summary["track_max_m"] < 0.01
+    assert summary["selfid_s"] > 0 and summary["follow_s"] > 0
+    assert main(["online", str(cfg), "--out", str(tmp_path / "b"), "--quiet"]) == 0
+    quiet = capsys.readouterr().out
+    assert "self-ID  move" not in quiet and "follow   move" not in quiet and "stop: completed" not in quiet
+    assert "follow: 10/10 waypoints" in quiet and "stopped: completed" in quiet and "tracking error" in quiet
+
+
+def test_progress_line_on_a_terminal_rewrites_one_line_per_phase():
+    import io
+
+    from selfid_jax.commands.online import ProgressLine
+
+    buf = io.StringIO()
+    show = ProgressLine(buf, tty=True)
+    show({"phase": "selfid", "move": 1, "sample": 1, "accepted": True, "delta": 1.0, "threshold": 0.1,
+          "converged_at": -1})
+    show({"phase": "selfid", "move": 2, "sample": 1, "accepted": False, "reason": "dropout"})
+    show({"phase": "follow", "step": 1, "waypoint": 0, "waypoints": 10, "distance": 1e-4})
+    show({"phase": "stop", "status": "completed", "detail": "done"})
+    text = buf.getvalue()
+    assert text.count("\n") == 3 and text.count("\r") == 3 and text.endswith("stop: completed: done\n")
+    assert "rejected (dropout)" in text and "0.100 mm" in text
+
+
+def test_online_run_writes_figures_and_plot_redraws_them(tmp_path, driver_module, capsys):
+    from selfid_jax.cli import main
+
+    run = tmp_path / "run"
+    assert main(["online", str(_follow_config(tmp_path)), "--out", str(run), "--quiet"]) == 0
+    figures = {f"{name}.{ext}" for name in ("convergence", "path") for ext in ("png", "pdf")}
+    assert {p.name for p in (run / "figures").iterdir()} == figures
+    assert "figure: " in capsys.readouterr().out
+    for name in figures:
+        (run / "figures" / name).unlink()
+    assert main(["plot", str(run)]) == 0
+    assert {p.name for p in (run / "figures").iterdir()} == figures
+    assert all((run / "figures" / n).stat().st_size > 1000 for n in figures)
+    assert "figure: " in capsys.readouterr().out
+
+
+def test_online_run_without_a_path_has_only_the_convergence_figure(tmp_path, converged_run, capsys):
+    from selfid_jax.cli import main
+
+    run, _, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    assert main(["plot", str(tmp_path / "r")]) == 0
+    assert sorted(p.name for p in (tmp_path / "r" / "figures").iterdir()) == ["convergence.pdf", "convergence.png"]
+
+
+def test_path_figure_titles_say_tracked_point(converged_run, tmp_path):
+    from selfid_jax.commands import online_figures
+
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    path = options.FollowOptions(size=0.02, tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
+    live.run_online(FakeArm(q0=ref_fake.q, max_step=0.05), opts(path=path, max_step=0.03), tmp_path / "r",
+                    resume=True)
+    log = read_journal(tmp_path / "r" / "session.jsonl")
+    fig = online_figures.draw_path(log.records, [0, 1, 2], "t")
+    titles = " ".join(ax.get_title() for ax in fig.axes)
+    assert "tracked point" in titles and "POM" not in titles
+    assert online_figures.tracking(log.records)["track_moves"] > 0
+
+
+def test_plot_refuses_an_unknown_directory_clearly(tmp_path, capsys):
+    from selfid_jax.cli import main
+
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "notes.txt").write_text("x")
+    assert main(["plot", str(tmp_path / "junk")]) == 2
+    err = capsys.readouterr().err
+    assert "not a run directory" in err and "config.yaml" in err and "online" in err and "fit" in err
+    assert sorted(p.name for p in (tmp_path / "junk").iterdir()) == ["notes.txt"]  # nothing written there
+    assert main(["plot", str(tmp_path / "missing")]) == 2
+    assert "not found" in capsys.readouterr().err

@@ -172,6 +172,9 @@ def test_requests_carry_ids_and_a_duplicated_reply_is_a_protocol_error(fake):
     robot = RemoteRobot("127.0.0.1", server.port, timeout_s=2.0)
     with pytest.raises(RobotConnectionError, match=r"reply to 'limits' .*id 1.*duplicated or late"):
         robot.limits()  # the hello's duplicate (id 1) arrives as the answer to request 2
+    deadline = time.monotonic() + 5  # the client refused the duplicate at once; let the server log request 2
+    while len(server.requests) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
     ids = [r.get("id") for r in server.requests]
     assert ids == [1, 2]
 

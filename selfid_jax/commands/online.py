@@ -1,6 +1,6 @@
 """``selfid-jax online CONFIG``: self-ID a connected robot live (Algorithm 1), then optionally follow a path.
 
-    selfid-jax online CONFIG [--resume] [--out DIR] [--set key.sub=value ...]
+    selfid-jax online CONFIG [--resume] [--out DIR] [--set key.sub=value ...] [--quiet]
 
 CONFIG (YAML, strict: unknown keys, wrong types and out-of-range values are
 refused with the dotted key, before connecting)::
@@ -23,7 +23,12 @@ happens, and at the end this writes, each whole
 (:mod:`selfid_jax.runner.files`): ``online_config.json`` (the resolved
 config), ``summary.json`` (status, counts, step latency) and
 ``inverse_jacobian.npz`` / ``.json`` (the estimate, as ``selfid-jax fit``
-writes it). ``--resume`` continues a stopped session from its log.
+writes it) and the figures ``figures/convergence`` and, after following,
+``figures/path`` (.png/.pdf; :mod:`selfid_jax.commands.online_figures`, from
+the log: ``selfid-jax plot RUN`` redraws them). ``--resume`` continues a
+stopped session from its log. While the session runs, a progress line per
+self-ID sample and following move goes to stdout (in place on a terminal;
+none with ``--quiet``).
 
 Exit codes: 0 converged (or path completed); 1 a stop of the session's own
 (max_samples, max_steps, stale, box, limits, divergence: the summary says
@@ -56,7 +61,7 @@ from selfid_jax.runner.config import STRICT
 if TYPE_CHECKING:
     from selfid_jax.robot.live import OnlineResult
 
-__all__ = ["OnlineConfig", "add_arguments", "command", "connect", "options", "run", "summary"]
+__all__ = ["OnlineConfig", "ProgressLine", "add_arguments", "command", "connect", "options", "run", "summary"]
 
 SUMMARY_FILE = "summary.json"
 CONFIG_JSON = "online_config.json"
@@ -213,22 +218,44 @@ def options(cfg: OnlineConfig) -> OnlineOptions:
                          path=path)
 
 
-def connect(section: RobotSection):
+def import_driver(spec: str, config_dir: Path | None = None):
+    """The factory named by ``'package.module:Class'``, its module imported as Python would, else from the
+    config's folder, else from the current directory (a driver file beside the config needs no install)."""
+    import sys
+
+    module, _, name = spec.partition(":")
+    extra = [str(p) for p in (config_dir, Path.cwd()) if p is not None and str(p) not in sys.path]
+    try:
+        return getattr(importlib.import_module(module), name)
+    except ModuleNotFoundError as err:
+        if err.name != module.split(".")[0] or not extra:
+            raise
+    sys.path[:0] = extra
+    try:
+        return getattr(importlib.import_module(module), name)
+    finally:
+        for p in extra:
+            sys.path.remove(p)
+
+
+def connect(section: RobotSection, config_dir: Path | None = None):
     """A connected :class:`~selfid_jax.robot.protocol.Robot` from the config's ``robot`` section.
 
-    Raises ConfigError naming ``robot.driver`` / ``robot.host`` when the
-    driver cannot be imported, is not a Robot, or the connection fails.
+    A ``driver`` module is found as Python finds it, else in ``config_dir``
+    (the config's folder), else in the current directory. Raises ConfigError
+    naming ``robot.driver`` / ``robot.host`` when the driver cannot be
+    imported, is not a Robot, or the connection fails.
     """
     from selfid_jax.robot.protocol import Robot, RobotError
     from selfid_jax.runner.errors import ConfigError
 
     if section.driver is not None:
         key = "robot.driver"
-        module, _, name = section.driver.partition(":")
         try:
-            factory = getattr(importlib.import_module(module), name)
+            factory = import_driver(section.driver, config_dir)
         except (ImportError, AttributeError) as err:
-            raise ConfigError(f"{key}: cannot import {section.driver!r}: {err}") from None
+            raise ConfigError(f"{key}: cannot import {section.driver!r} (looked on the Python path, in the "
+                              f"config's folder and in the current directory): {err}") from None
         try:
             robot = factory(**section.args)
         except (RobotError, OSError) as err:
@@ -255,6 +282,55 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "runs/online_<config stem>)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set selfid.m_a=0.02 (repeatable)")
+    p.add_argument("--quiet", action="store_true", help="no progress line (one per self-ID sample and following "
+                   "move, updated in place on a terminal); the final report is still printed")
+
+
+class ProgressLine:
+    """The live progress of ``selfid-jax online``: one line per session event
+    (:func:`selfid_jax.robot.live.run_online`'s ``progress``) on ``stream``, or on a terminal one line rewritten in
+    place (carriage return) per phase."""
+
+    def __init__(self, stream=None, tty: bool | None = None):
+        import sys
+
+        self.stream = sys.stdout if stream is None else stream
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)()) if tty is None else tty
+        self.width = 0  # length of the line shown in place (tty)
+        self.phase: str | None = None
+
+    @staticmethod
+    def line(event: dict[str, Any]) -> str:
+        """The text of one event."""
+        phase = event["phase"]
+        if phase == "selfid":
+            head = f"self-ID  move {event['move']:4d}  sample {event['sample']:4d}"
+            if not event["accepted"]:
+                return f"{head}  rejected ({event['reason']})"
+            conv = event.get("converged_at", -1)
+            ok = "converged" if conv > 0 else ("below" if event["delta"] <= event["threshold"] else "above")
+            return (f"{head}  |J_t - J_t-1| {event['delta']:.3e}  threshold {event['threshold']:.3e}  {ok}"
+                    + ("" if event.get("estimator_accepted", True) else "  (refused by the estimator)"))
+        if phase == "follow":
+            return (f"follow   move {event['step']:4d}  waypoint {event['waypoint']}/{event['waypoints']}  "
+                    f"path distance {1e3 * event['distance']:.3f} mm")
+        return f"stop: {event['status']}: {event['detail']}"
+
+    def __call__(self, event: dict[str, Any]) -> None:
+        text = self.line(event)
+        if not self.tty:
+            print(text, file=self.stream, flush=True)
+            return
+        if self.width and (event["phase"] != self.phase or event["phase"] == "stop"):
+            self.stream.write("\n")  # keep the last line of the phase before
+            self.width = 0
+        self.phase = event["phase"]
+        if event["phase"] == "stop":
+            self.stream.write(text + "\n")
+        else:
+            self.stream.write("\r" + text.ljust(self.width))
+            self.width = len(text)
+        self.stream.flush()
 
 
 def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
@@ -285,6 +361,11 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
         "waypoints_total": result.waypoints_total,
         "replayed": result.replayed,
         "truncated_log_lines": result.truncated,
+        # while following, the tracked point's distance from the path after each move [m] (every session of the log)
+        "track_mean_m": float(np.nanmean(result.track)) if result.track.size else None,
+        "track_max_m": float(np.nanmax(result.track)) if result.track.size else None,
+        "selfid_s": result.selfid_s,  # wall time of self-ID [s]: moves, settling, reads, the estimator
+        "follow_s": result.follow_s,  # wall time following the path [s]
         "step_ms_p50": float(np.percentile(ms, 50)) if ms.size else None,
         "step_ms_p99": float(np.percentile(ms, 99)) if ms.size else None,
         "eps": cfg.selfid.eps,
@@ -353,7 +434,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     with hold(out):
         signals.phase("connect")
-        robot = connect(cfg.robot)
+        robot = connect(cfg.robot, Path(args.config).resolve().parent)
         try:  # run_online closes the robot however it ends; close (idempotent) here too if it never starts
             from selfid_jax.robot.protocol import RobotError, check_limits
 
@@ -368,7 +449,8 @@ def run(args: argparse.Namespace) -> int:
                 with signals.graceful(f"selfid-jax online: interrupted; the session log {log} is intact "
                                       "(continue with --resume)", stop.set, interrupt=True,
                                       last_words=lambda: _log_killed(log)):
-                    result = live.run_online(robot, opts, out, resume=args.resume, stop_requested=stop.is_set)
+                    result = live.run_online(robot, opts, out, resume=args.resume, stop_requested=stop.is_set,
+                                             progress=None if getattr(args, "quiet", False) else ProgressLine())
             except ValueError as err:  # bad options, a log that disagrees: all before any motion
                 raise ConfigError(f"{args.config}: {' '.join(str(err).split())}") from None
         finally:
@@ -427,6 +509,10 @@ def write_run(result: OnlineResult, cfg: OnlineConfig, out: Path) -> dict[str, P
     else:
         info["estimate_so_far"] = result.estimate if result.samples else None  # not converged: not a result
     write_json(paths[SUMMARY_FILE], info)
+    from selfid_jax.commands.online_figures import write_figures
+
+    for f in write_figures(out):  # from the session log, as `selfid-jax plot RUN` redraws them
+        paths[f"figures/{f.name}"] = f
     return paths
 
 
@@ -436,8 +522,14 @@ def _report(result: OnlineResult, files: dict[str, Path]) -> None:
     print(f"self-ID: {result.samples} samples{resumed}, {result.moves} random moves, rejected: {rejected}")
     if result.converged:
         print(f"converged at sample {result.converged_at}")
+    print(f"wall time: self-ID {result.selfid_s:.1f} s, following {result.follow_s:.1f} s")
     if result.waypoints_total:
         print(f"follow: {result.waypoints}/{result.waypoints_total} waypoints in {result.follow_steps} moves")
+    if result.track.size:
+        import numpy as np
+
+        print(f"tracking error: path distance mean {1e3 * np.nanmean(result.track):.3f} mm, "
+              f"max {1e3 * np.nanmax(result.track):.3f} mm over {result.track.size} moves")
     if result.step_ms.size:
         import numpy as np
 
@@ -449,6 +541,9 @@ def _report(result: OnlineResult, files: dict[str, Path]) -> None:
     else:
         print(f"not converged: no inverse Jacobian written (the estimate so far is in {files[SUMMARY_FILE]}); "
               f"log: {result.log}")
+    for name, f in files.items():
+        if name.startswith("figures/") and f.suffix == ".png":
+            print(f"figure: {f}")
 
 
 def command():
@@ -456,4 +551,11 @@ def command():
     from selfid_jax.runner.command_line import Command
 
     return Command(help="self-ID a connected robot live (Algorithm 1), then follow a path; resumable",
-                   description=DESCRIPTION, add_arguments=add_arguments, run=run)
+                   description=DESCRIPTION, add_arguments=add_arguments, run=run, plot=_redraw)
+
+
+def _redraw(run_dir: Path):
+    """``selfid-jax plot RUN`` of an online run directory (:func:`selfid_jax.commands.online_figures.redraw`)."""
+    from selfid_jax.commands.online_figures import redraw
+
+    return redraw(run_dir)

@@ -82,10 +82,22 @@ class Robot(Protocol):
 def check_limits(limits: RobotLimits, n: int | None = None) -> RobotLimits:
     """``limits`` as float64 ``(n,)`` arrays, with ``lower < upper`` and ``max_step > 0`` everywhere, finite.
 
-    Raises ValueError naming the field and actuator otherwise (a driver's limits are checked before any motion).
+    A single number among them applies to every actuator (``n`` from the
+    others, or the given ``n``); all three single numbers are refused (the
+    number of actuators would be a guess). Raises ValueError naming the field
+    and actuator otherwise (a driver's limits are checked before any motion).
     """
-    lower, upper, step = (np.atleast_1d(np.asarray(x, np.float64)) for x in limits)
-    n = lower.shape[0] if n is None else n
+    arrays = [np.asarray(x, np.float64) for x in limits]
+    if n is None:
+        sizes = {x.shape[0] for x in arrays if x.ndim == 1}
+        if not sizes:
+            raise ValueError("robot limits: lower, upper and max_step are all single numbers; give at least one "
+                             "of them per actuator, shape (n,) (the others then apply to every actuator)")
+        if len(sizes) > 1:
+            raise ValueError("robot limits: lower, upper and max_step have different lengths "
+                             f"{tuple(x.shape for x in arrays)}; give one value per actuator")
+        n = sizes.pop()
+    lower, upper, step = (np.full(n, float(x)) if x.ndim == 0 else x for x in arrays)
     for name, x in (("lower", lower), ("upper", upper), ("max_step", step)):
         if x.shape != (n,):
             raise ValueError(f"robot limits: {name} has shape {x.shape}, expected ({n},)")

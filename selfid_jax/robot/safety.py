@@ -97,10 +97,12 @@ def actuation_target(seed: int, k: int, q: np.ndarray, m_a: np.ndarray, lower: n
     return np.clip(q + d, lower, upper)
 
 
-def check_observation(obs: Any, n: int) -> Observation:
+def check_observation(obs: Any, n: int, *, rotation: bool = True) -> Observation:
     """The driver's reading as new float64 arrays of the protocol's shapes; RobotError if it is malformed.
 
-    The arrays are copies (a driver may reuse and update its own). ``valid``
+    The arrays are copies (a driver may reuse and update its own). A
+    quaternion of None (a position-only tracker) reads as the identity where
+    the task has no rotation axes (``rotation`` False). ``valid``
     must be a real boolean (``"False"`` or NaN is a RobotError naming it, not
     a valid reading). A reading flagged valid whose pose is not finite, or
     whose quaternion is zero, is a dropout (``valid`` False).
@@ -108,7 +110,13 @@ def check_observation(obs: Any, n: int) -> Observation:
     try:
         q = np.array(obs.q, np.float64).reshape(-1)
         p = np.array(obs.position, np.float64).reshape(-1)
-        quat = np.array(obs.quaternion, np.float64).reshape(-1)
+        if obs.quaternion is None and not rotation:  # a position-only tracker, for a task without rotation axes
+            quat = np.array([1.0, 0.0, 0.0, 0.0])
+        elif obs.quaternion is None:
+            raise RobotError("driver returned quaternion None (a position-only tracker), but the task has rotation "
+                             "axes: track the orientation, or give a position-only task")
+        else:
+            quat = np.array(obs.quaternion, np.float64).reshape(-1)
         t, tt, valid = float(obs.t), float(obs.tracker_t), obs.valid
     except (AttributeError, TypeError, ValueError) as err:
         raise RobotError(f"driver returned a malformed observation: {err}") from None

@@ -229,9 +229,11 @@ class Session:
     """
 
     def __init__(self, robot: Robot, opts, env: Envelope, axes: tuple[int, ...], m_a: np.ndarray,
-                 journal: Journal, stop_requested: Callable[[], bool] | None, sleep: Callable[[float], None]):
+                 journal: Journal, stop_requested: Callable[[], bool] | None, sleep: Callable[[float], None],
+                 progress: Callable[[dict], None] | None = None):
         self.robot, self.opts, self.env, self.axes, self.m_a = robot, opts, env, axes, m_a
         self.journal, self.stop_requested, self.sleep = journal, stop_requested, sleep
+        self.progress = progress  # called with one event (a dict) after each self-ID sample and following move
         self.n = env.lower.shape[0]
         self.last_tracker_t = -math.inf
         self.last_advance_wall = time.monotonic()
@@ -266,13 +268,18 @@ class Session:
         except Exception as err:  # a vendor's TimeoutError, ValueError, OSError...: a logged stop, not a traceback
             raise DriverFault(name, err) from err
 
+    def report(self, event: dict) -> None:
+        """Hand ``event`` to the progress callback, if any (after the event is logged)."""
+        if self.progress is not None:
+            self.progress(event)
+
     def check_interrupt(self) -> None:
         if self.stop_requested is not None and self.stop_requested():
             raise Stopped(Stop.INTERRUPTED, "stop requested")
 
     def read(self, phase: str) -> Observation:
         """Read, log, and apply the watchdog, the limits and the box (valid poses only)."""
-        obs = check_observation(self._call("read"), self.n)
+        obs = check_observation(self._call("read"), self.n, rotation=any(a >= 3 for a in self.axes))
         now = time.monotonic()
         self.journal.append({"e": "obs", "phase": phase, "t": obs.t, "q": obs.q, "p": obs.position,
                              "quat": obs.quaternion, "tracker_t": obs.tracker_t, "valid": obs.valid})
@@ -427,6 +434,8 @@ class Session:
             if reason is not None:
                 self.rejected[reason] = self.rejected.get(reason, 0) + 1
                 self.journal.append({"e": "sample", "k": k, "accepted": False, "reason": reason})
+                self.report({"phase": "selfid", "move": k + 1, "sample": self.samples, "accepted": False,
+                             "reason": reason})
                 base = self.fresh("selfid")
                 continue
             dtheta, V = obs.q - base.q, task_difference(obs, base, self.axes)
@@ -435,6 +444,9 @@ class Session:
                                  "estimator_accepted": bool(info.accepted), "delta": float(info.delta),
                                  "threshold": float(info.threshold), "converged_at": conv,
                                  "step_ms": self.step_ms[-1]})
+            self.report({"phase": "selfid", "move": k + 1, "sample": self.samples, "accepted": True,
+                         "estimator_accepted": bool(info.accepted), "delta": float(info.delta),
+                         "threshold": float(info.threshold), "converged_at": conv})
             base = obs
             if conv > 0:
                 self.journal.append({"e": "converged", "converged_at": conv,
@@ -465,11 +477,16 @@ class Session:
         W = offsets.shape[0]
         ctrl = path.controller(env)
         self.predict = np.linalg.pinv(Jinv)[[i for i, a in enumerate(self.axes) if a < 3]]  # dq -> predicted dp
+        moved = False  # a reading after a move of this call (not the one following starts or resumes from)
         while True:
             cmd, dist = follow_command(Jinv, offsets, anchor, self.waypoint, obs, ctrl, self.axes)
             if cmd.reached:
                 self.journal.append({"e": "waypoint", "reached": self.waypoint})
             self.waypoint = int(cmd.waypoint)
+            if moved:
+                self.report({"phase": "follow", "step": self.follow_steps, "waypoint": self.waypoint,
+                             "waypoints": W, "distance": dist})
+            moved = True
             if self.waypoint == W:
                 raise Stopped(Stop.COMPLETED, f"path followed: {W} waypoints in {self.follow_steps} moves")
             if dist > env.diverge_dist:
