@@ -347,3 +347,22 @@ def test_held_out_error_is_exact_leave_one_out_and_sees_samples_that_do_not_expl
     np.testing.assert_allclose(q.effect, np.linalg.norm(F, axis=0) * 0.03, rtol=0.02)
     assert held_out(D, rng.normal(size=(20, 3)), 0.03).heldout_error > 0.9
     assert np.isnan(held_out(D[:4], V[:4], 0.03).heldout_error)  # no more samples than actuators: nothing held out
+
+
+def test_plot_redraws_a_fit_run_directory(tmp_path, capsys):
+    from selfid_jax.cli import main
+    from selfid_jax.commands.fit import draw_convergence
+
+    out = tmp_path / "fit"
+    assert main(["fit", "--example", "--out", str(out)]) == 0
+    figures = out / "figures"
+    before = (figures / "convergence.png").stat().st_size
+    for f in figures.iterdir():
+        f.unlink()
+    capsys.readouterr()
+    assert main(["plot", str(out)]) == 0  # no config.yaml: the fit command's own hook redraws it
+    assert sorted(p.name for p in figures.iterdir()) == ["convergence.pdf", "convergence.png"]
+    assert abs((figures / "convergence.png").stat().st_size - before) < 0.05 * before  # the same figure
+    assert capsys.readouterr().out.count("figure: ") == 2
+    fig = draw_convergence([1.0, 0.1, 0.01], [0.5, 0.5, 0.5], eps=0.0, eps_rel=0.05, converged_at=3, title="t")
+    assert len(fig.axes[0].get_lines()) == 3  # deltas, threshold, convergence mark

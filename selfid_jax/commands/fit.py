@@ -33,7 +33,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from selfid_jax.robot.offline import FitResult
 
-__all__ = ["EXAMPLE_LOG", "add_arguments", "command", "draw", "example_log", "run", "summary", "write_run"]
+__all__ = ["EXAMPLE_LOG", "add_arguments", "command", "draw", "draw_convergence", "example_log", "redraw", "run",
+           "summary", "write_run"]
 
 EXAMPLE_LOG = "ur5e_example_log.csv"
 ESTIMATES_FILE = "estimates.npz"
@@ -141,27 +142,69 @@ def summary(result: FitResult, *, log: Path | str) -> dict[str, Any]:
 
 def draw(result: FitResult):
     """Figure of ``||J_t - J_{t-1}||_F`` per sample (log scale) with the threshold and the convergence iteration."""
+    return draw_convergence(result.deltas, result.thresholds, eps=result.eps, eps_rel=result.eps_rel,
+                            converged_at=result.converged_at,
+                            title=f"self-ID from {Path(result.samples.source).name}: n={result.estimate.shape[0]}, "
+                            f"task {','.join(result.samples.axis_names)}")
+
+
+def draw_convergence(deltas, thresholds, *, eps: float, eps_rel: float, converged_at: int, title: str):
+    """``||J_t - J_{t-1}||_F`` per sample ``deltas (T,)`` (log scale) against the Sec. IV-D threshold
+    ``thresholds (T,)``, with the convergence iteration (1-based; < 1: none); ``fit``'s and ``online``'s figure."""
     import numpy as np
     from matplotlib.figure import Figure
 
-    T = result.deltas.shape[0]
+    deltas, thresholds = np.asarray(deltas, np.float64), np.asarray(thresholds, np.float64)
+    T = deltas.shape[0]
     k = np.arange(1, T + 1)
     fig = Figure(figsize=(6.4, 3.6))
     ax = fig.subplots()
     tiny = np.finfo(np.float64).tiny
-    ax.semilogy(k, np.maximum(result.deltas, tiny), "o-", ms=3, lw=1, label=r"$\|J_t - J_{t-1}\|_F$")
-    ax.semilogy(k, np.maximum(result.thresholds, tiny), "--", color="0.4", lw=1,
-                label=rf"$\epsilon + \epsilon_{{rel}} \|J_t\|_F$ ($\epsilon$={result.eps:g}, "
-                rf"$\epsilon_{{rel}}$={result.eps_rel:g})")
-    if result.converged:
-        ax.axvline(result.converged_at, color="C3", lw=1.2, label=f"converged at sample {result.converged_at}")
+    ax.semilogy(k, np.maximum(deltas, tiny), "o-", ms=3, lw=1, label=r"$\|J_t - J_{t-1}\|_F$")
+    ax.semilogy(k, np.maximum(thresholds, tiny), "--", color="0.4", lw=1,
+                label=rf"$\epsilon + \epsilon_{{rel}} \|J_t\|_F$ ($\epsilon$={eps:g}, "
+                rf"$\epsilon_{{rel}}$={eps_rel:g})")
+    if converged_at >= 1:
+        ax.axvline(converged_at, color="C3", lw=1.2, label=f"converged at sample {converged_at}")
     ax.set_xlabel("sample")
     ax.set_ylabel(r"$\|J_t - J_{t-1}\|_F$")
-    ax.set_title(f"self-ID from {Path(result.samples.source).name}: n={result.estimate.shape[0]}, "
-                 f"task {','.join(result.samples.axis_names)}", fontsize=10)
+    ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     return fig
+
+
+def redraw(run_dir: Path) -> list[Path] | None:
+    """Redraw ``figures/convergence`` of a ``fit`` run directory from its ``estimates.npz`` and ``summary.json``
+    (``selfid-jax plot RUN``); None when ``run_dir`` is not one (no ``fit`` summary)."""
+    import json
+
+    import numpy as np
+
+    from selfid_jax.runner.errors import RunDirError
+    from selfid_jax.runner.figures import save_figure
+    from selfid_jax.runner.layout import FIGURES_DIR
+    from selfid_jax.runner.lock import hold
+
+    run_dir = Path(run_dir)
+    try:
+        info = json.loads((run_dir / SUMMARY_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(info, dict) or info.get("command") != "fit":
+        return None
+    with hold(run_dir):  # not while a fit writes it
+        try:
+            with np.load(run_dir / ESTIMATES_FILE) as z:
+                deltas, thresholds = z["deltas"], z["thresholds"]
+        except (OSError, ValueError, KeyError) as err:
+            raise RunDirError(f"{run_dir / ESTIMATES_FILE}: cannot be read ({err}); run selfid-jax fit again"
+                              ) from None
+        fig = draw_convergence(deltas, thresholds, eps=float(info["eps"]), eps_rel=float(info["eps_rel"]),
+                               converged_at=int(info["converged_at"]),
+                               title=f"self-ID from {Path(str(info.get('log', '?'))).name}: n={info.get('n')}, "
+                               f"task {','.join(info.get('task_axes', []))}")
+        return save_figure(fig, run_dir / FIGURES_DIR, FIGURE)
 
 
 def write_run(result: FitResult, out: Path, *, log: Path | str) -> dict[str, Path]:
@@ -251,4 +294,4 @@ def command():
     from selfid_jax.runner.command_line import Command
 
     return Command(help="self-ID from a recorded log (CSV, Parquet, NPZ) into a run directory",
-                   description=DESCRIPTION, add_arguments=add_arguments, run=run)
+                   description=DESCRIPTION, add_arguments=add_arguments, run=run, plot=redraw)

@@ -119,6 +119,9 @@ class OnlineResult(NamedTuple):
     quality: Quality | None  # the converged samples' held-out error and actuator effects; None before convergence
     axes: tuple[int, ...]  # task axes into (x, y, z, rx, ry, rz)
     log: Path  # the session log
+    track: np.ndarray = np.zeros(0)  # (s,) m, path distance after each following move (the log's, resumes included)
+    selfid_s: float = 0.0  # s of wall time in self-ID (moves, reads, estimator; every session of the log)
+    follow_s: float = 0.0  # s of wall time following the path (every session of the log)
 
     @property
     def converged(self) -> bool:
@@ -187,7 +190,8 @@ def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.nda
 
 def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, resume: bool = False,
                stop_requested: Callable[[], bool] | None = None,
-               sleep: Callable[[float], None] = time.sleep) -> OnlineResult:
+               sleep: Callable[[float], None] = time.sleep,
+               progress: Callable[[dict[str, Any]], None] | None = None) -> OnlineResult:
     """Self-identify the robot's inverse Jacobian live (Algorithm 1), then follow ``options.path`` with it.
 
     ``robot``: a connected driver (:class:`~selfid_jax.robot.protocol.Robot`);
@@ -198,6 +202,15 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
     ``stop_requested``: polled before every read and command; True ends the
     session as :attr:`Stop.INTERRUPTED` (a signal handler sets it);
     KeyboardInterrupt does the same. ``sleep``: the settle/poll wait.
+    ``progress``: called with one event (a dict, after it is logged) as the
+    session goes: ``{"phase": "selfid", "move", "sample", "accepted", "delta",
+    "threshold", "converged_at"}`` after each self-ID draw (``move`` counts
+    draws, ``sample`` accepted samples; ``delta`` is ``||J_t - J_{t-1}||_F``,
+    ``threshold`` Sec. IV-D's; a rejected draw has ``"reason"`` instead of the
+    estimator's fields), ``{"phase": "follow", "step", "waypoint",
+    "waypoints", "distance"}`` after each following move (waypoints reached
+    out of the path's, the path distance [m]), and ``{"phase": "stop",
+    "status", "detail"}`` once at the end. It runs in the loop: keep it quick.
 
     Returns an :class:`OnlineResult`; the session's stop is its ``status``
     (a :class:`selfid_jax.robot.session.Stop`: a safety stop is a result,
@@ -222,6 +235,19 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
     session: Session | None = None
     status, detail = Stop.INTERRUPTED, "not started"
     replayed = truncated = 0
+    track: list[float] = []  # this session's path distances after each following move [m]
+    wall = {"selfid_s": 0.0, "follow_s": 0.0}  # this session's wall times per phase
+    earlier = {"selfid_s": 0.0, "follow_s": 0.0}  # the log's earlier sessions'
+
+    def on_event(event: dict[str, Any]) -> None:
+        if event["phase"] == "follow":
+            track.append(float(event["distance"]))
+            assert journal is not None
+            journal.append({"e": "track", "step": event["step"], "waypoint": event["waypoint"],
+                            "distance": event["distance"]})
+        if progress is not None:
+            progress(event)
+
     try:
         limits = robot.limits()
         n = check_limits(limits).lower.shape[0]
@@ -247,6 +273,12 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             contents = read_journal(log_path)
             _check_header(log_path, contents.header, header)
             truncated = contents.truncated
+            for rec in contents.records:
+                if rec["e"] == "track":
+                    track.append(float(rec["distance"]))
+                elif rec["e"] == "times":
+                    for key in earlier:
+                        earlier[key] += float(rec.get(key) or 0.0)
             journal = Journal(log_path, good_bytes=contents.good_bytes)
         else:
             if log_path.exists():
@@ -254,7 +286,7 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                                   "choose another run directory")
             journal = Journal(log_path)
             journal.append(header)
-        session = Session(robot, options, env, axes, m_a, journal, stop_requested, sleep)
+        session = Session(robot, options, env, axes, m_a, journal, stop_requested, sleep, on_event)
         session.state = init_state(n, m, method=options.method, v_tol=options.v_tol,
                                    max_samples=options.max_samples, dtype=dtype)
         # compile the step now, before any motion, so the first sample does not stall the loop (result discarded)
@@ -268,6 +300,7 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                         "box_low": env.box_low, "box_high": env.box_high, "stale_s": env.stale_s})
         session.last_advance_wall = time.monotonic()  # the watchdog's clock starts now, not before the replay
         kind = trace = None
+        phase, t0 = "selfid_s", time.monotonic()
         try:
             if int(session.state.converged_at) < 1:
                 session.selfid()
@@ -275,6 +308,8 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             if options.path is None:
                 raise Stopped(Stop.CONVERGED, f"converged at sample {int(session.state.converged_at)}; "
                               "no path to follow, the robot stays where it is")
+            wall[phase] += time.monotonic() - t0
+            phase, t0 = "follow_s", time.monotonic()
             session.follow(options.path)
         except Stopped as stop:
             status, detail = stop.reason, stop.detail
@@ -289,8 +324,12 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         except Exception as err:  # noqa: BLE001 - a bug of the runner's own: still a logged stop, no further command
             status, detail, kind = Stop.ERROR, f"internal error: {type(err).__name__}: {err}", type(err).__name__
             trace = traceback.format_exc()
+        wall[phase] += time.monotonic() - t0
         extra = {k: v for k, v in (("kind", kind), ("traceback", trace)) if v is not None}
+        journal.append({"e": "times", **wall})  # this session's wall time per phase [s], just before its stop
         journal.append({"e": "stop", "reason": status.value, "detail": detail, **extra})
+        if progress is not None:
+            progress({"phase": "stop", "status": status.value, "detail": detail})
     finally:
         try:
             robot.close()
@@ -306,4 +345,6 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         converged_at=int(state.converged_at), samples=session.samples, rejected=dict(session.rejected),
         moves=session.moves, follow_steps=session.follow_steps, follow_rejected=session.follow_rejected,
         waypoints=session.waypoint, waypoints_total=path_total, replayed=replayed, truncated=truncated,
-        step_ms=np.asarray(session.step_ms, np.float64), quality=session.quality, axes=axes, log=log_path)
+        step_ms=np.asarray(session.step_ms, np.float64), quality=session.quality, axes=axes, log=log_path,
+        track=np.asarray(track, np.float64), selfid_s=earlier["selfid_s"] + wall["selfid_s"],
+        follow_s=earlier["follow_s"] + wall["follow_s"])

@@ -58,6 +58,10 @@ class Command(NamedTuple):
     description: str  # the subcommand's --help text
     add_arguments: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
+    # ``plot(run_dir)``: redraw the figures of a run directory this command wrote (``selfid-jax plot RUN``) and
+    # return their paths, or None when ``run_dir`` is not one of its own (then it writes nothing there, not even
+    # a lock: it takes the directory's lock, selfid_jax.runner.lock.hold, only once it knows the directory)
+    plot: Callable[[Path], list[Path] | None] | None = None
 
 
 class _UsageError(Exception):
@@ -105,10 +109,13 @@ def _parser(extra: Mapping[str, Command] | None = None) -> argparse.ArgumentPars
 
     pl = sub.add_parser(
         "plot", help="redraw every figure of a run from its saved results",
-        description="Redraw every figure of RUN_DIR into RUN_DIR/figures from results.parquet and summary.json "
-        "(no simulation).",
+        description="Redraw every figure of RUN_DIR into RUN_DIR/figures from its saved results (no simulation): "
+        "a sweep's or the demo's from results.parquet and summary.json"
+        + "".join(f"; {name}'s from its own files" for name, c in (extra or {}).items() if c.plot is not None)
+        + ".",
     )
-    pl.add_argument("run_dir", type=Path, help="a run directory written by 'selfid-jax sweep' or 'selfid-jax demo'")
+    pl.add_argument("run_dir", type=Path, help="a run directory written by 'selfid-jax sweep' or 'selfid-jax demo'"
+                    + "".join(f" or 'selfid-jax {name}'" for name, c in (extra or {}).items() if c.plot is not None))
 
     d = sub.add_parser(
         "demo",
@@ -290,21 +297,32 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _plot(args: argparse.Namespace) -> int:
-    from selfid_jax.runner import registry
+    from selfid_jax.runner import registry, signals
+    from selfid_jax.runner.layout import CONFIG_FILE
+    from selfid_jax.runner.lock import hold
     from selfid_jax.runner.rundir import read_run_config
 
     run_dir: Path = args.run_dir
     if not run_dir.is_dir():
         raise _UsageError(f"{run_dir}: run directory not found")
+    if not (run_dir / CONFIG_FILE).exists():  # not a sweep's: a command's own (fit, online), through its hook
+        plotters = {name: c.plot for name, c in getattr(args, "commands", {}).items() if c.plot is not None}
+        signals.phase("plot")
+        for plot in plotters.values():
+            figures = plot(run_dir)
+            if figures is not None:
+                for f in figures:
+                    print(f"figure: {f}")
+                return 0
+        kinds = ", ".join(["sweep", "demo", *plotters])
+        raise _UsageError(f"{run_dir}: not a run directory of {kinds} (no {CONFIG_FILE}, and none of "
+                          f"{', '.join(plotters) or 'the commands'} recognises its files); nothing to plot")
     name = read_run_config(run_dir).get("experiment")
     if not isinstance(name, str):
         raise _UsageError(f"{run_dir / 'config.yaml'}: no 'experiment' key")
     exp = registry.get(name)
     if exp.plot is None:
         raise _UsageError(f"experiment {name!r} draws no figures")
-    from selfid_jax.runner import signals
-    from selfid_jax.runner.lock import hold
-
     signals.phase("plot")
     with hold(run_dir):  # not while a sweep writes (or --fresh empties) the directory: RunDirBusy names it
         figures = _draw(exp, run_dir)
@@ -462,6 +480,7 @@ def main(argv: Sequence[str] | None = None,
 
     args = _parser(commands).parse_args(argv)
     args.config_dirs = tuple(config_dirs)
+    args.commands = dict(commands or {})
     if args.command in ("sweep", "demo", *(commands or {})):
         _enable_compilation_cache()
     table: dict[str, Callable[[argparse.Namespace], int]] = {
