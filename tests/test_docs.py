@@ -261,3 +261,13 @@ def test_the_readme_blocks_moved_to_the_api_page():
 @pytest.mark.parametrize("index", range(len(API_BLOCKS)))
 def test_api_page_python_block_prints_what_it_says(index, tmp_path):
     check_block_prints_what_it_says(API_BLOCKS[index], tmp_path)
+
+
+DRIVER_BLOCKS = python_blocks((DOCS / "drivers.md").read_text(encoding="utf-8"))
+
+
+@pytest.mark.slow
+def test_the_example_driver_self_identifies_and_follows(tmp_path):
+    """The driver page's example runs as a reader would paste it: converged, the star completed, the estimate exact."""
+    assert len(DRIVER_BLOCKS) == 1 and stated_outputs(DRIVER_BLOCKS[0])
+    check_block_prints_what_it_says(DRIVER_BLOCKS[0], tmp_path)
