@@ -910,3 +910,179 @@ def test_plot_refuses_an_unknown_directory_clearly(tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "junk").iterdir()) == ["notes.txt"]  # nothing written there
     assert main(["plot", str(tmp_path / "missing")]) == 2
     assert "not found" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- paths and estimates a lab can reuse
+
+
+SQUARE = [[0.01, 0.0, 0.0], [0.01, 0.01, 0.0], [0.0, 0.01, 0.005], [0.0, 0.0, 0.0]]  # m, x y z offsets
+FOLLOW = dict(tol=0.001, max_task_step=0.004, gain=0.7, steps=400)
+
+
+def _write_estimate(path, estimate, axes=("x", "y", "z")):
+    np.savez(path, inverse_jacobian=np.asarray(estimate), task_axes=np.array(list(axes)))
+    return path
+
+
+@pytest.mark.parametrize("kind", ["waypoints", "csv"])
+def test_waypoints_and_csv_paths_are_followed_to_completion(tmp_path, converged_run, kind):
+    run, ref_fake, ref = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    if kind == "waypoints":
+        path = options.FollowOptions(kind="waypoints", waypoints=SQUARE, **FOLLOW)
+    else:  # columns in another order than the task's: matched by the header's names
+        rows = "\n".join(f"{z},{x},{y}" for x, y, z in SQUARE)
+        (tmp_path / "square.csv").write_text(f"# a square with a step up, m\nz, x, y\n{rows}\n")
+        path = options.FollowOptions(kind="csv", file=str(tmp_path / "square.csv"), **FOLLOW)
+    np.testing.assert_array_equal(path.offsets((0, 1, 2)), SQUARE)
+    fake = FakeArm(q0=ref_fake.q, max_step=0.05)
+    p0, _ = arm_pose(fake.q)
+    result = live.run_online(fake, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert result.status == live.Stop.COMPLETED, result.detail
+    assert result.waypoints == result.waypoints_total == 4 and result.moves == ref.moves  # no random move
+    follow = [r for r in read_journal(tmp_path / "r" / live.LOG_FILE).records if r["e"] == "follow"]
+    np.testing.assert_array_equal([floats(o) for o in follow[0]["offsets"]], SQUARE)
+    np.testing.assert_allclose(arm_pose(fake.q)[0], p0, atol=0.0015)  # the last waypoint is the start
+    # resumed again with the same path: nothing left to do; with another path: refused, naming the path keys
+    again = live.run_online(FakeArm(q0=fake.q), opts(path=path), tmp_path / "r", resume=True)
+    assert again.status == live.Stop.COMPLETED and again.follow_steps == result.follow_steps
+    other = options.FollowOptions(kind="waypoints", waypoints=SQUARE[:3], **FOLLOW)
+    with pytest.raises(session.ResumeError, match="path.waypoints"):
+        live.run_online(FakeArm(q0=fake.q), opts(path=other), tmp_path / "r", resume=True)
+
+
+def _bad_csv(tmp_path, name, text):
+    (tmp_path / name).write_text(text)
+    return dict(kind="csv", file=str(tmp_path / name))
+
+
+@pytest.mark.parametrize("case, key, match", [
+    ("columns", "path.waypoints", "has 2 values; the task has 3 axes"),
+    ("nan", "path.waypoints", "not finite"),
+    ("empty", "path.waypoints", "at least 1"),
+    ("none", "path.waypoints", "needs it"),
+    ("missing_file", "path.file", "no such file"),
+    ("header", "path.file", "does not name the task axes x,y,z"),
+    ("csv_columns", "path.file", "waypoint 2 has 2 values"),
+    ("csv_inf", "path.file", "not finite"),
+    ("csv_empty", "path.file", "at least 1"),
+    ("file_with_star", "path.file", "only used with path.kind 'csv'"),
+])
+def test_bad_paths_are_refused_before_any_move(tmp_path, case, key, match):
+    kw = {"columns": dict(kind="waypoints", waypoints=[[0.01, 0.0, 0.0], [0.01, 0.0]]),
+          "nan": dict(kind="waypoints", waypoints=[[0.01, float("nan"), 0.0]]),
+          "empty": dict(kind="waypoints", waypoints=[]),
+          "none": dict(kind="waypoints"),
+          "missing_file": dict(kind="csv", file=str(tmp_path / "nope.csv")),
+          "header": _bad_csv(tmp_path, "header.csv", "x,y,rz\n0.01,0,0\n"),
+          "csv_columns": _bad_csv(tmp_path, "csv_columns.csv", "x,y,z\n0.01,0,0\n0.01,0\n"),
+          "csv_inf": _bad_csv(tmp_path, "csv_inf.csv", "x,y,z\n0.01,inf,0\n"),
+          "csv_empty": _bad_csv(tmp_path, "csv_empty.csv", "x,y,z\n"),
+          "file_with_star": dict(file="square.csv")}[case]
+    fake = FakeArm()
+    with pytest.raises(ValueError, match=key) as err:
+        live.run_online(fake, opts(path=options.FollowOptions(**kw)), tmp_path / "r")
+    assert match in str(err.value)
+    assert fake.moves == [] and fake.closed and not (tmp_path / "r").exists()
+
+
+def test_the_box_check_uses_the_given_waypoints(tmp_path, converged_run):
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    fake = FakeArm(q0=ref_fake.q)
+    p0, _ = arm_pose(fake.q)
+    path = options.FollowOptions(kind="waypoints", waypoints=[[0.01, 0.0, 0.0], [0.0, 0.0, 0.03]], **FOLLOW)
+    result = live.run_online(fake, opts(path=path, box_low=(p0 - 0.02).tolist(), box_high=(p0 + 0.02).tolist()),
+                             tmp_path / "r", resume=True)
+    assert result.status == live.Stop.BOX and "waypoint 2 of 2" in result.detail, result.detail
+    assert fake.moves == []
+
+
+def test_a_given_estimate_follows_without_any_random_move_and_resumes(tmp_path, converged_run):
+    _, ref_fake, ref = converged_run
+    npz = _write_estimate(tmp_path / "inverse_jacobian.npz", ref.estimate)
+    path = options.FollowOptions(kind="waypoints", waypoints=SQUARE, **FOLLOW)
+    fake = FakeArm(q0=ref_fake.q, max_step=0.05, interrupt_at=3)
+    first = live.run_online(fake, opts(path=path, max_step=0.03, estimate=str(npz)), tmp_path / "r")
+    assert first.status == live.Stop.INTERRUPTED and first.moves == first.samples == 0
+    recs = read_journal(tmp_path / "r" / live.LOG_FILE).records
+    est = [r for r in recs if r["e"] == "estimate"]
+    assert len(est) == 1 and est[0]["source"] == str(npz)
+    assert {r["phase"] for r in recs if r["e"] == "move"} == {"follow"}  # no self-ID move at all
+    # resumed without the file: the log's estimate; with it: the same; the path is completed
+    fake2 = FakeArm(q0=fake.q, max_step=0.05)
+    second = live.run_online(fake2, opts(path=path, max_step=0.03), tmp_path / "r", resume=True)
+    assert second.status == live.Stop.COMPLETED, second.detail
+    assert second.moves == 0 and second.estimate_source == str(npz) and second.waypoints == 4
+    np.testing.assert_array_equal(second.estimate, ref.estimate)
+    # a different estimate on resume is refused naming both sources
+    other = _write_estimate(tmp_path / "other.npz", 2 * ref.estimate)
+    with pytest.raises(session.ResumeError, match="other.npz differs"):
+        live.run_online(FakeArm(q0=fake2.q), opts(path=path, estimate=str(other)), tmp_path / "r", resume=True)
+
+
+def test_a_given_estimate_is_refused_on_a_self_identified_log(tmp_path, converged_run):
+    run, ref_fake, ref = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    npz = _write_estimate(tmp_path / "e.npz", ref.estimate)
+    fake = FakeArm(q0=ref_fake.q)
+    path = options.FollowOptions(kind="waypoints", waypoints=SQUARE, **FOLLOW)
+    with pytest.raises(session.ResumeError, match="self-identified"):
+        live.run_online(fake, opts(path=path, estimate=str(npz)), tmp_path / "r", resume=True)
+    assert fake.moves == []
+
+
+@pytest.mark.parametrize("shape, axes, task, match", [
+    ((3, 2), ("x", "y"), "x,y,z", "task axes are x,y, the task is x,y,z"),
+    ((2, 3), ("x", "y", "z"), "x,y,z", r"is \(2, 3\), expected \(3, 3\)"),
+    ((3, 3), ("x", "y", "z"), "x,y,rz", "task axes are x,y,z, the task is x,y,rz"),
+    (None, None, "x,y,z", "no such file"),
+])
+def test_an_estimate_of_the_wrong_shape_or_axes_is_refused_before_any_move(tmp_path, shape, axes, task, match):
+    npz = tmp_path / "e.npz"
+    if shape is not None:
+        _write_estimate(npz, np.ones(shape), axes)
+    fake = FakeArm()
+    path = options.FollowOptions(kind="waypoints", waypoints=[[0.01] * len(task.split(","))], **FOLLOW)
+    with pytest.raises(ValueError, match=match) as err:
+        live.run_online(fake, opts(task=task, path=path, estimate=str(npz)), tmp_path / "r")
+    assert str(npz) in str(err.value)
+    assert fake.moves == [] and fake.closed
+
+
+def test_cli_follows_a_csv_beside_the_config_with_the_estimate_of_an_earlier_session(tmp_path, driver_module, capsys):
+    from selfid_jax.cli import main
+
+    assert main(["online", str(_follow_config(tmp_path)), "--out", str(tmp_path / "a"), "--quiet"]) == 0
+    npz = tmp_path / "a" / "inverse_jacobian.npz"
+    rows = "\n".join(",".join(map(str, r)) for r in SQUARE)
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "square.csv").write_text(f"x,y,z\n{rows}\n")
+    cfg = _config(tmp_path / "cfg", """
+        robot: {driver: "fake_driver:make", args: {noise: 0.0}}
+        selfid: {task: "x,y,z", settle_s: 0.0, poll_s: 0.001}
+        safety: {stale_s: 1.0, max_step: 0.03}
+        path: {kind: csv, file: square.csv, tol: 0.001, max_task_step: 0.004, gain: 0.7, steps: 400}
+    """)
+    capsys.readouterr()
+    assert main(["online", str(cfg), "--out", str(tmp_path / "b"), "--estimate", str(npz), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["moves"] == 0 and summary["samples"] == 0
+    assert summary["waypoints"] == 4 and summary["estimate_source"] == str(npz)
+    assert "no self-ID" in capsys.readouterr().out
+    assert not (tmp_path / "b" / "inverse_jacobian.npz").exists()  # not this session's result
+    # the self-identified run resumed with an estimate: refused (exit 2), naming the cause
+    assert main(["online", str(_follow_config(tmp_path)), "--out", str(tmp_path / "a"), "--resume",
+                 "--estimate", str(npz)]) == 2
+    assert "self-identified" in capsys.readouterr().err
+    # wrong axes in the file: exit 2 naming the file, no move
+    bad = _write_estimate(tmp_path / "xy.npz", np.ones((3, 2)), ("x", "y"))
+    assert main(["online", str(cfg), "--out", str(tmp_path / "c"), "--estimate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "xy.npz" in err and "task axes" in err
+    assert all(arm.moves == [] for arm in driver_module.CREATED[2:])
+    # a header that does not match the task: exit 2 naming path.file, before connecting
+    (tmp_path / "cfg" / "square.csv").write_text(f"x,y\n{rows}\n")
+    n_arms = len(driver_module.CREATED)
+    assert main(["online", str(cfg), "--out", str(tmp_path / "d"), "--estimate", str(npz)]) == 2
+    assert "path.file" in capsys.readouterr().err and len(driver_module.CREATED) == n_arms

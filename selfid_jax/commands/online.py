@@ -1,6 +1,6 @@
 """``selfid-jax online CONFIG``: self-ID a connected robot live (Algorithm 1), then optionally follow a path.
 
-    selfid-jax online CONFIG [--resume] [--out DIR] [--set key.sub=value ...] [--quiet]
+    selfid-jax online CONFIG [--resume] [--out DIR] [--set key.sub=value ...] [--quiet] [--estimate FILE]
 
 CONFIG (YAML, strict: unknown keys, wrong types and out-of-range values are
 refused with the dotted key, before connecting)::
@@ -15,6 +15,8 @@ refused with the dotted key, before connecting)::
     safety: {box_low: [x, y, z], box_high: [x, y, z], max_step: 0.05, stale_s: 1.0, diverge_dist: 0.05,
              limits_lower: [...], limits_upper: [...]}
     path: {kind: star, size: 0.02, plane: xy, gain: 0.5, tol: 0.002, max_task_step: 0.005, steps: 500}
+    # path: {kind: waypoints, waypoints: [[0.01, 0, 0], [0.01, 0.01, 0]]}  # offsets, m (rad for rx, ry, rz)
+    # path: {kind: csv, file: square.csv}     # header the task axes (x,y,z), one waypoint offset per row
     out: runs/online_ur5e       # default runs/online_<config stem>; --out wins
 
 :func:`selfid_jax.robot.live.run_online` does the session under the run
@@ -26,7 +28,10 @@ config), ``summary.json`` (status, counts, step latency) and
 writes it) and the figures ``figures/convergence`` and, after following,
 ``figures/path`` (.png/.pdf; :mod:`selfid_jax.commands.online_figures`, from
 the log: ``selfid-jax plot RUN`` redraws them). ``--resume`` continues a
-stopped session from its log. While the session runs, a progress line per
+stopped session from its log. ``--estimate FILE`` follows the path with the
+inverse Jacobian of ``selfid-jax fit`` or of an earlier session instead of
+self-identifying (no random move; logged as an ``estimate`` record, so
+``--resume`` continues with it). While the session runs, a progress line per
 self-ID sample and following move goes to stdout (in place on a terminal;
 none with ``--quiet``).
 
@@ -178,9 +183,16 @@ class PathSection(BaseModel):
 
     model_config = STRICT
 
-    kind: Literal["star"] = _PATH["kind"]
-    size: float = Field(_PATH["size"], gt=0, description="m, the star's outer radius")
-    plane: Literal["xy", "xz", "yz"] = _PATH["plane"]
+    kind: Literal["star", "waypoints", "csv"] = Field(_PATH["kind"], description="the shipped star, the rows of "
+                                                      "waypoints, or the rows of the CSV file")
+    size: float = Field(_PATH["size"], gt=0, description="m, the star's outer radius (kind star)")
+    plane: Literal["xy", "xz", "yz"] = Field(_PATH["plane"], description="the star's plane (kind star)")
+    waypoints: list[list[float]] | None = Field(_PATH["waypoints"], description="kind waypoints: one row per "
+                                                "waypoint, its offset from where following starts, one value per "
+                                                "task axis (m for x, y, z; rad for rx, ry, rz)")
+    file: str | None = Field(_PATH["file"], description="kind csv: a CSV file, its header the task axes (e.g. "
+                             "x,y,z), one waypoint offset per row in the units of waypoints; a relative path is "
+                             "looked up beside the config, then in the current directory")
     gain: float = Field(_PATH["gain"], gt=0, le=1)
     tol: float = Field(_PATH["tol"], gt=0, description="m, position error at which a waypoint counts as reached")
     max_task_step: float = Field(_PATH["max_task_step"], gt=0, description="m, cap on the twist's position part "
@@ -204,10 +216,18 @@ class OnlineConfig(BaseModel):
     out: str | None = None
 
 
-def options(cfg: OnlineConfig) -> OnlineOptions:
-    """The config as :class:`~selfid_jax.robot.options.OnlineOptions` (the same names, one level flatter)."""
+def options(cfg: OnlineConfig, config_dir: Path | None = None, estimate: str | Path | None = None) -> OnlineOptions:
+    """The config as :class:`~selfid_jax.robot.options.OnlineOptions` (the same names, one level flatter).
+
+    A relative ``path.file`` is taken from ``config_dir`` (the config's
+    folder) where it is there, else as given (the current directory).
+    ``estimate``: ``--estimate FILE`` (OnlineOptions.estimate).
+    """
     s, f = cfg.selfid, cfg.safety
     path = None if cfg.path is None else FollowOptions(**cfg.path.model_dump())
+    if path is not None and path.file is not None and config_dir is not None and not Path(path.file).is_absolute() \
+            and (config_dir / path.file).is_file():
+        path = path._replace(file=str(config_dir / path.file))
     return OnlineOptions(task=s.task, m_a=s.m_a, eps=s.eps, eps_rel=s.eps_rel, max_samples=s.max_samples, seed=s.seed,
                          settle_s=s.settle_s, poll_s=s.poll_s, method=s.method, v_tol=s.v_tol, lower=f.limits_lower,
                          upper=f.limits_upper, max_step=f.max_step, box_low=f.box_low, box_high=f.box_high,
@@ -215,7 +235,7 @@ def options(cfg: OnlineConfig) -> OnlineOptions:
                          seen_min_rad=f.seen_min_rad, frozen_motion=f.frozen_motion, frozen_dist=f.frozen_dist,
                          follow_min_ratio=f.follow_min_ratio, follow_min_moves=f.follow_min_moves,
                          follow_max_residual=f.follow_max_residual, max_heldout_error=f.max_heldout_error,
-                         path=path)
+                         path=path, estimate=None if estimate is None else str(estimate))
 
 
 def import_driver(spec: str, config_dir: Path | None = None):
@@ -282,6 +302,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "runs/online_<config stem>)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set selfid.m_a=0.02 (repeatable)")
+    p.add_argument("--estimate", type=Path, default=None, metavar="FILE",
+                   help="follow the config's path with this estimate instead of self-identifying (no random move): "
+                   "the inverse_jacobian.npz of selfid-jax fit or of an earlier online session; refused unless its "
+                   "task axes are the config's and its shape (actuators, task axes) the robot's")
     p.add_argument("--quiet", action="store_true", help="no progress line (one per self-ID sample and following "
                    "move, updated in place on a terminal); the final report is still printed")
 
@@ -360,6 +384,7 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
         "waypoints": result.waypoints,
         "waypoints_total": result.waypoints_total,
         "replayed": result.replayed,
+        "estimate_source": result.estimate_source,  # --estimate: the file followed with (no self-ID); else None
         "truncated_log_lines": result.truncated,
         # while following, the tracked point's distance from the path after each move [m] (every session of the log)
         "track_mean_m": float(np.nanmean(result.track)) if result.track.size else None,
@@ -407,7 +432,13 @@ def run(args: argparse.Namespace) -> int:
     from selfid_jax.robot import live
     from selfid_jax.robot.log import parse_task
 
-    opts = options(cfg)
+    estimate = getattr(args, "estimate", None)
+    if estimate is not None and cfg.path is None:
+        raise ConfigError(f"{args.config}: --estimate {estimate}: following with a given estimate needs a path "
+                          "section in the config")
+    if estimate is not None and not Path(estimate).is_file():
+        raise ConfigError(f"--estimate {estimate}: no such file")
+    opts = options(cfg, Path(args.config).resolve().parent, estimate)
     if opts.path is not None:
         try:
             opts.path.offsets(parse_task(opts.task) or ())
@@ -536,7 +567,9 @@ def _report(result: OnlineResult, files: dict[str, Path]) -> None:
         print(f"estimator step: p50 {np.percentile(result.step_ms, 50):.3f} ms, "
               f"p99 {np.percentile(result.step_ms, 99):.3f} ms per sample")
     print(f"stopped: {result.status.value}: {result.detail}")
-    if JINV_NPZ in files:
+    if result.estimate_source is not None:
+        print(f"followed with the estimate from {result.estimate_source} (no self-ID); log: {result.log}")
+    elif JINV_NPZ in files:
         print(f"inverse Jacobian: {files[JINV_NPZ]} (and {JINV_JSON}); log: {result.log}")
     else:
         print(f"not converged: no inverse Jacobian written (the estimate so far is in {files[SUMMARY_FILE]}); "

@@ -34,6 +34,12 @@ one session in a run directory:
    :class:`~selfid_jax.control.task.ControllerParams` on a model of the
    robot commands the same targets (``tests/test_online.py``). Without a path
    the session ends at convergence and the robot stays where it is.
+   With ``OnlineOptions.estimate`` (an ``.npz`` of ``selfid-jax fit`` or
+   of an earlier session, or an ``(n, m)`` array; :func:`given_estimate`
+   checks its shape and task axes) there is no self-ID: the path is
+   followed with that estimate, which the log records (an ``estimate``
+   record: a resume continues with it, and refuses to mix it with a logged
+   self-ID).
 
 The safety envelope (:class:`~selfid_jax.robot.safety.Envelope`) holds throughout: every commanded
 target is inside the actuator limits (the driver's intersected with the
@@ -78,7 +84,7 @@ from selfid_jax.identify import estimator
 from selfid_jax.math.checks import check_magnitude, float_dtype
 from selfid_jax.robot.journal import Journal, read_journal
 from selfid_jax.robot.log import parse_task
-from selfid_jax.robot.options import ONLINE_METHODS, FollowOptions, OnlineOptions
+from selfid_jax.robot.options import AXIS_NAMES, ONLINE_METHODS, FollowOptions, OnlineOptions
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.quality import Quality
 from selfid_jax.robot.safety import envelope
@@ -92,7 +98,7 @@ from selfid_jax.robot.session import (
     sample_step,
 )
 
-__all__ = ["LOG_FILE", "OnlineResult", "run_online"]
+__all__ = ["LOG_FILE", "OnlineResult", "given_estimate", "run_online"]
 
 LOG_FILE = "session.jsonl"
 LOG_VERSION = 2  # 2: following logs rejected readings; the follow law is control.law.command
@@ -122,6 +128,7 @@ class OnlineResult(NamedTuple):
     track: np.ndarray = np.zeros(0)  # (s,) m, path distance after each following move (the log's, resumes included)
     selfid_s: float = 0.0  # s of wall time in self-ID (moves, reads, estimator; every session of the log)
     follow_s: float = 0.0  # s of wall time following the path (every session of the log)
+    estimate_source: str | None = None  # where a given estimate came from (OnlineOptions.estimate); None: self-ID
 
     @property
     def converged(self) -> bool:
@@ -152,8 +159,70 @@ def _check_path(path: Path, logged, follow: FollowOptions | None, axes) -> None:
     if planned.shape != logged.shape or not np.allclose(planned, logged, rtol=0, atol=1e-12):
         raise ResumeError(f"{path}: cannot resume: the log started following a path of {logged.shape[0]} waypoints "
                           f"(extent {np.ptp(logged, axis=0).round(6).tolist()} m), this session's path differs "
-                          "(path.size, path.plane or path.kind); resume with the logged path, or start a new run "
-                          "directory")
+                          "(path.kind, path.size, path.plane, path.waypoints or the rows of path.file); resume "
+                          "with the logged path, or start a new run directory")
+
+
+def given_estimate(value, n: int, axes: tuple[int, ...]) -> tuple[np.ndarray, str]:
+    """``(estimate (n, m), source)`` of ``OnlineOptions.estimate``: an ``.npz`` file of ``selfid-jax fit`` or
+    ``selfid-jax online`` (``inverse_jacobian`` and ``task_axes``) or an ``(n, m)`` array (source ``"array"``).
+
+    Raises ValueError naming the file (or ``estimate``) and what differs: no
+    such file, not an npz, a missing key, task axes other than ``axes``, a
+    shape other than ``(n, m)`` (``n`` the robot's actuators, ``m`` the
+    task's axes), a value that is not finite.
+    """
+    m = len(axes)
+    names = ",".join(AXIS_NAMES[a] for a in axes)
+    if isinstance(value, (str, Path)):
+        path = Path(value)
+        where, source = f"estimate: {path}", str(path)
+        if not path.is_file():
+            raise ValueError(f"{where}: no such file")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in ("inverse_jacobian", "task_axes") if k not in z.files]
+                if missing:
+                    raise ValueError(f"{where}: has no {missing[0]!r} (expected the inverse_jacobian.npz of "
+                                     "selfid-jax fit or selfid-jax online)")
+                est = np.array(z["inverse_jacobian"], np.float64)
+                logged = [str(a) for a in np.atleast_1d(z["task_axes"]).tolist()]
+        except ValueError:
+            raise
+        except Exception as err:  # noqa: BLE001 - a file that is not an npz: one message naming it
+            raise ValueError(f"{where}: not an .npz of an estimate: {type(err).__name__}: {err}") from None
+        if logged != [AXIS_NAMES[a] for a in axes]:
+            raise ValueError(f"{where}: its task axes are {','.join(logged)}, the task is {names} (selfid.task); "
+                             "an estimate serves only the task it was identified for")
+    else:
+        where, source = "estimate", "array"
+        try:
+            est = np.array(value, np.float64)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"{where}: not an array of numbers: {err}") from None
+    if est.shape != (n, m):
+        raise ValueError(f"{where}: the inverse Jacobian is {est.shape}, expected ({n}, {m}): {n} actuators (the "
+                         f"robot's limits) by {m} task axes ({names})")
+    if not np.all(np.isfinite(est)):
+        raise ValueError(f"{where}: the inverse Jacobian has values that are not finite")
+    return est, source
+
+
+def _check_estimate(path: Path, session: Session, given: tuple[np.ndarray, str] | None
+                    ) -> tuple[np.ndarray, str] | None:
+    """The estimate a resumed session follows with: the log's (an ``estimate`` record) or ``given``; ResumeError
+    where the log self-identified and an estimate is given, or the log's given estimate differs from this one."""
+    logged = session.given
+    if given is not None and session.k > 0:
+        raise ResumeError(f"{path}: cannot resume with the estimate from {given[1]}: the log self-identified "
+                          f"({session.k} random moves, {session.samples} samples); following with a given estimate "
+                          "would mix the two. Resume without the estimate, or start a new run directory")
+    if given is not None and logged is not None and (
+            logged[0].shape != given[0].shape or not np.allclose(logged[0], given[0], rtol=0, atol=1e-12)):
+        raise ResumeError(f"{path}: cannot resume: the log follows with the estimate from {logged[1]}, this "
+                          f"session's from {given[1]} differs; resume with the logged one (or none: the log keeps "
+                          "it), or start a new run directory")
+    return logged if logged is not None else given
 
 
 def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.ndarray]:
@@ -262,6 +331,10 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                              f"{env.max_step[i]:g} (max_step: the driver's or the user's); lower m_a")
         if options.path is not None:
             options.path.offsets(axes)
+        given = None if options.estimate is None else given_estimate(options.estimate, n, axes)
+        if given is not None and options.path is None:
+            raise ValueError("estimate: following with a given estimate needs a path (path); without one there "
+                             "is nothing to do")
         m = len(axes)
         dtype = float_dtype()
         header = _header(n, m, axes, m_a, options, dtype)
@@ -286,6 +359,8 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                                   "choose another run directory")
             journal = Journal(log_path)
             journal.append(header)
+            if given is not None:
+                journal.append({"e": "estimate", "source": given[1], "estimate": given[0]})
         session = Session(robot, options, env, axes, m_a, journal, stop_requested, sleep, on_event)
         session.state = init_state(n, m, method=options.method, v_tol=options.v_tol,
                                    max_samples=options.max_samples, dtype=dtype)
@@ -295,6 +370,14 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         if contents is not None:
             replayed = session.replay(contents)
             _check_path(log_path, session.offsets, options.path, axes)
+            logged_given = session.given
+            given = _check_estimate(log_path, session, given)
+            if given is not None and options.path is None:
+                raise ResumeError(f"{log_path}: cannot resume: the log follows with the estimate from {given[1]} "
+                                  "and this session has no path; give the path")
+            if given is not None and logged_given is None:
+                journal.append({"e": "estimate", "source": given[1], "estimate": given[0]})
+        session.given = given
         journal.append({"e": "session", "resume": resume, "replayed": replayed, "truncated": truncated,
                         "wall_time": time.time(), "lower": env.lower, "upper": env.upper, "max_step": env.max_step,
                         "box_low": env.box_low, "box_high": env.box_high, "stale_s": env.stale_s})
@@ -302,6 +385,9 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         kind = trace = None
         phase, t0 = "selfid_s", time.monotonic()
         try:
+            if given is not None and options.path is not None:  # follow with it: no self-ID, no random move
+                phase, t0 = "follow_s", time.monotonic()
+                session.follow(options.path, given[0])
             if int(session.state.converged_at) < 1:
                 session.selfid()
             session.check_quality()
@@ -339,12 +425,14 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             journal.close()
     assert session is not None and session.state is not None
     state = jax.device_get(session.state)
+    estimate = np.asarray(state.estimate) if session.given is None else session.given[0]
     path_total = 0 if session.offsets is None else int(session.offsets.shape[0])
     return OnlineResult(
-        status=status, detail=detail, estimate=np.asarray(state.estimate), state=state,
+        status=status, detail=detail, estimate=estimate, state=state,
         converged_at=int(state.converged_at), samples=session.samples, rejected=dict(session.rejected),
         moves=session.moves, follow_steps=session.follow_steps, follow_rejected=session.follow_rejected,
         waypoints=session.waypoint, waypoints_total=path_total, replayed=replayed, truncated=truncated,
         step_ms=np.asarray(session.step_ms, np.float64), quality=session.quality, axes=axes, log=log_path,
         track=np.asarray(track, np.float64), selfid_s=earlier["selfid_s"] + wall["selfid_s"],
-        follow_s=earlier["follow_s"] + wall["follow_s"])
+        follow_s=earlier["follow_s"] + wall["follow_s"],
+        estimate_source=None if session.given is None else session.given[1])

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 if TYPE_CHECKING:
     import numpy as np
 
     from selfid_jax.control.task import ControllerParams
 
-__all__ = ["DIVERGE_DIST", "ONLINE_METHODS", "STALE_S", "FollowOptions", "OnlineOptions"]
+__all__ = ["AXIS_NAMES", "DIVERGE_DIST", "ONLINE_METHODS", "PATH_KINDS", "STALE_S", "FollowOptions", "OnlineOptions"]
 
 ONLINE_METHODS = ("closed_form", "optax")
 """The Eq. 14 refinements the live runner's jitted per-sample step supports."""
@@ -30,11 +30,26 @@ DIVERGE_DIST = 0.05
 """The default distance in metres from the path (its position axes) that stops following."""
 
 
-class FollowOptions(NamedTuple):
-    """The path followed with the converged estimate (a star, :func:`selfid_jax.control.paths.star`) and the
-    controller settings of the follow law (:meth:`controller`)."""
+AXIS_NAMES = ("x", "y", "z", "rx", "ry", "rz")
+"""Names of the task axes, as a path file's header and an estimate file's ``task_axes`` spell them."""
+PATH_KINDS = ("star", "waypoints", "csv")
+"""What ``FollowOptions.kind`` takes: the shipped star, a list of waypoints, a CSV file of waypoints."""
 
-    kind: str = "star"
+
+class FollowOptions(NamedTuple):
+    """The path followed with the converged estimate and the controller settings of the follow law
+    (:meth:`controller`).
+
+    The path (:meth:`offsets`) is one of ``kind``: ``"star"``, the shipped
+    star (:func:`selfid_jax.control.paths.star`, ``size`` and ``plane``);
+    ``"waypoints"``, the rows of ``waypoints``; ``"csv"``, the rows of the
+    CSV file ``file``, whose header names the task axes (``x,y,z``; any
+    order). A waypoint is an offset from the pose where following starts in
+    task units, one value per task axis: metres for x, y, z and radians for
+    rx, ry, rz (a rotation vector, applied to the start orientation).
+    """
+
+    kind: str = "star"  # "star", "waypoints" or "csv"
     size: float = 0.02  # m, outer radius of the star (paths.star size); its top point is where following starts
     plane: str = "xy"  # plane of the star: "xy", "xz" or "yz" (both axes must be task axes)
     gain: float = 0.5  # proportional gain on the task error, per move (dimensionless, in (0, 1])
@@ -43,6 +58,8 @@ class FollowOptions(NamedTuple):
     steps: int = 500  # most moves while following (Stop.MAX_STEPS)
     rot_tol: float = 0.01  # rad: ... and the rotation error's (tasks with rotation axes; held at the start pose)
     max_rot_step: float = 0.05  # rad: cap on the rotation part of the commanded twist per move
+    waypoints: Sequence[Sequence[float]] | None = None  # kind "waypoints": (W, m) offsets, m and rad per task axis
+    file: str | None = None  # kind "csv": a CSV file, header the task axes, one waypoint offset per row
 
     def controller(self, env) -> ControllerParams:
         """The follow law's settings on a robot with envelope ``env``: the simulated loop with this
@@ -53,32 +70,38 @@ class FollowOptions(NamedTuple):
                                 max_rot_step=self.max_rot_step, rot_tol=self.rot_tol,
                                 diverge_dist=env.diverge_dist, max_dq=env.max_step)
 
-    def positions(self) -> np.ndarray:
-        """``(W, 3)`` waypoint position offsets [m] (the full star in its plane)."""
+    def positions(self, axes: Sequence[int] = (0, 1, 2)) -> np.ndarray:
+        """``(W, 3)`` waypoint position offsets [m] of the path on task ``axes`` (zero on the axes it lacks)."""
         import numpy as np
 
-        from selfid_jax.control import paths
-
-        return np.asarray(paths.star(size=self.size, plane=self.plane, dim=3), np.float64)
+        planned = self.offsets(axes)
+        out = np.zeros((planned.shape[0], 3))
+        for j, a in enumerate(axes):
+            if a < 3:
+                out[:, a] = planned[:, j]
+        return out
 
     def offsets(self, axes: Sequence[int]) -> np.ndarray:
         """Waypoint offsets ``(W, m)`` of the path in task coordinates relative to where following starts.
 
-        A star in ``plane``, rotation part zero (the orientation is held),
-        restricted to the task axes; both axes of the plane must be task axes.
-        Raises ValueError naming the option that is out of range.
+        ``kind`` star: a star in ``plane``, rotation part zero (the orientation
+        is held), restricted to the task axes; both axes of the plane must be
+        task axes. ``kind`` waypoints / csv: the rows of ``waypoints`` / of the
+        CSV ``file`` (columns in the task's order). Raises ValueError naming
+        the option that is out of range (``path.waypoints``, ``path.file``: the
+        wrong number of values for the task, a value that is not finite, no
+        waypoint, a missing file, a header that does not name the task axes).
         """
         import numpy as np
 
         from selfid_jax.control import paths
 
-        if self.kind != "star":
-            raise ValueError(f"path.kind: only 'star' is supported, got {self.kind!r}")
-        if self.plane not in paths.PLANES:
-            raise ValueError(f"path.plane: expected one of {tuple(paths.PLANES)}, got {self.plane!r}")
-        missing = [a for a in paths.PLANES[self.plane] if a not in axes]
-        if missing:
-            raise ValueError(f"path.plane: {self.plane!r} needs task axis {'xyz'[missing[0]]}, not in the task")
+        axes = tuple(int(a) for a in axes)
+        if self.kind not in PATH_KINDS:
+            raise ValueError(f"path.kind: expected one of {PATH_KINDS}, got {self.kind!r}")
+        for name, kind in (("waypoints", "waypoints"), ("file", "csv")):
+            if getattr(self, name) is not None and self.kind != kind:
+                raise ValueError(f"path.{name}: only used with path.kind {kind!r} (path.kind is {self.kind!r})")
         for name in ("size", "gain", "tol", "max_task_step", "rot_tol", "max_rot_step"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -87,11 +110,81 @@ class FollowOptions(NamedTuple):
             raise ValueError(f"path.gain: must be in (0, 1] (a larger gain overshoots), got {self.gain!r}")
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
             raise ValueError(f"path.steps: must be an integer >= 1, got {self.steps!r}")
+        if self.kind == "waypoints":
+            return _waypoint_rows("path.waypoints", self.waypoints, axes)
+        if self.kind == "csv":
+            return _csv_rows(self.file, axes)
+        if self.plane not in paths.PLANES:
+            raise ValueError(f"path.plane: expected one of {tuple(paths.PLANES)}, got {self.plane!r}")
+        missing = [a for a in paths.PLANES[self.plane] if a not in axes]
+        if missing:
+            raise ValueError(f"path.plane: {self.plane!r} needs task axis {'xyz'[missing[0]]}, not in the task")
         if not self.tol < self.size / 2:
             raise ValueError(f"path.tol ({self.tol:g}) must be below half of path.size ({self.size:g}): waypoints "
                              "would count as reached without moving")
         full = np.asarray(paths.star(size=self.size, plane=self.plane, dim=6), np.float64)
         return full[:, list(axes)]
+
+
+def _units(axes: Sequence[int]) -> str:
+    return ", ".join(f"{AXIS_NAMES[a]} [{'m' if a < 3 else 'rad'}]" for a in axes)
+
+
+def _waypoint_rows(key: str, rows, axes: tuple[int, ...], where: str = "") -> np.ndarray:
+    """``rows`` as a ``(W, m)`` float64 array of waypoint offsets, refused (ValueError naming ``key``) unless each
+    row has one finite value per task axis and there is at least one row."""
+    import numpy as np
+
+    m = len(axes)
+    if rows is None:
+        raise ValueError(f"{key}: path.kind {'csv' if key == 'path.file' else 'waypoints'!r} needs it: one row per "
+                         f"waypoint, one offset per task axis ({_units(axes)})")
+    if isinstance(rows, (str, bytes)) or not isinstance(rows, (Sequence, np.ndarray)):
+        raise ValueError(f"{key}: expected a list of rows (one per waypoint), got {type(rows).__name__}")
+    if len(rows) < 1:
+        raise ValueError(f"{key}: {where}no waypoint; give at least 1 (one row per waypoint)")
+    out = np.zeros((len(rows), m))
+    for i, row in enumerate(rows):
+        try:
+            vals = [float(v) for v in row]
+        except (TypeError, ValueError):
+            raise ValueError(f"{key}: {where}waypoint {i + 1} is not a row of numbers: {row!r}") from None
+        if len(vals) != m:
+            raise ValueError(f"{key}: {where}waypoint {i + 1} has {len(vals)} values; the task has {m} axes "
+                             f"({_units(axes)}), one value each")
+        if not all(math.isfinite(v) for v in vals):
+            raise ValueError(f"{key}: {where}waypoint {i + 1} has a value that is not finite: {vals}")
+        out[i] = vals
+    return out
+
+
+def _csv_rows(file: str | None, axes: tuple[int, ...]) -> np.ndarray:
+    """The waypoint offsets of a CSV file (header: the task axes in any order), as ``(W, m)`` in the task's order."""
+    from pathlib import Path
+
+    import numpy as np
+
+    key = "path.file"
+    if file is None:
+        raise ValueError(f"{key}: path.kind 'csv' needs a CSV file: a header naming the task axes "
+                         f"({','.join(AXIS_NAMES[a] for a in axes)}), then one waypoint offset per row "
+                         f"({_units(axes)})")
+    path = Path(file)
+    if not path.is_file():
+        raise ValueError(f"{key}: {path}: no such file")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"{key}: {path}: cannot be read: {err}") from None
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    want = [AXIS_NAMES[a] for a in axes]
+    header = [h.strip().lower() for h in lines[0].split(",")] if lines else []
+    if sorted(header) != sorted(want) or len(set(header)) != len(header):
+        raise ValueError(f"{key}: {path}: the header {','.join(header) or '(none)'} does not name the task axes "
+                         f"{','.join(want)} (one column each, any order; units: {_units(axes)})")
+    rows = [[v.strip() for v in ln.split(",")] for ln in lines[1:]]
+    data = _waypoint_rows(key, rows, axes, where=f"{path}: ")
+    return np.ascontiguousarray(data[:, [header.index(name) for name in want]])
 
 
 class OnlineOptions(NamedTuple):
@@ -136,5 +229,8 @@ class OnlineOptions(NamedTuple):
     # squares over the samples) above this stops before following (estimate)
     max_heldout_error: float = 0.5
     path: FollowOptions | None = None  # follow this path after convergence; None: stop at convergence
+    # follow with this estimate instead of self-identifying (no random move at all): an .npz of `selfid-jax fit` or
+    # an earlier `selfid-jax online` (keys inverse_jacobian (n, m) and task_axes), or an (n, m) array; needs a path
+    estimate: str | Any | None = None
 
 

@@ -256,6 +256,7 @@ class Session:
         self.residual = (0.0, 0.0, 0)  # following: recent-weighted sums of |dp - predicted dp|, |predicted dp|; moves
         self.pairs: list[tuple[np.ndarray, np.ndarray]] = []  # the accepted samples (dtheta (n,), V (m,))
         self.quality: Quality | None = None
+        self.given: tuple[np.ndarray, str] | None = None  # (estimate, source) followed without self-ID, if given
 
     # ---- robot I/O, each logged as it happens
 
@@ -455,17 +456,18 @@ class Session:
 
     # ---- following
 
-    def follow(self, path) -> None:
-        """Follow ``path`` (:class:`selfid_jax.robot.options.FollowOptions`) with the converged estimate."""
+    def follow(self, path, estimate: np.ndarray | None = None) -> None:
+        """Follow ``path`` (:class:`selfid_jax.robot.options.FollowOptions`) with the converged estimate, or with
+        ``estimate (n, m)`` where given (no self-ID)."""
         assert self.state is not None
         env = self.env
-        Jinv = np.asarray(self.state.estimate, np.float64)
+        Jinv = np.asarray(self.state.estimate if estimate is None else estimate, np.float64)
         if not np.all(np.isfinite(Jinv)):
             raise Stopped(Stop.DIVERGENCE, "the estimate is not finite; nothing to follow with")
         obs = self.fresh("follow")
         if self.anchor is None:
             planned = path.offsets(self.axes)
-            where = obs.position + path.positions()
+            where = obs.position + path.positions(self.axes)  # the planned waypoints' positions (box check)
             out = np.flatnonzero(np.any((where < env.box_low) | (where > env.box_high), axis=1))
             if out.size:
                 raise Stopped(Stop.BOX, f"the path leaves the box at waypoint {out[0] + 1} of {len(planned)} "
@@ -541,6 +543,9 @@ class Session:
                 self.waypoint = int(rec["reached"]) + 1
             elif e == "rejected":
                 self.follow_rejected += 1
+            elif e == "estimate":  # following with a given estimate (no self-ID)
+                est = rec["estimate"]
+                self.given = (np.array([floats(r) for r in est]).reshape(len(est), -1), str(rec["source"]))
         conv = int(self.state.converged_at)
         if conv != logged_conv and not (logged_conv < 0 and conv < 0):
             raise ResumeError(f"{self.journal.path}: replaying the log's {replayed} samples gives convergence at "
