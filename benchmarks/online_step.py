@@ -1,7 +1,7 @@
 """Latency of the online runner's per-sample estimator step, against a numpy RLS update in the same process.
 
 The step is what :func:`selfid_jax.robot.live.run_online` runs after each
-accepted sample: :func:`selfid_jax.robot.session.host_step`, i.e. the jitted
+accepted sample: :func:`selfid_jax.robot.steps.host_step`, i.e. the jitted
 :func:`selfid_jax.identify.step.sample_step` (``update`` Eq. 6-12, ``initial_guess``
 Eq. 13, the closed-form refinement Eq. 14, ``record`` Sec. IV-D) and the
 host read of the step's info and ``converged_at`` the loop needs to decide
@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 from emit import emit  # noqa: E402
 from timing import first_call  # noqa: E402
 
-from selfid_jax.robot import session  # noqa: E402
+from selfid_jax.robot import steps  # noqa: E402
 
 CONFIGS = ((6, 3), (3, 3))
 DTYPES = ("float64", "float32")
@@ -60,7 +60,7 @@ def time_ours(state, d, V, dtype) -> np.ndarray:
     out = np.empty(d.shape[0])
     for i in range(d.shape[0]):
         t0 = time.perf_counter()
-        state, _, _ = session.host_step(state, d[i], V[i], 0.0, 0.05)
+        state, _, _ = steps.host_step(state, d[i], V[i], 0.0, 0.05)
         out[i] = time.perf_counter() - t0
     return out
 
@@ -89,8 +89,8 @@ def run(samples: int = 4000, warmup: int = 200, rounds: int = 2) -> dict:
         for name in DTYPES:
             dtype = np.dtype(name)
             d, V = make_data(n, m, warmup + samples * rounds)
-            state = session.init_state(n, m, dtype=dtype)
-            (state, info), compile_s = first_call(session.sample_step, state, d[0], V[0], 0.0, 0.05)
+            state = steps.init_state(n, m, dtype=dtype)
+            (state, info), compile_s = first_call(steps.sample_step, state, d[0], V[0], 0.0, 0.05)
             time_ours(state, d[:warmup], V[:warmup], dtype)
             time_rls(d[:warmup], V[:warmup], dtype.type)
             ours, rls = [], []

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from selfid_jax.math import geometry
-from selfid_jax.robot import live, options, safety, session
+from selfid_jax.robot import live, options, safety, session, steps
 from selfid_jax.robot import offline as fit_mod
 from selfid_jax.robot.journal import Journal, JournalError, floats, read_journal
 from selfid_jax.robot.protocol import Observation, Robot, RobotConnectionError, RobotLimits
@@ -623,7 +623,7 @@ def test_task_difference_is_the_pose_change_with_rotation():
     p0, p1 = rng.normal(size=3), rng.normal(size=3)
     a = Observation(0.0, np.zeros(1), p0, wxyz[0], 0.0, True)
     b = Observation(1.0, np.zeros(1), p1, -wxyz[1], 1.0, True)  # the quaternion's sign does not matter
-    np.testing.assert_allclose(session.task_difference(b, a, (0, 2, 3, 5)), [*(p1 - p0)[[0, 2]], w[0], w[2]],
+    np.testing.assert_allclose(steps.task_difference(b, a, (0, 2, 3, 5)), [*(p1 - p0)[[0, 2]], w[0], w[2]],
                                atol=1e-12)
     with jax.enable_x64(True):
         R1 = np.asarray(geometry.quaternion_to_rotation(np.asarray(-wxyz[1])))
@@ -700,11 +700,11 @@ def test_cli_two_sigterms_50_ms_apart_still_leave_a_stop_record(tmp_path, driver
 
 
 def test_the_step_compiles_once_per_shape(tmp_path, converged_run):
-    before = session._step._cache_size()
+    before = steps._step._cache_size()
     for i, (eps, eps_rel) in enumerate(((0.0, 0.2), (1e-3, 0.0), (0.1, 0.3))):
         result = live.run_online(FakeArm(), opts(eps=eps, eps_rel=eps_rel, max_samples=4), tmp_path / str(i))
         assert result.samples >= 2
-    assert session._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace
+    assert steps._step._cache_size() == before  # new thresholds, same (n, m, method, dtype): no retrace
 
 
 def test_cli_and_api_give_the_same_defaults_for_every_online_option():

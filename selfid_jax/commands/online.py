@@ -48,6 +48,10 @@ session cleanly after the move in flight (the robot is closed, the log ends
 with the stop); a second one ends the process at once, like a crash, after
 appending a ``killed`` stop record: the log then lacks at most the line in
 flight and ``--resume`` continues.
+
+Size: about 600 lines, one command: its strict config schema (every key documented for the config reference),
+its run, the progress line, the summary and the files of a run; the figures are in
+:mod:`selfid_jax.commands.online_figures`.
 """
 
 from __future__ import annotations

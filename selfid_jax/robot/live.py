@@ -8,14 +8,14 @@ one session in a run directory:
    commands ``move(q + dtheta)``, waits ``settle_s`` and reads again; the
    sample is ``(q_new - q_old (n,), V (m,))`` with ``V = [p_t - p_{t-1},
    log(R_t R_{t-1}^T)][axes]`` from the two tracker poses
-   (:func:`~selfid_jax.robot.session.task_difference`, Eq. 1's pose change). A reading with no pose
+   (:func:`~selfid_jax.robot.steps.task_difference`, Eq. 1's pose change). A reading with no pose
    (``valid`` False: a dropout) or whose pose is not newer than the reading
    before the move (a stale tracker) is rejected, counted by reason, and
    followed by a fresh reading at rest (no motion) before the next draw.
    Each accepted sample runs the jitted
    :func:`selfid_jax.identify.step.sample_step`
    (update Eq. 6-12, guess Eq. 13, refine Eq. 14, record Sec. IV-D), compiled
-   once per ``(n, m, method, dtype)`` (:func:`~selfid_jax.robot.session.sample_step`). The first time
+   once per ``(n, m, method, dtype)`` (:func:`~selfid_jax.robot.steps.sample_step`). The first time
    the Sec. IV-D test holds (``state.converged_at >= 1``) self-ID stops:
    **no further random move is ever commanded**, in this session or a
    resumed one. So the robot makes exactly ``converged_at + rejected`` random
@@ -23,7 +23,7 @@ one session in a run directory:
 2. **Follow** (optional, ``OnlineOptions.path``): the converged estimate is
    a fixed inverse Jacobian, and each step is the simulated follow loop's
    control step (:func:`selfid_jax.control.law.command`, run on the host:
-   :func:`selfid_jax.robot.session.follow_command`) with the controller
+   :func:`selfid_jax.robot.steps.follow_command`) with the controller
    settings :meth:`FollowOptions.controller` builds from the path options and
    the envelope: the waypoint advances within ``tol`` [m] (and ``rot_tol``
    [rad]), the twist is ``gain`` times the error with its position part
@@ -88,15 +88,8 @@ from selfid_jax.robot.options import AXIS_NAMES, ONLINE_METHODS, FollowOptions, 
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.quality import Quality
 from selfid_jax.robot.safety import envelope
-from selfid_jax.robot.session import (
-    DriverFault,
-    ResumeError,
-    Session,
-    Stop,
-    Stopped,
-    init_state,
-    sample_step,
-)
+from selfid_jax.robot.session import DriverFault, ResumeError, Session, Stop, Stopped
+from selfid_jax.robot.steps import init_state, sample_step
 
 __all__ = ["LOG_FILE", "OnlineResult", "given_estimate", "run_online"]
 

@@ -17,7 +17,8 @@ import numpy as np
 from selfid_jax.robot.options import DIVERGE_DIST, STALE_S
 from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits, check_limits
 
-__all__ = ["Envelope", "actuation_target", "check_observation", "envelope"]
+__all__ = ["COMMAND_MEMORY", "Commanded", "Envelope", "Sight", "actuation_target", "angle_between", "check_observation",
+           "envelope"]
 
 
 class Envelope(NamedTuple):
@@ -132,3 +133,41 @@ def check_observation(obs: Any, n: int, *, rotation: bool = True) -> Observation
     if valid and not (np.all(np.isfinite(p)) and np.all(np.isfinite(quat)) and np.linalg.norm(quat) > 0):
         valid = False  # a "valid" pose with NaN in it is a dropout all the same
     return Observation(t, q, p, quat, tt, valid)
+
+
+# --------------------------------------------------------------------------- after each move
+
+
+class Sight(NamedTuple):
+    """What the runner has seen since the tracked pose last changed (the motion-versus-sight check).
+
+    A change is seen when the tracked position moves more than ``seen_min``
+    [m] or the orientation more than ``seen_min_rad`` from ``p``/``quat``;
+    until then ``moved`` sums the measured actuator motion ``max_i |dq_i|``
+    of every move [actuator units] and ``predicted`` the position change an
+    estimate predicts for them, ``||pinv(Jinv) dq||`` [m] (while following).
+    """
+
+    p: np.ndarray  # (3,) m, the tracked position when a change was last seen
+    quat: np.ndarray  # (4,) its quaternion (w, x, y, z)
+    moved: float = 0.0  # actuator units of measured motion since
+    predicted: float = 0.0  # m of position change the estimate predicts since (following only)
+    moves: int = 0  # moves since
+
+
+def angle_between(qa: np.ndarray, qb: np.ndarray) -> float:
+    """Angle [rad] between two orientations given as quaternions (w, x, y, z), any norm."""
+    c = abs(float(np.dot(qa, qb))) / (float(np.linalg.norm(qa)) * float(np.linalg.norm(qb)))
+    return 2.0 * math.acos(min(1.0, c))
+
+
+COMMAND_MEMORY = 0.8
+"""Weight of the previous moves in the command-following sums, per move (an effective memory of about 5 moves)."""
+
+
+class Commanded(NamedTuple):
+    """Per actuator, the commanded and the measured motion of the recent moves (the command-following check)."""
+
+    commanded: np.ndarray  # (n,) sum of |target_i - q_i| over the moves, each older one times COMMAND_MEMORY
+    along: np.ndarray  # (n,) the same sum of the measured motion along each command, (q'_i - q_i) sign(target_i - q_i)
+    moves: int = 0

@@ -6,9 +6,9 @@ sample and waypoint to the session's :class:`~selfid_jax.robot.journal.Journal`
 as it happens, and raising :class:`Stopped` where a stop is found:
 
 * :meth:`Session.selfid` (Algorithm 1): each random move's sample runs the
-  jitted :func:`sample_step`, the per-sample identification step of
+  jitted :func:`selfid_jax.robot.steps.sample_step`, the per-sample identification step of
   Algorithm 1 and ``fit`` (:func:`selfid_jax.identify.step.sample_step`).
-* :meth:`Session.follow`: each step is :func:`follow_command`, which is
+* :meth:`Session.follow`: each step is :func:`selfid_jax.robot.steps.follow_command`, which is
   :func:`selfid_jax.control.law.command` with
   :func:`~selfid_jax.control.law.inverse_jacobian_law` on the converged
   estimate, the control step of the simulated follow loop
@@ -26,32 +26,28 @@ as it happens, and raising :class:`Stopped` where a stop is found:
 from __future__ import annotations
 
 import enum
-import functools
 import math
 import time
-from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from collections.abc import Callable
 
-import jax
 import numpy as np
 
-from selfid_jax.control.law import Command, command, inverse_jacobian_law
-from selfid_jax.control.sources import fixed
-from selfid_jax.control.task import ControllerParams, Task
 from selfid_jax.identify import estimator
-from selfid_jax.identify.refine import needs_samples
-from selfid_jax.identify.step import StepInfo
-from selfid_jax.identify.step import sample_step as identify_step
-from selfid_jax.math import geometry
-from selfid_jax.math.checks import float_dtype
 from selfid_jax.robot.journal import Journal, JournalContents, JournalError, floats
-from selfid_jax.robot.log import pairs_from_time_series, rotations
 from selfid_jax.robot.protocol import Observation, Robot, RobotError
 from selfid_jax.robot.quality import Quality, held_out
-from selfid_jax.robot.safety import Envelope, actuation_target, check_observation
+from selfid_jax.robot.safety import (
+    COMMAND_MEMORY,
+    Commanded,
+    Envelope,
+    Sight,
+    actuation_target,
+    angle_between,
+    check_observation,
+)
+from selfid_jax.robot.steps import follow_command, host_step, sample_step, task_difference
 
-__all__ = ["DriverFault", "ResumeError", "Session", "Stop", "Stopped", "follow_command", "host_step", "init_state",
-           "sample_step", "task_difference"]
+__all__ = ["DriverFault", "ResumeError", "Session", "Stop", "Stopped"]
 
 
 class Stop(enum.StrEnum):
@@ -95,125 +91,6 @@ class Stopped(Exception):
     def __init__(self, reason: Stop, detail: str):
         super().__init__(detail)
         self.reason, self.detail = reason, detail
-
-
-def task_difference(obs: Observation, prev: Observation, axes: Sequence[int]) -> np.ndarray:
-    """``V (m,) = [p - p_prev, log(R R_prev^T)][axes]`` between two tracker poses (m; rad for rotation axes).
-
-    :func:`selfid_jax.robot.log.pairs_from_time_series` on the two rows, so an
-    online sample is exactly what ``fit`` would form from the same time series.
-    """
-    p = np.stack([prev.position, obs.position])
-    R = None if all(a < 3 for a in axes) else rotations("quaternion", np.stack([prev.quaternion, obs.quaternion]))
-    return pairs_from_time_series(np.zeros((2, 1)), p, R, axes)[1][0]
-
-
-# --------------------------------------------------------------------------- the jitted steps
-
-_step = jax.jit(identify_step, static_argnames=("method", "options"))
-
-
-def init_state(n: int, m: int, *, method: str = "closed_form", v_tol: float = 1e-9, max_samples: int = 200,
-               dtype=None) -> estimator.EstimatorState:
-    """Empty estimator for a session: no sample buffer unless the refinement needs one (then ``max_samples``)."""
-    capacity = max_samples if needs_samples(method) else 0
-    return estimator.init(n, m, capacity=capacity, v_tol=v_tol, dtype=float_dtype() if dtype is None else dtype)
-
-
-def sample_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form"
-                ) -> tuple[estimator.EstimatorState, StepInfo]:
-    """One accepted sample ``(dtheta (n,), V (m,))`` through :func:`selfid_jax.identify.step.sample_step`, jitted.
-
-    ``eps`` and ``eps_rel`` are passed as arrays of the state's dtype, so one
-    compilation per ``(n, m, method, dtype)`` serves every threshold and every
-    sample of every session in the process. The inputs are cast with numpy
-    (``jit`` transfers numpy arguments on its fast path; ``jnp.asarray`` on
-    each would cost more than the step itself at batch 1).
-    """
-    dtype = state.estimate.dtype
-    return _step(state, np.asarray(dtheta, dtype), np.asarray(V, dtype), np.asarray(eps, dtype),
-                 np.asarray(eps_rel, dtype), method=method, options=())
-
-
-def host_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form"
-              ) -> tuple[estimator.EstimatorState, StepInfo, int]:
-    """:func:`sample_step` and what the online loop reads back: ``(state, info as numpy, converged_at)``.
-
-    One ``device_get`` of the info and ``converged_at`` together: the whole
-    per-sample cost of the loop's estimator (``benchmarks/online_step.py``).
-    """
-    state, info = sample_step(state, dtheta, V, eps, eps_rel, method=method)
-    info, conv = jax.device_get((info, state.converged_at))
-    return state, info, int(conv)
-
-
-@functools.partial(jax.jit, static_argnames=("axes",))
-def _follow_command(Jinv, offsets, p0, R0, waypoint, q, p, R, ctrl, *, axes):
-    law = inverse_jacobian_law(None, fixed(Jinv))
-    task = Task.from_axes(offsets, (p0, R0), axes)
-    state = law.init(q)
-    observe = law.observe
-    assert observe is not None  # a law on a fixed estimate observes without a model
-    return command(law, task, ctrl, state, waypoint, q, (p, R), observe(state, q)), task.path_distance(p)
-
-
-def follow_command(Jinv: np.ndarray, offsets: np.ndarray, anchor: Observation, waypoint: int, obs: Observation,
-                   ctrl: ControllerParams, axes: tuple[int, ...]) -> tuple[Command, float]:
-    """The follow loop's control step at the reading ``obs``, on the host in float64: ``(command, path distance)``.
-
-    :func:`selfid_jax.control.law.command` with ``inverse_jacobian_law`` on the
-    constant ``Jinv (n, m)``, towards waypoint offsets ``offsets (W, m)`` taken
-    from the pose of ``anchor``; the path distance [m] is that of ``obs``'s
-    position (:meth:`~selfid_jax.control.task.Task.path_distance`). The same
-    function :func:`selfid_jax.control.loop.follow_law` runs under ``scan``,
-    compiled once per ``(n, m, W, axes)``. Returned as numpy.
-    """
-    with jax.enable_x64(True):
-        f64 = functools.partial(np.asarray, dtype=np.float64)
-        R0, R = (np.asarray(geometry.quaternion_to_rotation(f64(o.quaternion)), np.float64) for o in (anchor, obs))
-        ctrl = jax.tree.map(f64, ctrl)
-        out = _follow_command(f64(Jinv), f64(offsets), f64(anchor.position), R0, np.int32(waypoint), f64(obs.q),
-                              f64(obs.position), R, ctrl, axes=tuple(axes))
-        cmd, dist = jax.device_get(out)
-    return cmd, float(dist)
-
-
-# --------------------------------------------------------------------------- motion versus sight
-
-
-class Sight(NamedTuple):
-    """What the runner has seen since the tracked pose last changed (the motion-versus-sight check).
-
-    A change is seen when the tracked position moves more than ``seen_min``
-    [m] or the orientation more than ``seen_min_rad`` from ``p``/``quat``;
-    until then ``moved`` sums the measured actuator motion ``max_i |dq_i|``
-    of every move [actuator units] and ``predicted`` the position change an
-    estimate predicts for them, ``||pinv(Jinv) dq||`` [m] (while following).
-    """
-
-    p: np.ndarray  # (3,) m, the tracked position when a change was last seen
-    quat: np.ndarray  # (4,) its quaternion (w, x, y, z)
-    moved: float = 0.0  # actuator units of measured motion since
-    predicted: float = 0.0  # m of position change the estimate predicts since (following only)
-    moves: int = 0  # moves since
-
-
-def _angle(qa: np.ndarray, qb: np.ndarray) -> float:
-    """Angle [rad] between two orientations given as quaternions (w, x, y, z), any norm."""
-    c = abs(float(np.dot(qa, qb))) / (float(np.linalg.norm(qa)) * float(np.linalg.norm(qb)))
-    return 2.0 * math.acos(min(1.0, c))
-
-
-COMMAND_MEMORY = 0.8
-"""Weight of the previous moves in the command-following sums, per move (an effective memory of about 5 moves)."""
-
-
-class Commanded(NamedTuple):
-    """Per actuator, the commanded and the measured motion of the recent moves (the command-following check)."""
-
-    commanded: np.ndarray  # (n,) sum of |target_i - q_i| over the moves, each older one times COMMAND_MEMORY
-    along: np.ndarray  # (n,) the same sum of the measured motion along each command, (q'_i - q_i) sign(target_i - q_i)
-    moves: int = 0
 
 
 # --------------------------------------------------------------------------- the session
@@ -367,7 +244,7 @@ class Session:
                               "joint, the tracker's frame); self-identify again")
         sight = self.sight if self.sight is not None else Sight(base.position, base.quaternion)
         if np.linalg.norm(obs.position - sight.p) > opts.seen_min or \
-                _angle(obs.quaternion, sight.quat) > opts.seen_min_rad:
+                angle_between(obs.quaternion, sight.quat) > opts.seen_min_rad:
             self.sight = Sight(obs.position, obs.quaternion)
             return
         moved = sight.moved + float(np.max(np.abs(dq)))

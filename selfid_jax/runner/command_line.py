@@ -25,6 +25,9 @@ reported on stderr as one line naming the path and what to do, with exit code
 ``kill -9`` loses at most that chunk. ``sweep`` and ``demo`` hold the run
 directory's lock (:mod:`selfid_jax.runner.lock`) from before anything in it is
 deleted or written until the figures are drawn.
+
+Size: about 500 lines, the runner's whole command line (sweep, list, plot, demo and the commands a package
+adds), each subcommand a few functions sharing the argument and error handling.
 """
 
 from __future__ import annotations
