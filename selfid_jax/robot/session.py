@@ -130,6 +130,7 @@ class Session:
         self.sight: Sight | None = None
         self.commanded = Commanded(np.zeros(self.n), np.zeros(self.n))
         self.predict: np.ndarray | None = None  # (P, n) pinv of the estimate while following: dq -> predicted dp
+        self.position_axes = [a for a in axes if a < 3]  # the task's P position axes, indices into (x, y, z)
         self.residual = (0.0, 0.0, 0)  # following: recent-weighted sums of |dp - predicted dp|, |predicted dp|; moves
         self.pairs: list[tuple[np.ndarray, np.ndarray]] = []  # the accepted samples (dtheta (n,), V (m,))
         self.quality: Quality | None = None
@@ -231,10 +232,9 @@ class Session:
                               f"{opts.follow_min_ratio:g}): stuck, slow or not settled")
         if not obs.valid:
             return
-        if self.predict is not None:  # following: each move is a held-out sample of the estimate
-            axes = [i for i, a in enumerate(self.axes) if a < 3]
-            pred = self.predict @ dq
-            miss = float(np.linalg.norm((obs.position - base.position)[[self.axes[i] for i in axes]] - pred))
+        pred = None if self.predict is None else self.predict @ dq  # (P,) predicted position change [m]
+        if pred is not None:  # following: each move is a held-out sample of the estimate
+            miss = float(np.linalg.norm((obs.position - base.position)[self.position_axes] - pred))
             r = self.residual
             r = self.residual = (w * r[0] + miss, w * r[1] + float(np.linalg.norm(pred)), r[2] + 1)
             if r[2] >= opts.follow_min_moves and r[0] > opts.follow_max_residual * r[1]:
@@ -248,7 +248,7 @@ class Session:
             self.sight = Sight(obs.position, obs.quaternion)
             return
         moved = sight.moved + float(np.max(np.abs(dq)))
-        predicted = sight.predicted + (0.0 if self.predict is None else float(np.linalg.norm(self.predict @ dq)))
+        predicted = sight.predicted + (0.0 if pred is None else float(np.linalg.norm(pred)))
         self.sight = sight._replace(moved=moved, predicted=predicted, moves=sight.moves + 1)
         limit = self.frozen_motion
         if moved > limit or predicted > opts.frozen_dist:
@@ -355,7 +355,8 @@ class Session:
         assert offsets is not None and anchor is not None
         W = offsets.shape[0]
         ctrl = path.controller(env)
-        self.predict = np.linalg.pinv(Jinv)[[i for i, a in enumerate(self.axes) if a < 3]]  # dq -> predicted dp
+        rows = [i for i, a in enumerate(self.axes) if a in self.position_axes]
+        self.predict = np.linalg.pinv(Jinv)[rows]  # (P, n): dq -> predicted change of the task's positions
         moved = False  # a reading after a move of this call (not the one following starts or resumes from)
         while True:
             cmd, dist = follow_command(Jinv, offsets, anchor, self.waypoint, obs, ctrl, self.axes)

@@ -79,7 +79,8 @@ def host_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, metho
 
 
 @functools.partial(jax.jit, static_argnames=("axes",))
-def _follow_command(Jinv, offsets, p0, R0, waypoint, q, p, R, ctrl, *, axes):
+def _follow_command(Jinv, offsets, p0, quat0, waypoint, q, p, quat, ctrl, *, axes):
+    R0, R = geometry.quaternion_to_rotation(quat0), geometry.quaternion_to_rotation(quat)
     law = inverse_jacobian_law(None, fixed(Jinv))
     task = Task.from_axes(offsets, (p0, R0), axes)
     state = law.init(q)
@@ -101,9 +102,9 @@ def follow_command(Jinv: np.ndarray, offsets: np.ndarray, anchor: Observation, w
     """
     with jax.enable_x64(True):
         f64 = functools.partial(np.asarray, dtype=np.float64)
-        R0, R = (np.asarray(geometry.quaternion_to_rotation(f64(o.quaternion)), np.float64) for o in (anchor, obs))
         ctrl = jax.tree.map(f64, ctrl)
-        out = _follow_command(f64(Jinv), f64(offsets), f64(anchor.position), R0, np.int32(waypoint), f64(obs.q),
-                              f64(obs.position), R, ctrl, axes=tuple(axes))
+        out = _follow_command(f64(Jinv), f64(offsets), f64(anchor.position), f64(anchor.quaternion),
+                              np.int32(waypoint), f64(obs.q), f64(obs.position), f64(obs.quaternion), ctrl,
+                              axes=tuple(axes))
         cmd, dist = jax.device_get(out)
     return cmd, float(dist)
