@@ -630,28 +630,36 @@ def test_task_difference_is_the_pose_change_with_rotation():
     np.testing.assert_allclose(R1, r1.as_matrix(), atol=1e-12)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
-def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module, console, signame):
-    """A first SIGTERM or Ctrl-C stops after the move in flight, closes the robot and keeps the log (not os._exit)."""
+def _start_online(console, cfg, out, driver_dir, record: bytes, count: int):
+    """``selfid-jax online CFG --out OUT`` in a process of its own (the fake driver importable from ``driver_dir``),
+    returned once its session log holds ``count`` lines with ``record`` (or it ended, or 60 s passed)."""
     import os
-    import signal
     import subprocess
 
-    cfg = _config(tmp_path, """
-        robot: {driver: "fake_driver:make"}
-        selfid: {m_a: 0.03, eps_rel: 1.0e-15, max_samples: 100000, settle_s: 0.01, poll_s: 0.001}
-    """)  # a threshold below float64 round-off: never converges, so only the signal ends it
-    out = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).parent),
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(driver_dir), str(Path(__file__).parent),
                                                         os.environ.get("PYTHONPATH", "")])}
     proc = subprocess.Popen([*console, "online", str(cfg), "--out", str(out)], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     log = out / live.LOG_FILE
     deadline = time.monotonic() + 60
     while proc.poll() is None and time.monotonic() < deadline and \
-            not (log.exists() and log.read_bytes().count(b'"e":"sample"') >= 5):
-        time.sleep(0.05)
+            not (log.exists() and log.read_bytes().count(record) >= count):
+        time.sleep(0.02)
+    return proc, log
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signame", ["SIGTERM", "SIGINT"])
+def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module, console, signame):
+    """A first SIGTERM or Ctrl-C stops after the move in flight, closes the robot and keeps the log (not os._exit)."""
+    import signal
+
+    cfg = _config(tmp_path, """
+        robot: {driver: "fake_driver:make"}
+        selfid: {m_a: 0.03, eps_rel: 1.0e-15, max_samples: 100000, settle_s: 0.01, poll_s: 0.001}
+    """)  # a threshold below float64 round-off: never converges, so only the signal ends it
+    out = tmp_path / "run"
+    proc, log = _start_online(console, cfg, out, tmp_path, b'"e":"sample"', 5)
     proc.send_signal(getattr(signal, signame))
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr
@@ -672,24 +680,14 @@ def test_cli_sigterm_or_ctrl_c_stops_cleanly_and_resumes(tmp_path, driver_module
 @pytest.mark.slow
 def test_cli_two_sigterms_50_ms_apart_still_leave_a_stop_record(tmp_path, driver_module, console):
     """The second signal ends the process at once (143); the log still ends with a stop record (killed)."""
-    import os
     import signal
-    import subprocess
 
     cfg = _config(tmp_path, """
         robot: {driver: "fake_driver:make"}
         selfid: {m_a: 0.03, eps_rel: 1.0e-15, max_samples: 100000, settle_s: 0.4, poll_s: 0.001}
     """)  # a long settle: the first signal's stop is seen only after it, so the second one ends the process
     out = tmp_path / "run"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(Path(__file__).parent),
-                                                        os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen([*console, "online", str(cfg), "--out", str(out)], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    log = out / live.LOG_FILE
-    deadline = time.monotonic() + 60
-    while proc.poll() is None and time.monotonic() < deadline and \
-            not (log.exists() and log.read_bytes().count(b'"e":"move"') >= 2):
-        time.sleep(0.02)
+    proc, log = _start_online(console, cfg, out, tmp_path, b'"e":"move"', 2)
     proc.send_signal(signal.SIGTERM)
     time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
