@@ -229,3 +229,24 @@ def test_server_answers_bad_requests_without_moving(tmp_path):
     assert moves == []
     assert server.handle({"op": "limits"})["upper"] == [1.0, 1.0]
     server.shutdown()
+
+
+def test_a_tracker_frozen_from_time_zero_is_frozen_for_a_read_before_the_first_tick():
+    """freeze_tracker_at_s 0 holds at tick 0 too: a read before the clock's first tick, a move, and a later read see
+    one pose with one stamp (the freeze used to start at the first tick, a stamp newer than the first read's)."""
+    from selfid_jax.control.realism import Realism
+    from selfid_jax.robot import virtual
+    from selfid_jax.systems.two_link import two_link
+
+    robot = virtual.VirtualRobot(two_link(), realism=Realism(period=0.01),
+                                 faults=virtual.Faults(freeze_tracker_at_s=0.0), start=False)
+    try:
+        a = robot.read()
+        robot.move(a.q + 0.01)
+        robot.start()
+        time.sleep(0.05)
+        b = robot.read()
+        assert b.t > a.t and not np.array_equal(b.q, a.q)  # the clock and the arm moved on
+        assert b.tracker_t == a.tracker_t and np.array_equal(b.position, a.position)
+    finally:
+        robot.close()

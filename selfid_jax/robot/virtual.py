@@ -229,6 +229,9 @@ class VirtualRobot:
         self._frozen_q: np.ndarray | None = None  # (n,) the actuators' position the frozen tracker last saw
         self._frozen_k = 0  # the tick of that position
         self._frozen: _Reading | None = None  # the reading a frozen tracker repeats
+        freeze = faults.freeze_tracker_at_s
+        if freeze is not None and freeze <= 0:  # frozen at tick 0 already, not from the tick thread's first tick
+            self._frozen_q, self._frozen_k = q.copy(), -self.latency
         self._lock = threading.Lock()  # the state above, between the tick thread and the callers
         self._read_lock = threading.Lock()  # the generator and the last reading, between callers
         self._stop = threading.Event()
