@@ -144,6 +144,22 @@ def test_convergence_test_needs_two_consecutive_small_changes():
     np.testing.assert_allclose(state.last_deltas, [0.05, 0.02], atol=1e-12)
 
 
+def test_min_count_holds_the_test_back_until_that_many_samples_jit_and_vmap():
+    """record(min_count=k): converged at the first record with both last changes small and >= k samples accepted;
+    the deltas [1, .05, .95, .05, .05, .02, .01]: 5 for k <= 5, 6 for k = 6, 7 for k = 7, never for k = 8."""
+    sequence = jnp.array([1.0, 1.05, 2.0, 2.05, 2.1, 2.12, 2.13])
+
+    def run(min_count):
+        def body(state, j):
+            state = E.update(state, jnp.array([0.01]), jnp.array([0.02]))
+            return E.record(state, j.reshape(1, 1), 0.1, min_count=min_count), None
+        return jax.lax.scan(body, E.init(1, 1), sequence)[0].converged_at
+
+    ks = jnp.array([0, 5, 6, 7, 8])
+    np.testing.assert_array_equal(jax.jit(jax.vmap(run))(ks), [5, 5, 6, 7, -1])
+    assert int(run(0)) == 5
+
+
 def _numpy_convergence_iteration(est, eps):
     """Sec. IV-D over a sequence, straight numpy: first t with delta_{t-1}, delta_t <= eps (J_0 = 0), else -1."""
     deltas = np.linalg.norm(np.diff(np.concatenate([np.zeros((1,) + est.shape[1:]), est]), axis=0), axis=(1, 2))

@@ -130,6 +130,19 @@ def test_demo_labels_do_not_overlap_and_each_convergence_panel_has_its_threshold
             assert w > 0
     # the Model O's threshold is relative only (eps 0): its lines are still there, at 0.05 ||J_est||
     assert cfg.runs[1].eps == 0 and cfg.runs[1].eps_rel > 0
+    # the UR5e (6 actuators, 3 axes) is shown as J Ĵ and J Ĵ - I, J the truth's pseudo-inverse (numpy here);
+    # the square Model O as its estimated and true J+
+    ur = table[table["system"] == "ur5e"].iloc[0]
+    est, truth = np.reshape(ur["estimate"], (6, 3)), np.reshape(ur["truth"], (6, 3))
+    product = np.linalg.solve(truth.T @ truth, truth.T) @ est
+    heat = {ax.get_title(): np.asarray(ax.get_images()[0].get_array()) for ax in fig.axes if ax.get_images()}
+    np.testing.assert_allclose(heat[r"ur5e, config 0: $J\hat J$ ($I$ for any right inverse of $J$)"], product,
+                               rtol=1e-9, atol=1e-12)
+    minus = [v for k, v in heat.items() if k.startswith(r"ur5e, config 0: $J\hat J - I$")]
+    assert len(minus) == 1 and np.allclose(minus[0], product - np.eye(3), atol=1e-12)
+    mo = table[table["system"] == "model_o"].iloc[0]
+    np.testing.assert_allclose(heat["model_o: true $J^+$, config 0"], np.reshape(mo["truth"], (3, 3)))
+    assert not any("POM" in ax.get_title() for ax in fig.axes)
 
 
 # --------------------------------------------------------------------------- ablation

@@ -57,8 +57,8 @@ class FakeArm:
                  freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5, fail_move_with=None,
                  fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False,
                  frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None, delay_at=None, delay_s=0.0,
-                 pose_lag=False, no_quaternion=False):
-        self.no_quaternion = no_quaternion
+                 pose_lag=False, no_quaternion=False, band=None):
+        self.no_quaternion, self.band = no_quaternion, band
         self.pose_lag, self._q_before = pose_lag, None
         self.frozen_pose_at, self.tracker_clock, self.stuck, self.slow = frozen_pose_at, tracker_clock, stuck, slow
         self.delay_at, self.delay_s = delay_at, delay_s
@@ -132,6 +132,10 @@ class FakeArm:
             q[self.stuck] = self.q[self.stuck]
         if self.slow is not None:  # a joint that covers a tenth of each command before the reading
             q[self.slow] = self.q[self.slow] + 0.1 * (q[self.slow] - self.q[self.slow])
+        if self.band is not None:  # a stick-slip band: a step under band[1] does not move joint band[0]
+            i, width = self.band
+            if abs(q[i] - self.q[i]) < width:
+                q[i] = self.q[i]
         self.q = q
 
     def close(self):
@@ -186,7 +190,7 @@ def test_selfid_with_dropouts_matches_offline_fit(tmp_path):
     assert not any(t[0] == lower[0] for _, t in fake.moves)  # reflected, not clipped onto the limit
     # the same samples offline give the same convergence iteration and estimate
     dtheta, V = accepted_samples(result.log)
-    trace = fit_mod.fit_samples(dtheta, V, 0.0, 0.05)
+    trace = fit_mod.fit_samples(dtheta, V, 0.0, 0.05, min_samples=15)  # the live default, 5 per axis
     assert int(trace.converged_at) == result.converged_at > 2
     np.testing.assert_allclose(result.estimate, np.asarray(trace.estimate), rtol=1e-10, atol=1e-12)
     # the samples are the arm's own: q differences and tracker position differences
@@ -289,6 +293,62 @@ def test_resume_refuses_a_disagreeing_header(tmp_path, converged_run):
         live.run_online(FakeArm(), opts(), tmp_path / "none", resume=True)
 
 
+def test_resume_with_the_robot_moved_stops_as_moved_before_any_move(tmp_path, converged_run):
+    """Self-ID resumed with an actuator beyond (wander + 1) m_a of where self-ID started, and following resumed
+    with the tracked point beyond diverge_dist of the logged path: a `moved` stop naming why, no command."""
+    fake = FakeArm(fail_move_at=3)
+    assert live.run_online(fake, opts(), tmp_path / "a").status == live.Stop.CONNECTION
+    centre = np.array(read_journal(tmp_path / "a" / "session.jsonl").records[1]["q"])  # the centre record
+    np.testing.assert_array_equal(centre, START)
+    moved = FakeArm(q0=np.array(START) + [0.0, 0.061, 0.0])  # 2 m_a + 1 mm away in actuator 1
+    res = live.run_online(moved, opts(), tmp_path / "a", resume=True)
+    assert res.status == live.Stop.MOVED and "actuator 1 is +0.061 from where self-ID started" in res.detail
+    assert moved.moves == [] and moved.closed
+    near = FakeArm(q0=np.array(START) + [0.0, 0.059, 0.0])  # within reach: self-ID continues and converges
+    assert live.run_online(near, opts(), tmp_path / "a", resume=True).status == live.Stop.CONVERGED
+
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    fake = FakeArm(q0=ref_fake.q, fail_move_at=2)  # following starts, then the connection drops
+    path = options.FollowOptions(size=0.02)
+    assert live.run_online(fake, opts(path=path), tmp_path / "r", resume=True).status == live.Stop.CONNECTION
+    away = FakeArm(q0=np.array(ref_fake.q) + [0.2, 0.0, 0.0])
+    res = live.run_online(away, opts(path=path), tmp_path / "r", resume=True)
+    assert res.status == live.Stop.MOVED and "from the log's path" in res.detail and "--estimate" in res.detail
+    assert away.moves == [] and away.closed
+
+
+def test_self_id_stays_within_wander_of_its_start(tmp_path):
+    """Every self-ID target within wander m_a of the first reading (reflected draws keep |dtheta| <= m_a); with
+    wander None the same draws walk farther."""
+    for wander, bound in ((1.0, 0.03), (2.0, 0.06)):
+        fake = FakeArm()
+        live.run_online(fake, opts(wander=wander, max_samples=40, eps_rel=1e-9), tmp_path / f"w{wander}")
+        targets = np.array([t for _, t in fake.moves])
+        assert len(targets) == 40 and np.max(np.abs(targets - START)) <= bound + 1e-12
+        assert np.all(np.abs(targets - np.array([q for q, _ in fake.moves])) <= 0.03 + 1e-12)
+    free = FakeArm()
+    live.run_online(free, opts(wander=None, max_samples=40, eps_rel=1e-9), tmp_path / "free")
+    assert np.max(np.abs(np.array([t for _, t in free.moves]) - START)) > 0.06
+
+
+def test_convergence_counts_from_min_samples(tmp_path):
+    """The default floor is 5 samples per task axis (15 for x,y,z); the estimator's test is the paper's after it:
+    the same samples offline with min_samples give the same iteration, and 0 gives the paper's earlier one."""
+    res = live.run_online(FakeArm(), opts(), tmp_path / "d")
+    dtheta, V = accepted_samples(res.log)
+    paper = int(fit_mod.fit_samples(dtheta, V, 0.0, 0.05).converged_at)
+    assert 1 < paper < 15 <= res.converged_at
+    assert int(fit_mod.fit_samples(dtheta, V, 0.0, 0.05, min_samples=15).converged_at) == res.converged_at
+    res0 = live.run_online(FakeArm(), opts(min_samples=0), tmp_path / "p")
+    assert res0.converged_at == paper
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="min_samples: expected an integer"):
+            live.run_online(FakeArm(), opts(min_samples=bad), tmp_path / "bad")
+    with pytest.raises(ValueError, match="wander: must be a number >= 0.5"):
+        live.run_online(FakeArm(), opts(wander=0.1), tmp_path / "bad")
+
+
 def test_resume_with_another_path_after_following_started_is_refused(tmp_path, converged_run):
     run, ref_fake, _ = converged_run
     shutil.copytree(run, tmp_path / "r")
@@ -367,7 +427,7 @@ def test_a_tracker_frozen_while_following_stops_within_frozen_dist(tmp_path, con
     res = live.run_online(fake, opts(path=options.FollowOptions(size=0.05)), tmp_path / "r", resume=True)
     assert res.status == live.Stop.TRACKER_FROZEN, res.detail
     unseen = np.linalg.norm(arm_pose(fake.q)[0] - arm_pose(fake.moves[1][0])[0])  # since the last pose seen
-    assert len(fake.moves) == 3 and unseen < 0.005 + 0.005 + 5e-4  # frozen_dist and the move that passed it
+    assert 2 <= len(fake.moves) <= 3 and unseen < 0.005 + 0.005 + 5e-4  # frozen_dist and the move that passed it
 
 
 @pytest.mark.parametrize("clock", [lambda t: t + 5.0, lambda t: time.time()])
@@ -403,6 +463,19 @@ def test_an_actuator_that_does_not_follow_its_commands_stops_self_id(tmp_path, k
     i = next(iter(kw.values()))
     assert res.status == live.Stop.ACTUATOR and f"actuator {i} moved" in res.detail, res.detail
     assert len(fake.moves) == 5 and not res.converged
+
+
+def test_a_stick_slip_band_that_swallows_small_commands_is_not_a_stuck_actuator(tmp_path, converged_run):
+    """Joint 2 ignores steps under 1.5 mrad (a stick-slip band): following completes, as on franky-sim's FR3; the
+    shortfall stays under half of m_a. A joint that ignores every command still stops (the test above)."""
+    run, ref_fake, _ = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    fake = FakeArm(q0=ref_fake.q, band=(2, 0.0015))
+    path = options.FollowOptions(size=0.02, max_task_step=0.001, steps=400)
+    res = live.run_online(fake, opts(path=path), tmp_path / "r", resume=True)
+    assert res.status == live.Stop.COMPLETED, res.detail
+    small = [abs(t[2] - q[2]) for q, t in fake.moves]
+    assert sum(s < 0.0015 for s in small) >= 5  # the band did swallow commands
 
 
 # --------------------------------------------------------------------------- following
@@ -1084,3 +1157,44 @@ def test_cli_follows_a_csv_beside_the_config_with_the_estimate_of_an_earlier_ses
     n_arms = len(driver_module.CREATED)
     assert main(["online", str(cfg), "--out", str(tmp_path / "d"), "--estimate", str(npz)]) == 2
     assert "path.file" in capsys.readouterr().err and len(driver_module.CREATED) == n_arms
+
+
+class ModelArm(FakeArm):
+    """FakeArm with a model: jacobian(q) by central differences of arm_pose (position rows; rotation rows zero,
+    the task has none), or a broken one."""
+
+    def __init__(self, *a, broken=False, **kw):
+        super().__init__(*a, **kw)
+        self.broken, self.asked = broken, []
+
+    def jacobian(self, q):
+        self.asked.append(np.array(q))
+        if self.broken:
+            return np.zeros((3, 3))
+        h = 1e-6
+        cols = [(arm_pose(q + h * e)[0] - arm_pose(q - h * e)[0]) / (2 * h) for e in np.eye(3)]
+        return np.vstack([np.array(cols).T, np.zeros((3, 3))])
+
+
+def test_a_driver_model_jacobian_is_the_estimate_s_reference(tmp_path):
+    """jacobian() is asked once, at the first reading; summary-level reference_error equals numpy's ||J Ĵ - I||_F
+    (a few % here: the estimate averages J over the moves around the start) and figures/estimate is drawn from
+    the log; a malformed one stops before any move; a driver without one has no reference."""
+    from selfid_jax.commands import online_figures
+
+    arm = ModelArm()
+    res = live.run_online(arm, opts(), tmp_path / "a")
+    assert res.converged and len(arm.asked) == 1 and np.array_equal(arm.asked[0], START)
+    h = 1e-6
+    J = np.array([(arm_pose(START + h * e)[0] - arm_pose(START - h * e)[0]) / (2 * h) for e in np.eye(3)]).T
+    want = np.linalg.norm(J @ res.estimate - np.eye(3))
+    assert res.reference_error == pytest.approx(want, rel=1e-6) and 0 < want < 0.15
+    paths = online_figures.write_figures(tmp_path / "a")
+    assert any(p.name == "estimate.png" for p in paths)
+    resumed = live.run_online(ModelArm(q0=arm.q), opts(), tmp_path / "a", resume=True)
+    assert resumed.reference_error == pytest.approx(want, rel=1e-6)  # from the log
+    bad = ModelArm(broken=True)
+    res = live.run_online(bad, opts(), tmp_path / "b")
+    assert res.status == live.Stop.DRIVER_ERROR and "jacobian() raised ValueError" in res.detail, res.detail
+    assert bad.moves == []
+    assert live.run_online(FakeArm(), opts(), tmp_path / "c").reference_error is None

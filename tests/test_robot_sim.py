@@ -250,3 +250,45 @@ def test_a_tracker_frozen_from_time_zero_is_frozen_for_a_read_before_the_first_t
         assert b.tracker_t == a.tracker_t and np.array_equal(b.position, a.position)
     finally:
         robot.close()
+
+
+def test_robot_sim_loads_a_urdf_at_a_body_and_offset_and_resets_per_client(tmp_path):
+    """robot-sim's config takes a sweep's robot keys (a URDF, its tool body and an offset: the pose is MuJoCo's
+    point there), refuses half of them naming the keys, and with reset_on_connect each client finds q0."""
+    from test_robot_files import URDF, _body_point_jacobian
+
+    from selfid_jax.commands import robot_sim
+    from selfid_jax.runner.errors import ConfigError
+
+    (tmp_path / "arm3.urdf").write_text(URDF)
+    cfg_file = tmp_path / "sim.yaml"
+    cfg_file.write_text("mjcf: arm3.urdf\nbody: tool\noffset: [0, 0, 0.03]\nactuators: joints\nq0: [0.3, -0.4, 0.8]\n"
+                        "reset_on_connect: true\nrealism: {period: 0.005}\nport: 0\n")
+    cfg = robot_sim.load(cfg_file)
+    robot = robot_sim.build(cfg, start=True)
+    spec = mujoco.MjSpec.from_file(str(tmp_path / "arm3.urdf"))
+    spec.compiler.fusestatic = False
+    point, _ = _body_point_jacobian(spec.compile(), np.array([0.3, -0.4, 0.8]), "tool", (0, 0, 0.03))
+    server = RobotServer(robot, "127.0.0.1", 0, info=robot.info(), position=robot.position, on_connect=robot.reset)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        first = RemoteRobot("127.0.0.1", server.port, timeout_s=5)
+        np.testing.assert_allclose(first.read().position, point, atol=1e-9)
+        first.move(np.array([0.32, -0.4, 0.8]))
+        time.sleep(0.05)
+        assert abs(first.read().q[0] - 0.32) < 1e-9
+        first.close()
+        second = RemoteRobot("127.0.0.1", server.port, timeout_s=5)  # a new client: back at q0
+        time.sleep(0.02)
+        np.testing.assert_allclose(second.read().q, [0.3, -0.4, 0.8], atol=1e-12)
+        second.close()
+    finally:
+        server.shutdown()
+    for body, msg in (("site: tip\nbody: tool\n", "'site: NAME', or 'body: NAME'"),
+                      ("offset: [0, 0, 0.1]\n", "needs the point the tracker follows"),
+                      ("system: ur5e\nbody: tool\n", "are for an 'mjcf' file")):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(("mjcf: arm3.urdf\n" if not body.startswith("system") else "") + body)
+        with pytest.raises(ConfigError, match=msg):
+            robot_sim.load(bad)

@@ -1,4 +1,9 @@
-"""Demo figure: per run, estimated vs true inverse Jacobian, the traced stars and the convergence, from saved results.
+"""Demo figure: per run, the estimate against the truth, the traced stars and the convergence, from saved results.
+
+An arm with more actuators than task axes (the UR5e's 6 on x, y, z) has many
+right inverses of ``J``; the estimate need not be ``J^+``, only ``J Ĵ = I``,
+so its panels show ``J Ĵ`` and ``J Ĵ - I``; a square system's show the
+estimated and the true ``J^+``.
 
 :func:`plot` is the ``demo`` experiment's ``plot`` (:mod:`selfid_jax.experiments.demo`).
 """
@@ -12,7 +17,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from selfid_jax.runner.figures import save_figure
+from selfid_jax.runner.figures import matrix_panel, right_inverse_panels, save_figure
 
 __all__ = ["convergence_thresholds", "plot"]
 
@@ -45,16 +50,18 @@ def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
     n_act, m = r["n_act"], r["task_dim"]
     est0 = np.asarray(g["estimate"].iloc[0]).reshape(n_act, m)
     true0 = np.asarray(g["truth"].iloc[0]).reshape(n_act, m)
-    vmax = float(np.abs(true0).max())
-    for ax, mat, title in ((axes[0], est0, "estimated"), (axes[1], true0, "true")):
-        im = ax.imshow(mat, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
-        ax.set_title(f"{name}: {title} $J^+$, config 0", fontsize=10)
-        ax.set_xticks(range(m), ["x", "y", "z", "rx", "ry", "rz"][:m])
-        ax.set_yticks(range(n_act), [f"q{i + 1}" for i in range(n_act)])
-        for (i, j), v in np.ndenumerate(mat):  # white on the dark ends of the colour map
-            ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7,
-                    color="w" if abs(v) > 0.6 * vmax else "k")
-    fig.colorbar(im, ax=list(axes[:2]), shrink=0.8, label="actuator unit per task unit")
+    axis_names = ["x", "y", "z", "rx", "ry", "rz"][:m]
+    if n_act > m:  # redundant: right inverses differ in the null space, so compare J Ĵ with the identity
+        J = np.linalg.pinv(true0)  # (m, n): the truth is J's pseudo-inverse
+        im = right_inverse_panels(axes[:2], J, est0, axis_names, f"{name}, config 0: ")
+        label = "task unit per task unit"
+    else:
+        joints = [f"q{i + 1}" for i in range(n_act)]
+        vmax = float(np.abs(true0).max())
+        im = matrix_panel(axes[0], est0, f"{name}: estimated $J^+$, config 0", axis_names, joints, vmax)
+        matrix_panel(axes[1], true0, f"{name}: true $J^+$, config 0", axis_names, joints, vmax)
+        label = "actuator unit per task unit"
+    fig.colorbar(im, ax=list(axes[:2]), shrink=0.8, label=label)
     ax = axes[2]
     for b in range(len(g)):
         p_true = np.asarray(g["positions_true"].iloc[b]).reshape(-1, 3)
@@ -65,7 +72,7 @@ def _plot_run(fig, axes, g: pd.DataFrame, name: str, r: dict) -> None:
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
-    ax.set_title(f"{name}: star traced by the POM", fontsize=10)
+    ax.set_title(f"{name}: star traced by the point of manipulation", fontsize=10)
     ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
     ax = axes[3]
     s = r["self_id"]

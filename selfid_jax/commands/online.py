@@ -36,7 +36,7 @@ self-ID sample and following move goes to stdout (in place on a terminal;
 none with ``--quiet``).
 
 Exit codes: 0 converged (or path completed); 1 a stop of the session's own
-(max_samples, max_steps, stale, box, limits, divergence: the summary says
+(max_samples, max_steps, stale, box, limits, divergence, moved: the summary says
 which); 2 bad input (config, run directory, a log that disagrees), before any
 motion; 3 the robot or its driver failed (connection, robot_error, and
 driver_error for any exception a driver raises that is not a RobotError);
@@ -130,7 +130,11 @@ class SelfIDSection(BaseModel):
     eps: float = Field(_SELFID["eps"], ge=0, description="absolute Sec. IV-D threshold")
     eps_rel: float = Field(_SELFID["eps_rel"], ge=0, description="relative Sec. IV-D threshold")
     max_samples: int = Field(_SELFID["max_samples"], ge=1, le=10**7, description="most random moves")
+    min_samples: int | None = Field(_SELFID["min_samples"], ge=0, le=10**7, description="accepted samples before "
+                                    "Sec. IV-D may declare convergence (null: 5 per task axis)")
     seed: int = Field(_SELFID["seed"], ge=0, le=2**32 - 1)
+    wander: float | None = Field(_SELFID["wander"], ge=0.5, description="self-ID keeps each actuator within wander "
+                                 "m_a of where it started (multiples of m_a; null: an unbounded random walk)")
     settle_s: float = Field(_SELFID["settle_s"], ge=0, description="s after each move before reading")
     poll_s: float = Field(_SELFID["poll_s"], gt=0, description="s between reads while waiting for a fresh pose")
     method: Literal["closed_form", "optax"] = _SELFID["method"]
@@ -233,6 +237,7 @@ def options(cfg: OnlineConfig, config_dir: Path | None = None, estimate: str | P
             and (config_dir / path.file).is_file():
         path = path._replace(file=str(config_dir / path.file))
     return OnlineOptions(task=s.task, m_a=s.m_a, eps=s.eps, eps_rel=s.eps_rel, max_samples=s.max_samples, seed=s.seed,
+                         wander=s.wander, min_samples=s.min_samples,
                          settle_s=s.settle_s, poll_s=s.poll_s, method=s.method, v_tol=s.v_tol, lower=f.limits_lower,
                          upper=f.limits_upper, max_step=f.max_step, box_low=f.box_low, box_high=f.box_high,
                          stale_s=f.stale_s, diverge_dist=f.diverge_dist, seen_min=f.seen_min,
@@ -384,6 +389,8 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
         "follow_steps": result.follow_steps,
         "follow_rejected": result.follow_rejected,
         "heldout_error": None if result.quality is None else result.quality.heldout_error,
+        # ||J Ĵ - I||_F against the driver's model Jacobian where self-ID started (a driver with jacobian())
+        "reference_error": result.reference_error,
         "actuator_effect": None if result.quality is None else result.quality.effect,
         "waypoints": result.waypoints,
         "waypoints_total": result.waypoints_total,
@@ -498,7 +505,7 @@ def run(args: argparse.Namespace) -> int:
 
 def exit_code(status) -> int:
     """The exit code of a session that ended with ``status`` (a :class:`selfid_jax.robot.session.Stop`): 0 converged
-    or path completed; 1 a stop of the session's own (max_samples, max_steps, stale, box, limits, divergence);
+    or path completed; 1 a stop of the session's own (max_samples, max_steps, stale, box, limits, divergence, moved);
     3 the robot or its driver failed (connection, robot_error, driver_error); 4 the runner failed (error); 130
     interrupted. Bad input (config, run directory, a log that disagrees) exits 2 before any motion."""
     from selfid_jax.robot.session import Stop

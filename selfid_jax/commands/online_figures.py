@@ -7,6 +7,10 @@
   tracked point's positions while following against the target waypoints, in
   the plane of the path's two widest position axes, and the path distance
   after each following move [m] with its mean and max.
+* ``figures/estimate.png`` / ``.pdf`` (when the driver gave its model's
+  Jacobian ``J`` where self-ID started, a ``reference`` record, and the
+  session converged): ``J Ĵ`` and ``J Ĵ - I`` with its Frobenius norm
+  (:func:`selfid_jax.runner.figures.right_inverse_panels`).
 
 Everything comes from ``RUN/session.jsonl`` (:mod:`selfid_jax.robot.journal`):
 the header (``eps``, ``eps_rel``, the axes), the accepted ``sample`` records
@@ -20,10 +24,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CONVERGENCE", "PATH", "draw_path", "redraw", "tracking", "write_figures"]
+__all__ = ["CONVERGENCE", "ESTIMATE", "PATH", "draw_estimate", "draw_path", "redraw", "tracking", "write_figures"]
 
 CONVERGENCE = "convergence"
 PATH = "path"
+ESTIMATE = "estimate"
 LOG_FILE = "session.jsonl"  # selfid_jax.robot.live.LOG_FILE, without importing JAX to recognise a run directory
 
 
@@ -103,6 +108,27 @@ def draw_path(records: list[dict[str, Any]], axes, title: str):
     return fig
 
 
+def draw_estimate(records: list[dict[str, Any]], axes, title: str):
+    """The converged estimate against the driver's reference Jacobian (``J Ĵ``, ``J Ĵ - I``); None without both."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    from selfid_jax.runner.figures import right_inverse_panels
+
+    ref = next((r for r in records if r["e"] == "reference"), None)
+    conv = next((r for r in records if r["e"] == "converged"), None)
+    if ref is None or conv is None:
+        return None
+    J = np.array(ref["jacobian"], np.float64)[list(axes)]
+    est = np.array(conv["estimate"], np.float64)
+    fig = Figure(figsize=(8.5, 3.8), layout="constrained")
+    panels = fig.subplots(1, 2)
+    im = right_inverse_panels(panels, J, est, _axis_names(axes), "")
+    fig.colorbar(im, ax=list(panels), shrink=0.8, label="task unit per task unit")
+    fig.suptitle(title, fontsize=10)
+    return fig
+
+
 def write_figures(run_dir: str | Path) -> list[Path]:
     """Draw the run's figures from ``RUN/session.jsonl`` into ``RUN/figures``; returns the files written."""
     import numpy as np
@@ -129,6 +155,10 @@ def write_figures(run_dir: str | Path) -> list[Path]:
     fig = draw_path(records, axes, f"following with the estimate ({run_dir.name}): {what}")
     if fig is not None:
         paths += save_figure(fig, out, PATH)
+    fig = draw_estimate(records, axes, f"the estimate against the driver's model Jacobian J where self-ID started "
+                                       f"({run_dir.name}): {what}")
+    if fig is not None:
+        paths += save_figure(fig, out, ESTIMATE)
     return paths
 
 

@@ -6,9 +6,11 @@ CONFIG (YAML, strict: unknown keys, wrong types and out-of-range values are
 refused with the dotted key, before the port is bound)::
 
     system: ur5e                    # a built-in system (selfid-jax list) ...
-    # mjcf: robots/arm.xml          # ... or a user's MJCF (relative to the config) with its site
-    # site: tip
+    # mjcf: robots/arm.xml          # ... or a user's MJCF or URDF (relative to the config) with its site
+    # site: tip                     # ... or body: tool, offset: [0, 0, 0.05] (m, in the body's frame)
+    # actuators: joints             # a URDF has no actuators: drive every hinge and slide joint
     q0: [...]                       # start position (default: the system's home)
+    reset_on_connect: false         # true: each new client finds the robot at rest at q0
     max_step: 0.05                  # largest accepted step per move (default: the system's dq_max)
     realism: {period: 0.01, latency: 2, noise_pos: 1.0e-4, noise_rot: 0.0, dropout: 0.01,
               servo_tau: 0.03, deadband: 0.0}
@@ -24,13 +26,16 @@ client stalling inside one is dropped) and checks every move (a list of numbers 
 within the limits and ``max_step`` of the actuators' position) before the virtual robot sees it.
 Once listening it prints ``robot-sim: serving SYSTEM on HOST:PORT`` (and
 writes the port to ``--port-file`` atomically), and serves until SIGTERM or
-Ctrl-C, which stop the clock where the actuators are.
+Ctrl-C, which stop the clock where the actuators are. The robot keeps its
+pose between clients, as a real arm does; with ``reset_on_connect`` each new
+client finds it at rest at ``q0``, as a freshly started simulator.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
@@ -84,8 +89,16 @@ class RobotSimConfig(BaseModel):
     model_config = STRICT
 
     system: str | None = Field(None, description="built-in system name")
-    mjcf: str | None = Field(None, description="MJCF file, relative to the config file")
-    site: str | None = Field(None, min_length=1, description="the MJCF's POM site")
+    mjcf: str | None = Field(None, description="MJCF or URDF (.urdf) file, relative to the config file")
+    site: str | None = Field(None, min_length=1, description="name of the POM site (or give body and offset)")
+    body: str | None = Field(None, min_length=1, description="name of the POM's body, when the model has no site")
+    offset: list[float] | None = Field(None, min_length=3, max_length=3,
+                                       description="POM position in the body's frame [m] (with body; default 0 0 0)")
+    actuators: list[str] | Literal["joints"] | None = Field(
+        None, min_length=1, description="actuator names (default: all), or 'joints': every hinge and slide joint "
+        "(a URDF has no actuators)")
+    reset_on_connect: bool = Field(False, description="each new client finds the robot at rest at q0, as from a "
+                                   "fresh simulator (default: it keeps its pose between sessions, as a real arm)")
     q0: list[float] | None = Field(None, min_length=1, description="start position [rad or m]")
     max_step: float | None = Field(None, gt=0, description="largest accepted step per move [rad or m]")
     realism: SimRealism = SimRealism()
@@ -97,9 +110,15 @@ class RobotSimConfig(BaseModel):
     @model_validator(mode="after")
     def _one_system(self):
         if (self.system is None) == (self.mjcf is None):
-            raise ValueError("give 'system: NAME' (a built-in) or 'mjcf: FILE' with 'site: NAME', one of them")
-        if self.mjcf is not None and self.site is None:
-            raise ValueError("'mjcf' needs 'site' (the point the tracker follows)")
+            raise ValueError("give 'system: NAME' (a built-in) or 'mjcf: FILE' with 'site: NAME' (or 'body: NAME' "
+                             "and 'offset'), one of them")
+        if self.mjcf is None and (self.site or self.body or self.offset or self.actuators) is not None:
+            raise ValueError("'site', 'body', 'offset' and 'actuators' are for an 'mjcf' file, not a built-in system")
+        if self.mjcf is not None and (self.site is None) == (self.body is None):
+            raise ValueError("'mjcf' needs the point the tracker follows: 'site: NAME', or 'body: NAME' with "
+                             "'offset: [x, y, z]' (m, in the body's frame), one of them")
+        if self.offset is not None and self.body is None:
+            raise ValueError("'offset' is a position in the frame of 'body'; give 'body'")
         return self
 
 
@@ -137,7 +156,8 @@ def build(cfg: RobotSimConfig, *, start: bool = True):
                                                                           f.dropout_burst.duration_s),
         freeze_tracker_at_s=f.freeze_tracker_at_s)
     try:
-        system = virtual.build_system(cfg.system, mjcf=cfg.mjcf, site=cfg.site)
+        system = virtual.build_system(cfg.system, mjcf=cfg.mjcf, site=cfg.site, body=cfg.body, offset=cfg.offset,
+                                          actuators=cfg.actuators)
         return virtual.VirtualRobot(system, realism=Realism(**cfg.realism.model_dump()), q0=cfg.q0, faults=faults,
                                     seed=cfg.seed, max_step=cfg.max_step, start=start)
     except ValueError as err:
@@ -158,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
     signals.phase("build")
     robot = build(cfg, start=False)
     try:
-        server = RobotServer(robot, cfg.host, port, info=robot.info(), position=robot.position)
+        server = RobotServer(robot, cfg.host, port, info=robot.info(), position=robot.position,
+                             on_connect=robot.reset if cfg.reset_on_connect else None)
     except OSError as err:
         robot.close()
         raise ConfigError(f"cannot listen on {cfg.host}:{port}: {err}") from None

@@ -362,7 +362,7 @@ def _both_within(deltas: jax.Array, norms: jax.Array, fresh: jax.Array, eps, eps
 
 
 def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLike = 0.0, *,
-           delta: ArrayLike | None = None) -> EstimatorState:
+           delta: ArrayLike | None = None, min_count: ArrayLike = 0) -> EstimatorState:
     """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
 
     Stores ``delta_t = ||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1
@@ -378,6 +378,8 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
     ``delta`` (optional, ``()``): ``||J - state.estimate||_F`` where the
     caller has it already (for a rank-one update ``e k^T`` it is
     ``||e|| ||k||``), which saves a pass over ``J``; default: computed here.
+    ``min_count`` (``()`` int, may be traced): the test counts only once at
+    least this many samples were accepted (0: from the start, the paper's).
     """
     n, m, _ = sizes(state)
     check_array("J", J, (n, m))
@@ -392,7 +394,7 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
     deltas = jnp.stack([state.last_deltas[1], delta])
     norms = jnp.stack([state.last_norms[1], jnp.sqrt(small_sum(J**2))])
     fresh = jnp.stack([state.last_fresh[1], state.count > state.recorded_count])
-    first = _both_within(deltas, norms, fresh, eps, eps_rel) & (state.converged_at < 0)
+    first = _both_within(deltas, norms, fresh, eps, eps_rel) & (state.converged_at < 0) & (state.count >= min_count)
     return state._replace(
         estimate=J,
         last_deltas=deltas,

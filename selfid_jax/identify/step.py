@@ -33,7 +33,8 @@ class StepInfo(NamedTuple):
 
 
 def sample_step(state: estimator.EstimatorState, dtheta: ArrayLike, V: ArrayLike, eps: ArrayLike,
-                eps_rel: ArrayLike, *, method: str, options: tuple = ()) -> tuple[estimator.EstimatorState, StepInfo]:
+                eps_rel: ArrayLike, *, method: str, options: tuple = (), min_count: ArrayLike = 0
+                ) -> tuple[estimator.EstimatorState, StepInfo]:
     """One sample ``(dtheta (n,) actuator units, V (m,) task units)``: update, guess, refine, record.
 
     Update (Eq. 6-12), initial guess (Eq. 13), refinement (Eq. 14), record for the convergence test (Sec. IV-D).
@@ -49,10 +50,11 @@ def sample_step(state: estimator.EstimatorState, dtheta: ArrayLike, V: ArrayLike
     (``rcond``, ``ridge``) when ``sample_step`` is not jitted with ``options``
     static. A rejected sample (non-finite, all-zero) leaves the statistics
     as they were and is still recorded, as a record with no new data
-    (:func:`selfid_jax.identify.estimator.record`).
+    (:func:`selfid_jax.identify.estimator.record`). ``min_count`` (may be
+    traced): convergence counts only from that many accepted samples on.
     """
     new = estimator.update(state, dtheta, V)
     J = refine(new, estimator.initial_guess(new), method=method, **dict(options))
-    new = estimator.record(new, J, eps, eps_rel)
+    new = estimator.record(new, J, eps, eps_rel, min_count=min_count)
     return new, StepInfo(estimate=new.estimate, delta=new.last_deltas[1],
                          threshold=new.last_norms[1] * eps_rel + eps, accepted=new.count > state.count)

@@ -84,7 +84,7 @@ from selfid_jax.identify import estimator
 from selfid_jax.math.checks import check_magnitude, float_dtype
 from selfid_jax.robot.journal import Journal, read_journal
 from selfid_jax.robot.log import parse_task
-from selfid_jax.robot.options import AXIS_NAMES, ONLINE_METHODS, FollowOptions, OnlineOptions
+from selfid_jax.robot.options import AXIS_NAMES, MIN_SAMPLES_PER_AXIS, ONLINE_METHODS, FollowOptions, OnlineOptions
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
 from selfid_jax.robot.quality import Quality
 from selfid_jax.robot.safety import envelope
@@ -122,23 +122,44 @@ class OnlineResult(NamedTuple):
     selfid_s: float = 0.0  # s of wall time in self-ID (moves, reads, estimator; every session of the log)
     follow_s: float = 0.0  # s of wall time following the path (every session of the log)
     estimate_source: str | None = None  # where a given estimate came from (OnlineOptions.estimate); None: self-ID
+    reference: np.ndarray | None = None  # (6, n) the driver's model Jacobian where self-ID started (Robot.jacobian)
+
+    @property
+    def reference_error(self) -> float | None:
+        """``||J Ĵ - I||_F``: the estimate against the driver's model Jacobian ``J`` (its task rows) where self-ID
+        started; None without a reference."""
+        if self.reference is None:
+            return None
+        J = self.reference[list(self.axes)]
+        return float(np.linalg.norm(J @ self.estimate - np.eye(J.shape[0])))
 
     @property
     def converged(self) -> bool:
         return self.converged_at > 0
 
 
+def min_samples(opts: OnlineOptions, m: int) -> int:
+    """The least accepted samples before Sec. IV-D counts: ``opts.min_samples``, or
+    :data:`~selfid_jax.robot.options.MIN_SAMPLES_PER_AXIS` per task axis."""
+    return MIN_SAMPLES_PER_AXIS * m if opts.min_samples is None else int(opts.min_samples)
+
+
 def _header(n: int, m: int, axes, m_a: np.ndarray, opts: OnlineOptions, dtype) -> dict[str, Any]:
     return {"e": "header", "version": LOG_VERSION, "n": n, "m": m, "axes": list(axes), "m_a": m_a.tolist(),
             "eps": float(opts.eps), "eps_rel": float(opts.eps_rel), "seed": int(opts.seed), "method": opts.method,
-            "v_tol": float(opts.v_tol), "dtype": np.dtype(dtype).name}
+            "v_tol": float(opts.v_tol), "dtype": np.dtype(dtype).name,
+            "wander": None if opts.wander is None else float(opts.wander), "min_samples": min_samples(opts, m)}
+
+
+OLDER_LOGS = {"wander": None, "min_samples": 0}
+"""What a log written before these header keys did: an unbounded walk, the paper's Sec. IV-D from the start."""
 
 
 def _check_header(path: Path, logged: dict[str, Any], expected: dict[str, Any]) -> None:
     for key, want in expected.items():
         if key == "e":
             continue
-        got = logged.get(key, "(missing)")
+        got = logged.get(key, OLDER_LOGS.get(key, "(missing)"))
         if got != want:
             raise ResumeError(f"{path}: cannot resume: the log's {key} is {got!r}, this session's is {want!r}; "
                               "use the log's value or start a new run directory")
@@ -238,8 +259,14 @@ def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.nda
         v = getattr(opts, name)
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"{name}: must be a finite number > 0, got {v!r}")
+    if opts.wander is not None and not (isinstance(opts.wander, (int, float)) and math.isfinite(opts.wander)
+                                        and opts.wander >= 0.5):
+        raise ValueError(f"wander: must be a number >= 0.5 (multiples of m_a) or None, got {opts.wander!r}")
     if opts.follow_min_ratio > 1:
         raise ValueError(f"follow_min_ratio: must be in (0, 1], got {opts.follow_min_ratio!r}")
+    v = opts.min_samples
+    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 0):
+        raise ValueError(f"min_samples: expected an integer >= 0 or None, got {v!r}")
     v = opts.follow_min_moves
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
         raise ValueError(f"follow_min_moves: expected an integer >= 1, got {v!r}")
@@ -355,10 +382,12 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             if given is not None:
                 journal.append({"e": "estimate", "source": given[1], "estimate": given[0]})
         session = Session(robot, options, env, axes, m_a, journal, stop_requested, sleep, on_event)
+        session.min_count = min_samples(options, m)
         session.state = init_state(n, m, method=options.method, v_tol=options.v_tol,
                                    max_samples=options.max_samples, dtype=dtype)
         # compile the step now, before any motion, so the first sample does not stall the loop (result discarded)
         jax.block_until_ready(sample_step(session.state, np.zeros(n), np.zeros(m), options.eps, options.eps_rel,
+                                          min_count=session.min_count,
                                           method=options.method))
         if contents is not None:
             replayed = session.replay(contents)
@@ -428,4 +457,4 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         step_ms=np.asarray(session.step_ms, np.float64), quality=session.quality, axes=axes, log=log_path,
         track=np.asarray(track, np.float64), selfid_s=earlier["selfid_s"] + wall["selfid_s"],
         follow_s=earlier["follow_s"] + wall["follow_s"],
-        estimate_source=None if session.given is None else session.given[1])
+        estimate_source=None if session.given is None else session.given[1], reference=session.reference)

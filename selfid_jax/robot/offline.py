@@ -78,13 +78,14 @@ class FitResult(NamedTuple):
 
 
 @functools.partial(jax.jit, static_argnames=("method", "options", "capacity"))
-def _scan(dtheta, V, eps, eps_rel, v_tol, *, method: str, options: tuple, capacity: int) -> FitTrace:
+def _scan(dtheta, V, eps, eps_rel, v_tol, min_count, *, method: str, options: tuple, capacity: int) -> FitTrace:
     n, m = dtheta.shape[-1], V.shape[-1]
     dtype = dtheta.dtype
     state0 = estimator.init(n, m, capacity=capacity, v_tol=v_tol, dtype=dtype)
 
     def body(state, sample):
-        return sample_step(state, sample[0], sample[1], eps, eps_rel, method=method, options=options)
+        return sample_step(state, sample[0], sample[1], eps, eps_rel, method=method, options=options,
+                           min_count=min_count)
 
     state, info = jax.lax.scan(body, state0, (dtheta, V))
     return FitTrace(state=state, estimate=state.estimate, initial_guess=estimator.initial_guess(state),
@@ -94,13 +95,15 @@ def _scan(dtheta, V, eps, eps_rel, v_tol, *, method: str, options: tuple, capaci
 
 def fit_samples(dtheta: ArrayLike, V: ArrayLike, eps: ArrayLike = 0.0, eps_rel: ArrayLike = 0.05, *,
                 method: str = "closed_form", refine_options: Mapping[str, Any] | None = None, v_tol: ArrayLike = 1e-9,
-                dtype=None) -> FitTrace:
+                dtype=None, min_samples: ArrayLike = 0) -> FitTrace:
     """Run the estimator over sample pairs ``dtheta (T, n)``, ``V (T, m)``: a :class:`FitTrace`.
 
     ``eps`` (inverse-Jacobian units) and ``eps_rel`` (relative to ``||J_t||_F``)
     are the Sec. IV-D thresholds of :func:`selfid_jax.identify.estimator.record`:
     converged at the first sample ``t`` where ``||J_s - J_{s-1}||_F <= eps +
-    eps_rel ||J_s||_F`` for ``s = t - 1, t``, both after an accepted sample.
+    eps_rel ||J_s||_F`` for ``s = t - 1, t``, both after an accepted sample,
+    and at least ``min_samples`` samples accepted (0: the paper's test; the
+    live runner's default is 5 per task axis, ``selfid_jax.robot.options``).
     ``method`` names the refinement (:data:`selfid_jax.identify.refine.METHODS`):
     ``"closed_form"`` and ``"optax"`` run in the scan; ``"slsqp"`` (eager
     scipy, the paper's) refines only the final estimate, on every sample, while
@@ -125,6 +128,7 @@ def fit_samples(dtheta: ArrayLike, V: ArrayLike, eps: ArrayLike = 0.0, eps_rel: 
     scan_options = {} if method == "slsqp" else options
     capacity = T if needs_samples(method, options.get("loss", "l2")) else 0
     trace = _scan(dtheta, V, jnp.asarray(eps, dtype), jnp.asarray(eps_rel, dtype), jnp.asarray(v_tol, dtype),
+                  jnp.asarray(min_samples, jnp.int32),
                   method=scan_method, options=tuple(sorted(scan_options.items())), capacity=capacity)
     if method == "slsqp":
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(trace)):

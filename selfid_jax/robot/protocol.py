@@ -78,6 +78,14 @@ class Robot(Protocol):
         """Stop the robot where it is and release the connection (idempotent)."""
         ...
 
+    # Optional: a driver with a kinematic model of its arm may also define
+    #     jacobian(q (n,)) -> (6, n)
+    # the model's Jacobian of the tracked point at joints q: rows x, y, z [m per actuator unit] and rx, ry, rz
+    # [rad per actuator unit] (the angular velocity), in the tracker's frame, or None where it has no model of
+    # the tracked point (an external tracker). The runner calls it once, where
+    # self-ID starts, logs it and reports the estimate against it (summary.json reference_error, the estimate
+    # figure). It never moves the robot.
+
 
 def check_limits(limits: RobotLimits, n: int | None = None) -> RobotLimits:
     """``limits`` as float64 ``(n,)`` arrays, with ``lower < upper`` and ``max_step > 0`` everywhere, finite.

@@ -77,7 +77,7 @@ def envelope(limits: RobotLimits, *, lower=None, upper=None, max_step=None, box_
 
 
 def actuation_target(seed: int, k: int, q: np.ndarray, m_a: np.ndarray, lower: np.ndarray,
-                     upper: np.ndarray) -> np.ndarray:
+                     upper: np.ndarray, centre: np.ndarray | None = None, wander: float | None = None) -> np.ndarray:
     """Target ``(n,)`` of random self-ID move ``k``: ``q + dtheta``, ``dtheta_i ~ uniform(-m_a_i, m_a_i)``, in limits.
 
     ``dtheta`` comes from ``numpy.random.default_rng([seed, k])``, so draw ``k``
@@ -90,9 +90,17 @@ def actuation_target(seed: int, k: int, q: np.ndarray, m_a: np.ndarray, lower: n
     limits (a range narrower than ``2 m_a_i`` around ``q_i``) is the target
     clipped, which shortens that move. Clipping alone would pile the
     distribution up at the limit with short moves.
+
+    With ``centre (n,)`` and ``wander``, a draw that would end farther than
+    ``wander m_a_i`` from ``centre_i``, and farther than its reflection would,
+    is reflected the same way (before the limits): the walk stays within
+    ``wander m_a`` of the centre, or returns towards it.
     """
     rng = np.random.default_rng([int(seed), int(k)])
     d = rng.uniform(-1.0, 1.0, q.shape[0]) * m_a
+    if centre is not None and wander is not None:
+        far, back = np.abs(q + d - centre), np.abs(q - d - centre)
+        d = np.where((far > wander * m_a) & (back < far), -d, d)
     out = (q + d > upper) | (q + d < lower)
     d = np.where(out, -d, d)
     return np.clip(q + d, lower, upper)

@@ -61,6 +61,7 @@ class Stop(enum.StrEnum):
     BOX = "box"  # the tracked position left the task-space box (or the path would)
     LIMITS = "limits"  # a measured actuator position outside the limits
     DIVERGENCE = "divergence"  # while following, farther than diverge_dist from the path
+    MOVED = "moved"  # resumed with the robot away from where the log left it; no move was made
     TRACKER_FROZEN = "tracker_frozen"  # the actuators moved and the tracked pose did not (Sight)
     CLOCK = "clock"  # a tracker stamp ahead of the driver's clock: a future stamp or another clock
     ACTUATOR = "actuator"  # an actuator does not do what it is told (it moved much less than commanded)
@@ -124,6 +125,9 @@ class Session:
         self.follow_rejected = 0  # readings after a following move that were not fresh (no command from them)
         self.anchor: Observation | None = None
         self.offsets: np.ndarray | None = None
+        self.min_count = 0  # accepted samples before Sec. IV-D counts (live.min_samples)
+        self.centre: np.ndarray | None = None  # (n,) actuators where self-ID started (the wander's centre)
+        self.reference: np.ndarray | None = None  # (6, n) the driver's model Jacobian at the centre, if it has one
         self.waypoint = 0
         self.step_ms: list[float] = []
         self.clock_offset = math.inf  # min over readings of (runner's monotonic clock - driver's clock) [s]
@@ -224,7 +228,10 @@ class Session:
         c = self.commanded = Commanded(w * c.commanded + np.abs(d), w * c.along + dq * np.sign(d), c.moves + 1)
         if c.moves >= opts.follow_min_moves:
             ratio = c.along / np.maximum(c.commanded, 1e-300)
-            bad = np.flatnonzero((c.commanded > 0) & (ratio < opts.follow_min_ratio))
+            # a shortfall under half a self-ID move is a deadband or a stick-slip band swallowing small commands of
+            # either sign (franky-sim's FR3 joint 7 holds +-1.8 mrad), not a stuck actuator
+            short = c.commanded - c.along > 0.5 * self.m_a
+            bad = np.flatnonzero((c.commanded > 0) & (ratio < opts.follow_min_ratio) & short)
             if bad.size:
                 i = bad[0]
                 raise Stopped(Stop.ACTUATOR, f"actuator {i} moved {100 * ratio[i]:.0f}% of what it was commanded "
@@ -286,22 +293,54 @@ class Session:
         assert self.state is not None
         t0 = time.perf_counter()
         state, info, conv = host_step(self.state, dtheta, V, self.opts.eps, self.opts.eps_rel,
-                                      method=self.opts.method)
+                                      method=self.opts.method, min_count=self.min_count)
         self.step_ms.append(1e3 * (time.perf_counter() - t0))
         self.state = state
         self.samples += 1
         self.pairs.append((np.array(dtheta, np.float64), np.array(V, np.float64)))
         return info, conv
 
+    def reference_jacobian(self, q: np.ndarray) -> np.ndarray | None:
+        """The driver's model Jacobian ``(6, n)`` at ``q`` (rows x, y, z, rx, ry, rz; m and rad per actuator unit),
+        checked, or None where the driver has no model of the tracked point; DriverFault if it is neither."""
+        J = self._call("jacobian", q.copy())
+        if J is None:
+            return None
+        try:
+            J = np.array(J, np.float64)
+            ok = J.shape == (6, self.n) and bool(np.all(np.isfinite(J)))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise DriverFault("jacobian", ValueError(f"expected a finite (6, {self.n}) array, got {J!r}"))
+        return J
+
     # ---- Algorithm 1
 
     def selfid(self) -> None:
         opts = self.opts
         base = self.fresh("selfid")
+        if self.centre is None:
+            self.centre = base.q.copy()
+            self.journal.append({"e": "centre", "q": self.centre})
+            if callable(getattr(self.robot, "jacobian", None)):  # a driver with a model: the estimate's reference
+                self.reference = self.reference_jacobian(self.centre)
+                if self.reference is not None:
+                    self.journal.append({"e": "reference", "q": self.centre, "jacobian": self.reference})
+        elif opts.wander is not None:  # resumed: self-ID continues around where it started, not elsewhere
+            reach = (opts.wander + 1.0) * self.m_a
+            far = np.flatnonzero(np.abs(base.q - self.centre) > reach)
+            if far.size:
+                i = far[0]
+                raise Stopped(Stop.MOVED, f"actuator {i} is {base.q[i] - self.centre[i]:+.4g} from where self-ID "
+                              f"started ({self.centre[i]:.4g}; (wander + 1) m_a = {reach[i]:.4g}): the robot moved "
+                              "since the log's last session. No move was made: move it back, or start a new run "
+                              "directory")
         while True:
             if self.k >= opts.max_samples:
                 raise Stopped(Stop.MAX_SAMPLES, f"not converged after {self.k} random moves (max_samples)")
-            target = actuation_target(opts.seed, self.k, base.q, self.m_a, self.env.lower, self.env.upper)
+            target = actuation_target(opts.seed, self.k, base.q, self.m_a, self.env.lower, self.env.upper,
+                                      self.centre, opts.wander)
             self.moves += 1  # counted as issued: a command whose call raised may or may not have moved the robot
             self.move(target, base, "selfid", self.k)
             self.sleep(opts.settle_s)
@@ -342,6 +381,7 @@ class Session:
         if not np.all(np.isfinite(Jinv)):
             raise Stopped(Stop.DIVERGENCE, "the estimate is not finite; nothing to follow with")
         obs = self.fresh("follow")
+        resumed = self.anchor is not None
         if self.anchor is None:
             planned = path.offsets(self.axes)
             where = obs.position + path.positions(self.axes)  # the planned waypoints' positions (box check)
@@ -366,6 +406,11 @@ class Session:
             if moved:
                 self.report({"phase": "follow", "step": self.follow_steps, "waypoint": self.waypoint,
                              "waypoints": W, "distance": dist})
+            if resumed and not moved and dist > env.diverge_dist:
+                raise Stopped(Stop.MOVED, f"the tracked point is {dist:.4g} m from the log's path (diverge_dist "
+                              f"{env.diverge_dist:g}): the robot moved since the log's last session. No move was "
+                              "made: move it back, or follow a new path from here with this estimate in a new run "
+                              "directory (--estimate RUN/inverse_jacobian.npz)")
             moved = True
             if self.waypoint == W:
                 raise Stopped(Stop.COMPLETED, f"path followed: {W} waypoints in {self.follow_steps} moves")
@@ -400,7 +445,7 @@ class Session:
                 self.k = max(self.k, int(rec["k"]) + 1)
                 if rec["accepted"]:
                     self.state, _ = sample_step(self.state, floats(rec["dtheta"]), floats(rec["V"]), self.opts.eps,
-                                                self.opts.eps_rel, method=self.opts.method)
+                                                self.opts.eps_rel, method=self.opts.method, min_count=self.min_count)
                     self.samples += 1
                     self.pairs.append((floats(rec["dtheta"]), floats(rec["V"])))
                     replayed += 1
@@ -417,6 +462,10 @@ class Session:
                 self.anchor = Observation(0.0, q, floats(rec["p"]), floats(rec["quat"]), 0.0, True)
                 self.offsets = np.array([floats(r) for r in rec["offsets"]])
                 self.waypoint = 0
+            elif e == "centre":
+                self.centre = floats(rec["q"])
+            elif e == "reference":
+                self.reference = np.array([floats(r) for r in rec["jacobian"]])
             elif e == "waypoint":
                 self.waypoint = int(rec["reached"]) + 1
             elif e == "rejected":

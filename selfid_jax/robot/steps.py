@@ -51,8 +51,8 @@ def init_state(n: int, m: int, *, method: str = "closed_form", v_tol: float = 1e
     return estimator.init(n, m, capacity=capacity, v_tol=v_tol, dtype=float_dtype() if dtype is None else dtype)
 
 
-def sample_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form"
-                ) -> tuple[estimator.EstimatorState, StepInfo]:
+def sample_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form",
+                min_count: int = 0) -> tuple[estimator.EstimatorState, StepInfo]:
     """One accepted sample ``(dtheta (n,), V (m,))`` through :func:`selfid_jax.identify.step.sample_step`, jitted.
 
     ``eps`` and ``eps_rel`` are passed as arrays of the state's dtype, so one
@@ -63,17 +63,17 @@ def sample_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, met
     """
     dtype = state.estimate.dtype
     return _step(state, np.asarray(dtheta, dtype), np.asarray(V, dtype), np.asarray(eps, dtype),
-                 np.asarray(eps_rel, dtype), method=method, options=())
+                 np.asarray(eps_rel, dtype), method=method, options=(), min_count=np.int32(min_count))
 
 
-def host_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form"
-              ) -> tuple[estimator.EstimatorState, StepInfo, int]:
+def host_step(state: estimator.EstimatorState, dtheta, V, eps, eps_rel, *, method: str = "closed_form",
+              min_count: int = 0) -> tuple[estimator.EstimatorState, StepInfo, int]:
     """:func:`sample_step` and what the online loop reads back: ``(state, info as numpy, converged_at)``.
 
     One ``device_get`` of the info and ``converged_at`` together: the whole
     per-sample cost of the loop's estimator (``benchmarks/online_step.py``).
     """
-    state, info = sample_step(state, dtheta, V, eps, eps_rel, method=method)
+    state, info = sample_step(state, dtheta, V, eps, eps_rel, method=method, min_count=min_count)
     info, conv = jax.device_get((info, state.converged_at))
     return state, info, int(conv)
 

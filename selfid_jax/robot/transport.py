@@ -150,13 +150,15 @@ class RobotServer:
     """
 
     def __init__(self, robot: Any, host: str = "127.0.0.1", port: int = 0, *, info: dict | None = None,
-                 frame_timeout_s: float = FRAME_TIMEOUT_S, position: Callable[[], Any] | None = None):
+                 frame_timeout_s: float = FRAME_TIMEOUT_S, position: Callable[[], Any] | None = None,
+                 on_connect: Callable[[], Any] | None = None):
         if not frame_timeout_s > 0:
             raise ValueError(f"frame_timeout_s must be > 0, got {frame_timeout_s}")
         self.robot = robot
         self.info = dict(info or {})
         self.frame_timeout_s = float(frame_timeout_s)
         self._position = position if position is not None else (lambda: robot.read().q)
+        self._on_connect = on_connect
         self._limits: RobotLimits | None = None
         self._sock = socket.create_server((host, port))
         self._sock.settimeout(0.2)
@@ -185,6 +187,8 @@ class RobotServer:
             with conn:
                 try:
                     conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                    if self._on_connect is not None:
+                        self._on_connect()
                     self._session(conn)
                 except OSError:
                     pass  # the client went away: serve the next one

@@ -106,8 +106,11 @@ class TickStats(NamedTuple):
 
 
 def build_system(name: str | None = None, *, mjcf: str | None = None, site: str | None = None,
-                 task_dim: int = 3, dq_max: float = 0.1) -> System:
-    """A built-in system by name (:data:`selfid_jax.systems.REGISTRY`) or a user MJCF's site, built in float64.
+                 body: str | None = None, offset: Any = None, actuators: Any = None, task_dim: int = 3,
+                 dq_max: float = 0.1) -> System:
+    """A built-in system by name (:data:`selfid_jax.systems.REGISTRY`) or a user's MJCF or URDF (``.urdf``) with
+    its POM at a ``site``, or at ``offset (3,)`` [m] in ``body``'s frame, driven by its actuators or the named
+    ``actuators`` (``"joints"``: every hinge and slide joint); built in float64.
 
     Raises ValueError naming the unknown system or the MJCF problem.
     """
@@ -120,10 +123,14 @@ def build_system(name: str | None = None, *, mjcf: str | None = None, site: str 
             return REGISTRY[name].factory()
         from selfid_jax.systems import from_mjcf
 
-        if not site:
-            raise ValueError("an MJCF system needs the site to track")
+        if bool(site) == bool(body):
+            raise ValueError("an MJCF or URDF system needs the point to track: a site, or a body (and an offset)")
+        pom: dict[str, Any] = {} if body is None else {"body": body,
+                                                        "offset": (0.0, 0.0, 0.0) if offset is None else offset}
+        if actuators is not None:
+            pom["actuators"] = actuators
         # m_a is the runner's business; the System only requires a positive value
-        return from_mjcf(mjcf, site, task_dim=task_dim, m_a=dq_max, dq_max=dq_max)
+        return from_mjcf(mjcf, site, task_dim=task_dim, m_a=dq_max, dq_max=dq_max, **pom)
 
 
 def default_q0(system: System) -> np.ndarray:
@@ -221,6 +228,7 @@ class VirtualRobot:
         p, quat = self._pose(q, zero, zero)  # compiles here, before the clock starts
         if not (np.all(np.isfinite(p)) and np.all(np.isfinite(quat))):
             raise ValueError(f"q0: the system has no pose at {q.tolist()} (NaN)")
+        self._q0 = q.copy()  # (n,) the start position (reset)
         self._q = q.copy()  # (n,) actuator positions at tick self._k
         self._u = q.copy()  # (n,) commanded target
         self._k = 0  # latest tick simulated
@@ -281,6 +289,13 @@ class VirtualRobot:
                     self._frozen_q = hist[(k_now - self.latency) % n_lat].copy()
                     self._frozen_k = k_now - self.latency
             k = k_now
+
+    def reset(self) -> None:
+        """Put the actuators back at rest at the start position ``q0`` at once (a simulator's reset; the clock runs
+        on). The tracker, ``latency`` periods behind, sees the arm there from now on."""
+        with self._lock:
+            self._q, self._u = self._q0.copy(), self._q0.copy()
+            self._hist[:] = self._q0
 
     def stats(self) -> TickStats:
         """Tick timing since :meth:`start`: ticks, wake-ups, and lateness of a wake-up (p50, p99, max, s)."""

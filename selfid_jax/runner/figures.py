@@ -11,7 +11,7 @@ from selfid_jax.runner.files import atomic_write_bytes
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-__all__ = ["save_figure"]
+__all__ = ["matrix_panel", "right_inverse_panels", "save_figure"]
 
 
 def save_figure(fig: Figure, out_dir: str | Path, name: str, *, dpi: int = 150) -> list[Path]:
@@ -40,3 +40,33 @@ def save_figure(fig: Figure, out_dir: str | Path, name: str, *, dpi: int = 150) 
         if engine is not None:
             fig.set_layout_engine(engine)
     return paths
+
+
+def matrix_panel(ax, mat, title: str, cols: list[str], rows: list[str], vmax: float):
+    """Draw ``mat (r, c)`` as a heat map on ``ax`` with each value written in its cell; returns the image."""
+    import numpy as np
+
+    im = ax.imshow(mat, cmap="RdBu_r", vmin=-vmax, vmax=vmax)
+    ax.set_title(title, fontsize=9)
+    ax.set_xticks(range(len(cols)), cols)
+    ax.set_yticks(range(len(rows)), rows)
+    for (i, j), v in np.ndenumerate(mat):  # white on the dark ends of the colour map
+        ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7, color="w" if abs(v) > 0.6 * vmax else "k")
+    return im
+
+
+def right_inverse_panels(axes, J, estimate, names: list[str], prefix: str):
+    """``J Ĵ`` and ``J Ĵ - I`` on two axes: ``J (m, n)`` a Jacobian, ``estimate (n, m)`` an inverse of it.
+
+    Every right inverse of ``J`` gives ``J Ĵ = I``; with more actuators than
+    task axes they differ in ``J``'s null space, so the product, not ``Ĵ``
+    beside ``J^+``, says whether an estimate is right. Returns the image."""
+    import numpy as np
+
+    product = np.asarray(J) @ np.asarray(estimate)
+    m = product.shape[0]
+    im = matrix_panel(axes[0], product, rf"{prefix}$J\hat J$ ($I$ for any right inverse of $J$)", names, names, 1.0)
+    matrix_panel(axes[1], product - np.eye(m),
+                 rf"{prefix}$J\hat J - I$: $\|\cdot\|_F$ = {np.linalg.norm(product - np.eye(m)):.3f}", names, names,
+                 1.0)
+    return im
