@@ -291,7 +291,7 @@ SMALL = ["--set", "path.size=0.01"]  # a 1 cm star: about half the following mov
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("franka")
+@pytest.mark.xdist_group("realtime")  # one real-time simulator at a time (tests/test_robot_sim.py too)
 def test_online_through_libfranka_on_franky_sim(franka_sim_available, tmp_path, capsys):
     """3-D: converges, stops random motion, completes the star; ||J Ĵ - I||_F <= 0.08 against MuJoCo's Jacobian
     at the start pose (0.026 measured; the estimate averages the Jacobian over the poses self-ID visits, within

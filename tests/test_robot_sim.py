@@ -22,7 +22,9 @@ from selfid_jax.robot.journal import read_journal
 from selfid_jax.robot.protocol import RobotConnectionError, RobotError
 from selfid_jax.robot.transport import RemoteRobot, RobotServer
 
-pytestmark = pytest.mark.slow  # subprocesses with JAX and a real-time clock
+# subprocesses with JAX and a real-time clock: one worker runs them and the Franka simulator's test (a full core of
+# its own) one after the other, so that neither starves the other's clock into a stale stop
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("realtime")]
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "robot"
 UR5E_XML = Path(__file__).resolve().parents[1] / "selfid_jax" / "systems" / "assets" / "ur5e.xml"

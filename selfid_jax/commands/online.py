@@ -370,6 +370,7 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
     """``summary.json`` of a session: its stop, counts, convergence and the estimator step's latency."""
     import numpy as np
 
+    from selfid_jax.robot.quality import condition
     from selfid_jax.systems.validation import AXIS_NAMES
 
     ms = result.step_ms
@@ -392,6 +393,8 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
         # ||J Ĵ - I||_F against the driver's model Jacobian where self-ID started (a driver with jacobian())
         "reference_error": result.reference_error,
         "actuator_effect": None if result.quality is None else result.quality.effect,
+        # the estimate's condition number s_max / s_min (selfid_jax.robot.quality.condition), as selfid-jax fit reports
+        "condition": condition(result.estimate) if result.converged else None,
         "waypoints": result.waypoints,
         "waypoints_total": result.waypoints_total,
         "replayed": result.replayed,

@@ -150,6 +150,7 @@ def write_figures(run_dir: str | Path) -> list[Path]:
     out = run_dir / FIGURES_DIR
     paths = save_figure(draw_convergence(deltas, thresholds, eps=float(header["eps"]),
                                          eps_rel=float(header["eps_rel"]), converged_at=conv,
+                                         accepted=[bool(r.get("estimator_accepted", True)) for r in samples],
                                          title=f"online self-ID of the tracked point ({run_dir.name}): {what}"),
                         out, CONVERGENCE)
     fig = draw_path(records, axes, f"following with the estimate ({run_dir.name}): {what}")

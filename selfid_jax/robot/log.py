@@ -37,7 +37,8 @@ import numpy as np
 
 from selfid_jax.systems.validation import AXIS_NAMES, TASK_DIMS, check_task_axes, default_axes
 
-__all__ = ["LogError", "Rejection", "Samples", "load_log", "read_table", "samples_from_table",
+__all__ = ["LogError", "Rejection", "Samples", "load_log", "prepare_table", "read_table", "read_table_units",
+           "samples_from_table",
            "pairs_from_time_series", "parse_task", "DEFAULT_GAP_FACTOR"]
 
 #: ``max_gap="auto"``: pairs spanning more than this many median time steps are dropped.
@@ -115,6 +116,12 @@ def _where(source: str, i: int, column: str | None = None) -> str:
 
 def read_table(path: str | Path) -> dict[str, np.ndarray]:
     """Columns of a CSV, Parquet or NPZ file as ``name -> 1-D array`` (unconverted); :class:`LogError` if unreadable."""
+    return read_table_units(path)[0]
+
+
+def read_table_units(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """:func:`read_table` and a CSV's units row as ``column -> unit`` ({} without one; :mod:`selfid_jax.robot.tables`:
+    the delimiter and a decimal comma are detected)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in _FORMATS:
@@ -125,15 +132,19 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
         if suffix == ".npz":
             with np.load(path, allow_pickle=False) as z:
                 _refuse_duplicates(str(path), z.files, "arrays")  # a zip may hold two members of one name
-                return {k: z[k] for k in z.files}
+                return {k: z[k] for k in z.files}, {}
         import pandas as pd
 
         if suffix == ".csv":
-            # pandas renames a repeated header name (the second q_0 becomes q_0.1), so read the header as it is
-            header = pd.read_csv(path, header=None, nrows=1, dtype=str, keep_default_na=False,
-                                 skipinitialspace=True)
-            _refuse_duplicates(str(path), [str(v) for v in header.iloc[0]] if len(header) else [], "header columns")
-            df = pd.read_csv(path, skipinitialspace=True)
+            from selfid_jax.robot.tables import read_csv
+
+            # read raw (pandas would rename a repeated header name: the second q_0 becomes q_0.1)
+            with open(path, encoding="utf-8-sig", errors="replace") as f:
+                head = f.readline()
+            sep = max((",", ";", "\t"), key=head.count)
+            _refuse_duplicates(str(path), [v.strip() for v in head.rstrip("\r\n").split(sep)] if head else [],
+                               "header columns")
+            return read_csv(path)
         else:
             df = pd.read_parquet(path)
             _refuse_duplicates(str(path), [str(c) for c in df.columns], "columns")
@@ -142,7 +153,8 @@ def read_table(path: str | Path) -> dict[str, np.ndarray]:
     except Exception as err:  # noqa: BLE001 - pandas/pyarrow/numpy raise many types for a corrupt file
         detail = " ".join(str(err).split())[:200] or type(err).__name__
         raise LogError(f"{path}: cannot read as {suffix[1:]}: {detail}") from None
-    return {str(k): df[k].to_numpy() for k in df.columns}
+    return {str(k): df[k].to_numpy() for k in df.columns}, {}
+
 
 
 def _refuse_duplicates(source: str, names: Sequence[str], what: str = "columns") -> None:
@@ -392,6 +404,34 @@ def samples_from_table(
                    rejected=tuple(rejected), source=source)
 
 
-def load_log(path: str | Path, **options) -> Samples:
-    """:func:`samples_from_table` of a CSV, Parquet or NPZ file (:func:`read_table`); messages name ``path``."""
-    return samples_from_table(read_table(path), source=str(path), **options)
+def prepare_table(table: Mapping[str, Any], *, columns=None, joint_names=None, units=None,
+                  row_units: Mapping[str, str] | None = None, source: str = "<table>"
+                  ) -> tuple[dict[str, Any], list[str], dict[str, str]]:
+    """A lab's table in the fit's layout and units (:mod:`selfid_jax.robot.tables`): ``(table, notes, units used)``.
+
+    ``columns``: a map ``log name -> fit name`` (or its ``"a=b,c=d"`` / file
+    form); ``joint_names``: columns that become ``q_0 ..`` in this order;
+    ``units``: a :class:`~selfid_jax.robot.tables.Units`; ``row_units``: a
+    units row's ``column -> unit``. Raises :class:`LogError` naming the file.
+    """
+    from selfid_jax.robot import tables
+
+    try:
+        out, notes = tables.normalise(table, columns=tables.parse_columns(columns), joint_names=joint_names,
+                                      source=source)
+        out, used = tables.apply_units(out, units or tables.Units(), row_units, source=source)
+        tables.check_plausible(out, used, source=source)
+    except LogError:
+        raise
+    except ValueError as err:
+        raise LogError(str(err)) from None
+    return out, notes, used
+
+
+def load_log(path: str | Path, *, columns=None, joint_names=None, units=None, **options) -> Samples:
+    """:func:`samples_from_table` of a CSV, Parquet or NPZ file (:func:`read_table`) after :func:`prepare_table`;
+    messages name ``path``."""
+    table, row_units = read_table_units(path)
+    table, _, _ = prepare_table(table, columns=columns, joint_names=joint_names, units=units, row_units=row_units,
+                                source=str(path))
+    return samples_from_table(table, source=str(path), **options)

@@ -16,7 +16,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["Quality", "held_out"]
+__all__ = ["MAX_CONDITION", "MAX_HELDOUT_ERROR", "MAX_REFUSED_FRACTION", "MIN_EFFECT_RATIO", "Quality", "condition",
+           "held_out", "trust"]
 
 
 class Quality(NamedTuple):
@@ -44,3 +45,53 @@ def held_out(D: np.ndarray, V: np.ndarray, scale: float) -> Quality:
     r = (V - D @ F.T) / np.maximum(1.0 - h, 1e-12)[:, None]
     err = float(np.linalg.norm(r, axis=1).sum() / max(float(np.linalg.norm(V, axis=1).sum()), 1e-300))
     return Quality(err, np.linalg.norm(F, axis=0) * float(scale), k)
+
+
+MAX_HELDOUT_ERROR = 0.5
+"""The largest leave-one-out error; above it the samples are not explained by one linear map (the live runner
+stops)."""
+MAX_CONDITION = 1e3
+"""The largest condition number of an estimate; above it some task direction is barely identified."""
+MIN_EFFECT_RATIO = 1e-3
+"""The smallest effect of an actuator relative to the strongest; below it the actuator barely moves the tracked
+point."""
+MAX_REFUSED_FRACTION = 0.25
+"""The largest fraction of refused rows and samples; above it the log is mostly unusable."""
+
+
+def condition(estimate: np.ndarray) -> float:
+    """The estimate's condition number ``s_max / s_min`` of ``(n, m)`` (inf when rank-deficient)."""
+    s = np.linalg.svd(np.asarray(estimate, np.float64), compute_uv=False)
+    return float(s[0] / s[-1]) if s.size and s[-1] > 0 else float("inf")
+
+
+def trust(quality: Quality, estimate: np.ndarray, refused: int, total: int) -> tuple[dict, list[str]]:
+    """The figures that say how far to trust a fit, and a warning per figure outside its bound.
+
+    ``quality``: :func:`held_out` of the accepted samples; ``estimate (n,
+    m)``; ``refused`` of ``total`` rows and samples were dropped (screens and
+    the estimator). Bounds: :data:`MAX_HELDOUT_ERROR`, :data:`MAX_CONDITION`,
+    :data:`MIN_EFFECT_RATIO`, :data:`MAX_REFUSED_FRACTION`.
+    """
+    cond = condition(estimate)
+    effect = np.asarray(quality.effect, np.float64)
+    top = float(np.nanmax(effect)) if effect.size and np.any(np.isfinite(effect)) else float("nan")
+    ratio = effect / top if top > 0 else np.full(effect.shape, np.nan)
+    fraction = refused / total if total else 0.0
+    figures = {"heldout_error": quality.heldout_error, "condition": cond, "actuator_effect": effect.tolist(),
+               "refused_fraction": fraction}
+    warnings = []
+    if quality.heldout_error > MAX_HELDOUT_ERROR:
+        warnings.append(f"held-out error {quality.heldout_error:.3g} > {MAX_HELDOUT_ERROR:g}: the tracked motion is "
+                        "not explained by the actuators' (a tracker latency, a continuous log paired row by row, "
+                        "an actuator that does not act)")
+    if cond > MAX_CONDITION:
+        warnings.append(f"condition number {cond:.3g} > {MAX_CONDITION:g}: some task direction is barely identified")
+    weak = np.flatnonzero(ratio < MIN_EFFECT_RATIO)
+    if weak.size:
+        warnings.append(f"actuator {int(weak[0])} moves the tracked point {ratio[weak[0]]:.2g} of the strongest "
+                        f"(< {MIN_EFFECT_RATIO:g}): its column of the estimate is noise")
+    if fraction > MAX_REFUSED_FRACTION:
+        warnings.append(f"{100 * fraction:.0f}% of the rows and samples were refused (> "
+                        f"{100 * MAX_REFUSED_FRACTION:.0f}%)")
+    return figures, warnings

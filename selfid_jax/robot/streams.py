@@ -1,0 +1,651 @@
+"""Continuous log streams -> one settled row per move, before pairing (``selfid-jax fit`` on a stream).
+
+:func:`selfid_jax.robot.log.samples_from_table` pairs consecutive rows of a
+raw time series, which is right for a log with one *settled* row per random
+move. A lab's log is often a continuous stream instead: encoders and tracker
+logged at a fixed rate (e.g. 100 Hz) while the arm moves, the servo lagging
+its command, the tracker a frame or more late. Consecutive rows of such a log
+pair into tiny samples made mostly of tracker noise and of the lag between
+encoders and tracker, and the fit is wrong. This module, numpy only:
+
+* :func:`stream_stats` / :func:`is_continuous`: tell a stream from a per-move
+  log by the joint steps between consecutive rows (thresholds below).
+* :func:`settled_intervals`: the runs of rows where the arm rests (joint speed
+  below ``v_tol`` for at least ``min_settle_s``).
+* :func:`latency_estimate` / :func:`estimate_latency`: how late the tracker is,
+  by cross-correlating the joint speed with the tracker speed;
+  :func:`shift_tracker` moves the tracker columns back by a latency.
+* :func:`reduce_stream`: the entry point. A per-move log comes back unchanged;
+  a stream comes back as one representative row per settled interval, so that
+  consecutive rows pair into one sample per move, with a :class:`StreamInfo`.
+
+Columns are named by the caller (``t_col``, ``q_cols``, ``pose_cols``), so any
+layout works. Quaternion columns (``q_w, q_x, q_y, q_z`` by default, when all
+four are among ``pose_cols``) and rotation-vector columns (``r_x, r_y, r_z``)
+are interpolated and averaged as rotations (sign-aligned, renormalised), the
+other pose columns componentwise.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+__all__ = ["CONTINUOUS_COHERENCE", "CONTINUOUS_STILL_FRACTION", "GAP_FACTOR", "LATENCY_MAX_S", "LATENCY_MIN_CORR",
+           "MIN_COHERENCE_PAIRS", "MIN_SETTLE_RUN_FRACTION", "MIN_SETTLE_STEPS", "MIN_STREAM_ROWS", "REF_SKIP",
+           "REF_TOP_FRACTION", "SETTLE_SPEED_RATIO", "STILL_STEP_RATIO", "LatencyEstimate", "Segmentation",
+           "StreamInfo", "StreamStats", "estimate_latency", "is_continuous", "latency_estimate", "reduce_stream",
+           "reference", "settled_intervals", "shift_tracker", "stream_stats"]
+
+# ------------------------------------------------------------------ detection thresholds
+REF_TOP_FRACTION = 0.005
+"""The reference value of a series (a full move's joint step, a move's peak speed): its largest value once the top
+``REF_TOP_FRACTION`` (0.5 %) of the rows, and at least :data:`REF_SKIP` rows, are left out (:func:`reference`).
+Leaving out a few rows ignores glitches; leaving out no more keeps the reference among the moving rows of a stream
+that rests up to ~98 % of its rows (a move every 2 s at 100 Hz rests 96 %; below ~0.5 % moving rows the reference
+falls to the noise floor: give the mode and thresholds explicitly)."""
+REF_SKIP = 2
+"""At least this many of the largest values are left out of the reference (two glitch rows in a short log)."""
+STILL_STEP_RATIO = 0.1
+"""A row step ``max_j |q_{i+1,j} - q_{i,j}|`` below this fraction of the reference step is *still* (the arm rests,
+or creeps to a stop)."""
+CONTINUOUS_STILL_FRACTION = 0.3
+"""A log with at least this fraction of still steps is a stream. A per-move log moves every row by a full random
+move: with ``dtheta ~ uniform(-m_a, m_a)`` the largest joint step of a row is below 0.1 x the reference with
+probability about 0.09 for one actuator (30-row logs: 0.21 at the 99th percentile), 0.01 for two, ~1e-6 for six
+(0.0 in the shipped example log, whose one zero step, a row logged twice, is screened as a duplicated stamp). The
+100 Hz streams of the tests (20 ms servo) have 0.88 (a move every 0.5 s), 0.71 (every 0.2 s), 0.97 (every 2 s):
+the arm rests most rows."""
+CONTINUOUS_COHERENCE = 0.5
+"""... or a mean cosine between consecutive non-still joint steps of at least this: a stream's steps follow one
+smooth motion (a first-order servo keeps the direction of a move, cosine 1), a per-move log's are independent random
+moves (mean cosine about 0, standard error ``<= 1 / sqrt(pairs)``: 0.0 in the shipped example; one-actuator logs of
+30 random moves reach 0.5 about 1 % of the time). This catches a stream that rarely rests. Needs
+:data:`MIN_COHERENCE_PAIRS` pairs."""
+MIN_COHERENCE_PAIRS = 20
+"""Fewer pairs of consecutive non-still steps than this: the coherence is not used (reported as 0)."""
+MIN_STREAM_ROWS = 8
+"""Fewer usable rows than this: never called a stream (too few to tell)."""
+
+# ------------------------------------------------------------------ segmentation defaults
+GAP_FACTOR = 3.0
+"""A step longer than this many median row intervals is a gap in the log: it never counts as rest (the arm may
+have moved unseen) and is left out of the speed reference (as ``max_gap="auto"`` of the pairing)."""
+SETTLE_SPEED_RATIO = 0.05
+"""Default ``v_tol`` = this x the reference speed (:func:`reference` of the row speeds ``max_j |dq_j / dt|``,
+actuator units / s: about a typical move's peak speed). For a first-order servo (time constant tau) the speed decays as
+``exp(-t / tau)``: 5 % of the peak is reached about 3 tau after the command (the arm then lies within 5 % of the
+move from its target), well above encoder noise (~1e-5 rad / 10 ms = 1e-3 rad/s vs ~0.05 rad/s for 0.03 rad moves
+with tau = 20 ms)."""
+MIN_SETTLE_STEPS = 4
+"""Default ``min_settle_s`` is at least this many median row intervals (5 rows): a dip of one or two rows in the
+speed of a moving arm is not a rest."""
+MIN_SETTLE_RUN_FRACTION = 0.25
+"""... and at least this fraction of the median duration of the candidate rests (runs of rows below ``v_tol``): the
+real rests dominate the runs of a stream, short dips are dropped. For the test stream (0.5 s per move, 100 Hz):
+``max(0.04, 0.25 x ~0.43) ~ 0.11 s``."""
+
+# ------------------------------------------------------------------ latency
+LATENCY_MAX_S = 0.25
+"""Largest tracker latency searched for by default (s, either sign); lab trackers lag 5-100 ms."""
+LATENCY_MIN_CORR = 0.5
+"""``latency="auto"`` shifts the tracker only where the speed correlation peak reaches this (else no shift, noted)."""
+
+_QUATERNION = ("q_w", "q_x", "q_y", "q_z")
+_ROTVEC = ("r_x", "r_y", "r_z")
+_MODES = ("auto", "stream", "moves")
+
+
+class StreamStats(NamedTuple):
+    """The figures :func:`is_continuous` decides on (:func:`stream_stats`)."""
+
+    rows: int  # usable rows (finite t and q, increasing t)
+    still_fraction: float  # fraction of row steps below STILL_STEP_RATIO x the reference step
+    coherence: float  # mean cosine of consecutive non-still joint steps (0 with fewer than MIN_COHERENCE_PAIRS)
+    pairs: int  # consecutive non-still step pairs behind the coherence
+    continuous: bool  # the decision
+
+
+class Segmentation(NamedTuple):
+    """Settled intervals of a stream (:func:`settled_intervals`); row indices into the arrays given."""
+
+    start: np.ndarray  # (K,) int: first row of each interval
+    stop: np.ndarray  # (K,) int: last row of each interval (inclusive)
+    v_tol: float  # speed threshold used (actuator units / s)
+    min_settle_s: float  # minimum rest duration used (s)
+    v_ref: float  # the stream's reference speed (reference() of the row speeds)
+
+
+class LatencyEstimate(NamedTuple):
+    """How late the tracker is (:func:`latency_estimate`)."""
+
+    seconds: float  # tracker lag behind the encoders (s); positive: the tracker reports a pose late
+    correlation: float  # normalised correlation of joint speed and tracker speed at the peak (-1..1)
+    grid_dt: float  # the uniform grid step the speeds were compared on (s)
+
+
+class StreamInfo(NamedTuple):
+    """What :func:`reduce_stream` did to a log."""
+
+    continuous: bool  # True: reduced as a stream (one row per settled interval); False: returned unchanged
+    mode: str  # "auto", "stream" or "moves", as asked
+    detected: bool | None  # is_continuous of the log (None for mode "moves": not checked)
+    rows_in: int  # rows of the table given
+    rows_out: int  # rows of the table returned
+    rows_dropped: int  # rows dropped before reducing (non-finite, zero quaternion, t not increasing); 0 if unchanged
+    segments: int  # settled intervals found (= rows_out for a stream, 0 otherwise)
+    still_fraction: float | None  # detection figures (StreamStats); None for mode "moves"
+    coherence: float | None
+    v_tol: float | None  # joint speed threshold used (actuator units / s); None if unchanged
+    min_settle_s: float | None  # minimum rest duration used (s); None if unchanged
+    latency_s: float | None  # tracker shift applied (s); None: none applied
+    latency_estimate_s: float | None  # the estimated tracker latency (s), latency="auto" only
+    latency_correlation: float | None  # its speed correlation peak
+    intervals: np.ndarray  # (segments, 2) start and stop time (s) of each settled interval
+    notes: tuple[str, ...]  # one line each: what was not done and why
+
+    def line(self) -> str:
+        """One line for the fit's report, e.g. ``continuous stream: 2050 rows -> 41 settled intervals (...)``."""
+        if not self.continuous:
+            why = ("as asked" if self.mode == "moves" else "not checked" if self.still_fraction is None
+                   else f"still fraction {self.still_fraction:.2f} < {CONTINUOUS_STILL_FRACTION}")
+            return f"per-move log ({why}): {self.rows_in} rows used as they are"
+        lat = "no tracker shift" if self.latency_s is None else f"tracker shifted by {1e3 * self.latency_s:.1f} ms"
+        if self.latency_estimate_s is not None:
+            lat += f" (estimated latency {1e3 * self.latency_estimate_s:.1f} ms, corr {self.latency_correlation:.2f})"
+        dropped = f", {self.rows_dropped} bad rows dropped" if self.rows_dropped else ""
+        return (f"continuous stream: {self.rows_in} rows -> {self.segments} settled intervals (joint speed < "
+                f"{self.v_tol:.3g}/s for >= {self.min_settle_s:.3g} s{dropped}; {lat})")
+
+
+# ------------------------------------------------------------------ helpers
+def _usable(t: np.ndarray, *arrays: np.ndarray) -> np.ndarray:
+    """Row mask: finite ``t`` and arrays, and ``t`` after every earlier kept row's (duplicates and
+    non-monotonic stamps dropped, as the pairing's screens)."""
+    keep = np.isfinite(t)
+    for a in arrays:
+        keep &= np.isfinite(a).all(axis=1) if a.ndim == 2 else np.isfinite(a)
+    prev = np.maximum.accumulate(np.where(keep, t, -np.inf))
+    prev = np.concatenate([[-np.inf], prev[:-1]])
+    return keep & (t > prev)
+
+
+def _as_2d(name: str, a: Any, rows: int | None = None) -> np.ndarray:
+    a = np.asarray(a, np.float64)
+    if a.ndim == 1:
+        a = a[:, None]
+    if a.ndim != 2 or (rows is not None and a.shape[0] != rows):
+        raise ValueError(f"{name}: expected shape ({rows if rows is not None else 'T'}, k), got {a.shape}")
+    return a
+
+
+def _time(t: Any) -> np.ndarray:
+    t = np.asarray(t, np.float64)
+    if t.ndim != 1:
+        raise ValueError(f"t: expected shape (T,), got {t.shape}")
+    return t
+
+
+def _normalise(quat: np.ndarray) -> np.ndarray:
+    return quat / np.linalg.norm(quat, axis=-1, keepdims=True)
+
+
+def _continuous_signs(quat: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(K, 4)`` with signs flipped so consecutive ones lie in one hemisphere (q and -q are one
+    rotation), so componentwise interpolation follows the short way."""
+    quat = _normalise(quat)
+    if quat.shape[0] < 2:
+        return quat
+    flip = np.concatenate([[False], np.einsum("ij,ij->i", quat[1:], quat[:-1]) < 0])
+    sign = np.where(np.logical_xor.accumulate(flip), -1.0, 1.0)
+    return quat * sign[:, None]
+
+
+def _rotvec_to_quat(r: np.ndarray) -> np.ndarray:
+    theta = np.linalg.norm(r, axis=-1, keepdims=True)
+    half = 0.5 * theta
+    scale = np.where(theta > 1e-8, np.sin(half) / np.where(theta > 1e-8, theta, 1.0), 0.5 - theta**2 / 48.0)
+    return np.concatenate([np.cos(half), scale * r], axis=-1)
+
+
+def _quat_to_rotvec(quat: np.ndarray) -> np.ndarray:
+    quat = _normalise(quat)
+    quat = np.where(quat[..., :1] < 0, -quat, quat)  # w >= 0: angle in [0, pi]
+    w, v = quat[..., :1], quat[..., 1:]
+    s = np.linalg.norm(v, axis=-1, keepdims=True)
+    theta = 2.0 * np.arctan2(s, w)
+    scale = np.where(s > 1e-8, theta / np.where(s > 1e-8, s, 1.0), 2.0 / np.maximum(w, 1e-300))
+    return scale * v
+
+
+def reference(x: Any) -> float:
+    """The largest of ``x (K,)`` once its top :data:`REF_TOP_FRACTION` (at least :data:`REF_SKIP` values, never all)
+    are left out: a typical move's size or peak speed that a few glitch rows do not move. 0 for an empty ``x``."""
+    x = np.sort(np.asarray(x, np.float64).ravel())[::-1]
+    if x.size == 0:
+        return 0.0
+    return float(x[min(max(REF_SKIP, int(np.ceil(REF_TOP_FRACTION * x.size))), x.size - 1)])
+
+
+# ------------------------------------------------------------------ detection
+def stream_stats(t: Any, q: Any) -> StreamStats:
+    """The detection figures of a log's actuator positions ``q (T, n)`` at times ``t (T,)``.
+
+    Over the usable rows (finite, increasing ``t``), each row step's size is
+    ``s_i = max_j |q_{i+1,j} - q_{i,j}|`` (independent of the log rate and of
+    stamp jitter). With ``s_ref = reference(s)`` (about a full move's step;
+    :data:`REF_TOP_FRACTION`), a step is still if ``s_i < STILL_STEP_RATIO s_ref``:
+
+    * ``still_fraction``: the fraction of still steps;
+    * ``coherence``: the mean cosine between consecutive non-still step vectors.
+
+    The log is continuous iff it has at least :data:`MIN_STREAM_ROWS` rows and
+    ``still_fraction >= CONTINUOUS_STILL_FRACTION`` (0.3) or (with at least
+    :data:`MIN_COHERENCE_PAIRS` pairs) ``coherence >= CONTINUOUS_COHERENCE``
+    (0.5); see those constants for the numbers behind them. A log whose joints
+    never move is not continuous.
+    """
+    t = _time(t)
+    q = _as_2d("q", q, t.shape[0])
+    keep = _usable(t, q)
+    q = q[keep]
+    rows = int(q.shape[0])
+    if rows < 2:
+        return StreamStats(rows, 0.0, 0.0, 0, False)
+    dq = np.diff(q, axis=0)
+    s = np.abs(dq).max(axis=1)
+    s_ref = reference(s)
+    if not s_ref > 0:
+        return StreamStats(rows, 1.0, 0.0, 0, False)
+    still = s < STILL_STEP_RATIO * s_ref
+    still_fraction = float(still.mean())
+    both = ~still[1:] & ~still[:-1]
+    pairs = int(both.sum())
+    coherence = 0.0
+    if pairs >= MIN_COHERENCE_PAIRS:
+        a, b = dq[:-1][both], dq[1:][both]
+        cos = np.einsum("ij,ij->i", a, b) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+        coherence = float(cos.mean())
+    continuous = rows >= MIN_STREAM_ROWS and (still_fraction >= CONTINUOUS_STILL_FRACTION
+                                              or (pairs >= MIN_COHERENCE_PAIRS and coherence >= CONTINUOUS_COHERENCE))
+    return StreamStats(rows, still_fraction, coherence, pairs, bool(continuous))
+
+
+def is_continuous(t: Any, q: Any) -> bool:
+    """Whether ``q (T, n)`` at times ``t (T,)`` is a continuous stream (many still rows, or smoothly consecutive
+    steps) rather than one settled row per move; thresholds in :func:`stream_stats`."""
+    return stream_stats(t, q).continuous
+
+
+# ------------------------------------------------------------------ segmentation
+def settled_intervals(t: Any, q: Any, *, v_tol: float | None = None, min_settle_s: float | None = None
+                      ) -> Segmentation:
+    """The runs of rows where the arm rests, from actuator positions ``q (T, n)`` at increasing times ``t (T,)``.
+
+    The joint speed of the step from row ``i`` to ``i + 1`` is
+    ``max_j |q_{i+1,j} - q_{i,j}| / (t_{i+1} - t_i)`` (actuator units / s). A
+    settled interval is a maximal run of rows ``a..b`` whose every step is
+    slower than ``v_tol`` and no longer than :data:`GAP_FACTOR` median row
+    intervals, lasting ``t_b - t_a >= min_settle_s``. Its last row ``b`` is the
+    last one before the arm moves again.
+
+    Defaults (from the data): ``v_tol = SETTLE_SPEED_RATIO (0.05) x v_ref``,
+    ``v_ref = reference(speeds)`` (:data:`REF_TOP_FRACTION`: the largest speed
+    once the top 0.5 % of the rows are left out, about a typical move's peak
+    speed); ``min_settle_s = max(MIN_SETTLE_STEPS (4) x median row interval,
+    MIN_SETTLE_RUN_FRACTION (0.25) x median duration of the runs below v_tol)``.
+
+    Raises:
+      ValueError: rows not finite or not increasing, joints that never move,
+        or no settled interval (the message gives the figures to change).
+    """
+    t = _time(t)
+    q = _as_2d("q", q, t.shape[0])
+    if t.shape[0] < 3:
+        raise ValueError(f"a stream needs at least 3 rows to find settled intervals, got {t.shape[0]}")
+    if not (np.isfinite(t).all() and np.isfinite(q).all()):
+        raise ValueError("settled_intervals: t and q must be finite (screen the rows first)")
+    dt = np.diff(t)
+    if not (dt > 0).all():
+        raise ValueError(f"settled_intervals: t must increase (row {int(np.argmin(dt > 0)) + 1} does not)")
+    dt_med = float(np.median(dt))
+    speed = np.abs(np.diff(q, axis=0)).max(axis=1) / dt
+    ok = dt <= GAP_FACTOR * dt_med
+    v_ref = reference(speed[ok]) if ok.any() else 0.0
+    if v_tol is None:
+        if not v_ref > 0:
+            raise ValueError("no settled interval can be told from the moves: the joints never move (every joint "
+                             "speed is 0); is this a stream of a robot making moves?")
+        v_tol = SETTLE_SPEED_RATIO * v_ref
+    elif not (np.isfinite(v_tol) and v_tol > 0):
+        raise ValueError(f"v_tol (settle speed) must be a positive number (actuator units / s), got {v_tol!r}")
+    rest = (speed < v_tol) & ok
+    # runs of rest steps [a, b) -> rows a..b
+    edges = np.diff(np.concatenate([[0], rest.astype(np.int8), [0]]))
+    run_a, run_b = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    durations = t[run_b] - t[run_a]
+    if min_settle_s is None:
+        min_settle_s = MIN_SETTLE_STEPS * dt_med
+        if durations.size:
+            min_settle_s = max(min_settle_s, MIN_SETTLE_RUN_FRACTION * float(np.median(durations)))
+    elif not (np.isfinite(min_settle_s) and min_settle_s >= 0):
+        raise ValueError(f"min_settle_s (settle time) must be a non-negative number of seconds, got {min_settle_s!r}")
+    long = durations >= min_settle_s * (1 - 1e-9)
+    if not long.any():
+        longest = f"{float(durations.max()):.3g} s" if durations.size else "none"
+        raise ValueError(
+            f"no settled interval found: the joint speed (max over joints of |dq/dt|) never stays below "
+            f"v_tol={v_tol:.3g}/s for min_settle_s={min_settle_s:.3g} s (lowest speed {float(speed[ok].min()):.3g}/s, "
+            f"typical move speed {v_ref:.3g}/s, longest rest {longest}); does the arm rest between moves? Give a "
+            f"larger settle speed (--settle-speed) or a shorter settle time (--settle-time), or treat the log as "
+            f"one row per move (--mode moves)")
+    return Segmentation(run_a[long].astype(np.int64), run_b[long].astype(np.int64), float(v_tol),
+                        float(min_settle_s), v_ref)
+
+
+# ------------------------------------------------------------------ latency
+def _uniform(t: np.ndarray, x: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    return np.stack([np.interp(grid, t, x[:, j]) for j in range(x.shape[1])], axis=1)
+
+
+def latency_estimate(t: Any, q: Any, p: Any, *, max_lag_s: float = LATENCY_MAX_S) -> LatencyEstimate:
+    """How many seconds the tracker ``p (T, d)`` lags the encoders ``q (T, n)``, both at times ``t (T,)``.
+
+    Both are resampled (linear interpolation) onto a uniform grid of the
+    median row interval, so jittered stamps are fine; the joint speed norm
+    ``|dq/dt|`` and the tracker speed norm ``|dp/dt|`` (each minus its mean)
+    are cross-correlated (normalised over the overlap) at integer lags within
+    ``+-max_lag_s`` (at most a quarter of the log), and the peak is refined to a
+    fraction of a step by the parabola through it and its neighbours. Positive:
+    the tracker reports a pose later than the encoders report the joints that
+    make it. Where the motion is a series of moves with the same shape, the
+    correlation is symmetric about the true lag, so the parabola is unbiased.
+
+    Raises:
+      ValueError: too few rows, joints or tracker that never move, or a peak at
+        the edge of the search (the lag may exceed ``max_lag_s``).
+    """
+    t = _time(t)
+    q = _as_2d("q", q, t.shape[0])
+    p = _as_2d("p", p, t.shape[0])
+    keep = _usable(t, q, p)
+    t, q, p = t[keep], q[keep], p[keep]
+    if t.shape[0] < 8:
+        raise ValueError(f"latency: {t.shape[0]} usable rows; need at least 8")
+    if not (np.isfinite(max_lag_s) and max_lag_s > 0):
+        raise ValueError(f"max_lag_s must be a positive number of seconds, got {max_lag_s!r}")
+    dt = float(np.median(np.diff(t)))
+    n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
+    grid = t[0] + dt * np.arange(n)
+    uniform = np.abs(np.diff(t) - dt).max() <= 1e-6 * dt
+    qg, pg = (q, p) if uniform and n == t.shape[0] else (_uniform(t, q, grid), _uniform(t, p, grid))
+    a = np.linalg.norm(np.diff(qg, axis=0), axis=1) / dt
+    b = np.linalg.norm(np.diff(pg, axis=0), axis=1) / dt
+    a, b = a - a.mean(), b - b.mean()
+    if not (np.abs(a).max() > 0):
+        raise ValueError("latency: the joints never move (constant speed), nothing to correlate")
+    if not (np.abs(b).max() > 0):
+        raise ValueError("latency: the tracker never moves (constant speed), nothing to correlate")
+    N = a.shape[0]
+    K = max(1, min(int(round(max_lag_s / dt)), N // 4))
+    lags = np.arange(-K, K + 1)
+    c = np.empty(lags.shape[0])
+    for i, k in enumerate(lags):  # c(k) = corr(a[i], b[i + k]): the tracker at i + k shows the joints at i
+        x, y = (a[: N - k], b[k:]) if k >= 0 else (a[-k:], b[: N + k])
+        den = np.sqrt(np.dot(x, x) * np.dot(y, y))
+        c[i] = np.dot(x, y) / den if den > 0 else 0.0
+    i = int(np.argmax(c))
+    if i in (0, lags.shape[0] - 1):
+        raise ValueError(f"latency: the speed correlation peaks at the edge of the search ({lags[i] * dt:+.3g} s, "
+                         f"max_lag_s={max_lag_s:.3g}); the tracker may lag more: give a larger max_lag_s or the "
+                         f"latency itself")
+    den = c[i - 1] - 2.0 * c[i] + c[i + 1]
+    frac = 0.5 * (c[i - 1] - c[i + 1]) / den if den < 0 else 0.0
+    frac = float(np.clip(frac, -0.5, 0.5))
+    return LatencyEstimate(float((lags[i] + frac) * dt), float(c[i]), dt)
+
+
+def estimate_latency(t: Any, q: Any, p: Any, *, max_lag_s: float = LATENCY_MAX_S) -> float:
+    """Seconds the tracker ``p (T, d)`` lags the encoders ``q (T, n)`` (:func:`latency_estimate`'s ``seconds``)."""
+    return latency_estimate(t, q, p, max_lag_s=max_lag_s).seconds
+
+
+def _shift_positions(t: np.ndarray, x: np.ndarray, latency: float) -> np.ndarray:
+    return _uniform(t, x, t + latency)
+
+
+def shift_tracker(t: Any, pose: Mapping[str, Any], latency: float, *, quat_cols: Sequence[str] | None = None,
+                  rotvec_cols: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+    """The tracker columns ``pose`` (name -> ``(T,)``) at ``t + latency``: undo a tracker that reports ``latency``
+    seconds late (the pose it logs at ``t + latency`` is the one at ``t``).
+
+    Linear interpolation between rows (``t`` increasing, values finite);
+    beyond the last row (or before the first, for a negative latency) the end
+    value is held. Quaternion columns (``quat_cols``, ``w, x, y, z`` order;
+    default ``q_w, q_x, q_y, q_z`` when all present) are sign-aligned,
+    interpolated and renormalised; rotation-vector columns (``rotvec_cols``,
+    default ``r_x, r_y, r_z``) go through quaternions. Other columns are
+    interpolated one by one.
+    """
+    t = _time(t)
+    if not np.isfinite(latency):
+        raise ValueError(f"latency must be a finite number of seconds, got {latency!r}")
+    names = list(pose.keys())
+    quat_cols, rotvec_cols = _rotation_columns(names, quat_cols, rotvec_cols)
+    values = {c: np.asarray(pose[c], np.float64) for c in names}
+    out: dict[str, np.ndarray] = {}
+    if quat_cols:
+        quat = _continuous_signs(np.stack([values[c] for c in quat_cols], axis=1))
+        shifted = _normalise(_shift_positions(t, quat, latency))
+        out.update({c: shifted[:, k] for k, c in enumerate(quat_cols)})
+    if rotvec_cols:
+        quat = _continuous_signs(_rotvec_to_quat(np.stack([values[c] for c in rotvec_cols], axis=1)))
+        shifted = _quat_to_rotvec(_shift_positions(t, quat, latency))
+        out.update({c: shifted[:, k] for k, c in enumerate(rotvec_cols)})
+    for c in names:
+        if c not in out:
+            out[c] = np.interp(t + latency, t, values[c])
+    return {c: out[c] for c in names}
+
+
+def _rotation_columns(names: Sequence[str], quat_cols: Sequence[str] | None, rotvec_cols: Sequence[str] | None
+                      ) -> tuple[list[str], list[str]]:
+    """The quaternion and rotation-vector columns among ``names`` (defaults by name); ValueError if misgiven."""
+    if quat_cols is None:
+        quat_cols = list(_QUATERNION) if all(c in names for c in _QUATERNION) else []
+    if rotvec_cols is None:
+        rotvec_cols = list(_ROTVEC) if all(c in names for c in _ROTVEC) else []
+    quat_cols, rotvec_cols = list(quat_cols), list(rotvec_cols)
+    if quat_cols and len(quat_cols) != 4:
+        raise ValueError(f"quat_cols: need 4 columns (w, x, y, z), got {quat_cols}")
+    if rotvec_cols and len(rotvec_cols) != 3:
+        raise ValueError(f"rotvec_cols: need 3 columns (x, y, z), got {rotvec_cols}")
+    for c in quat_cols + rotvec_cols:
+        if c not in names:
+            raise ValueError(f"rotation column {c} is not among the pose columns ({', '.join(names)})")
+    if set(quat_cols) & set(rotvec_cols):
+        raise ValueError("a column cannot be both a quaternion and a rotation-vector component")
+    return quat_cols, rotvec_cols
+
+
+# ------------------------------------------------------------------ the entry point
+def _column(table: Mapping[str, Any], name: str, rows: int) -> np.ndarray:
+    if name not in table.keys():
+        raise ValueError(f"column {name} is missing (have {', '.join(map(str, list(table.keys())[:12]))})")
+    raw = np.asarray(table[name])
+    if raw.ndim != 1 or raw.shape[0] != rows:
+        raise ValueError(f"column {name} has shape {raw.shape}, expected ({rows},) like the other columns")
+    try:
+        return raw.astype(np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"column {name} holds entries that are not numbers") from None
+
+
+def reduce_stream(
+    table: Mapping[str, Any],
+    q_cols: Sequence[str],
+    pose_cols: Sequence[str],
+    *,
+    t_col: str = "t",
+    mode: str = "auto",
+    latency: str | float | None = "auto",
+    v_tol: float | None = None,
+    min_settle_s: float | None = None,
+    quat_cols: Sequence[str] | None = None,
+    rotvec_cols: Sequence[str] | None = None,
+    max_lag_s: float = LATENCY_MAX_S,
+) -> tuple[dict[str, np.ndarray], StreamInfo]:
+    """A raw time series as the pairing wants it: one settled row per move. Returns ``(table, info)``.
+
+    ``mode``: ``"auto"`` reduces the log if :func:`is_continuous` (on ``t_col``
+    and ``q_cols``) says it is a stream and returns it unchanged otherwise;
+    ``"stream"`` always reduces, ``"moves"`` never (the table comes back as it
+    is, columns as numpy arrays, its bad rows left to the pairing's screens).
+
+    Reducing a stream:
+
+    1. Rows with a non-finite ``t``/``q``/pose entry, a zero quaternion or a
+       time not after the previous kept row's are dropped (``rows_dropped``).
+    2. ``latency``: ``"auto"`` estimates the tracker latency
+       (:func:`latency_estimate`, over ``+-max_lag_s``, on the position columns
+       or, without any, all pose columns) and shifts the pose columns by it
+       (:func:`shift_tracker`) when the correlation peak reaches
+       :data:`LATENCY_MIN_CORR`; a number shifts by that many seconds; None
+       shifts nothing.
+    3. :func:`settled_intervals` with ``v_tol`` (actuator units / s) and
+       ``min_settle_s`` (s), defaults from the data (see there).
+    4. Each interval gives one row: ``t`` of its last row (the arm's settled
+       time before the next move), and ``q`` and the pose averaged over the
+       interval's second half (rows at ``t >= (t_start + t_stop) / 2``). The
+       second half keeps clear of the end of the previous move and of a
+       tracker still catching up, and averaging ``k`` rows divides the tracker
+       noise by ``sqrt(k)`` (20 rows: 4.5x less than the last row alone);
+       ``q`` and the pose are averaged over the same rows, so a pair stays
+       consistent even if the arm still creeps. Quaternions are sign-aligned to
+       the interval's last row, averaged and renormalised (rotation vectors via
+       quaternions). Any other column takes its value at the interval's last row.
+
+    Consecutive returned rows then pair into one sample per move
+    (:func:`selfid_jax.robot.log.samples_from_table`).
+
+    Raises:
+      ValueError: an unknown mode or option, a missing or non-numeric column,
+        or (reducing) a stream without two settled intervals; one line that
+        says which figure to change.
+    """
+    if mode not in _MODES:
+        raise ValueError(f"stream mode must be one of {', '.join(_MODES)}, got {mode!r}")
+    if not (latency is None or latency == "auto" or (isinstance(latency, (int, float, np.floating))
+                                                      and not isinstance(latency, bool) and np.isfinite(latency))):
+        raise ValueError(f"latency must be 'auto', a number of seconds or None, got {latency!r}")
+    names = [str(c) for c in table.keys()]
+    rows = int(np.shape(table[names[0]])[0]) if names and np.ndim(table[names[0]]) >= 1 else 0
+    unchanged = {c: np.asarray(table[c]) for c in names}
+    empty = np.zeros((0, 2))
+    if mode == "moves":
+        return unchanged, StreamInfo(False, mode, None, rows, rows, 0, 0, None, None, None, None, None, None, None,
+                                     empty, ())
+    q_cols, pose_cols = [str(c) for c in q_cols], [str(c) for c in pose_cols]
+    if not q_cols:
+        raise ValueError("reduce_stream: no actuator (q) columns given")
+    if not pose_cols:
+        raise ValueError("reduce_stream: no pose columns given")
+    try:
+        if rows <= 0:
+            raise ValueError("reduce_stream: the table has no rows")
+        t = _column(table, t_col, rows)
+        q = np.stack([_column(table, c, rows) for c in q_cols], axis=1)
+    except ValueError as err:
+        if mode == "stream":
+            raise
+        # auto: a log that cannot be checked is left to the pairing's screens, whose messages name file and line
+        return unchanged, StreamInfo(False, mode, None, rows, rows, 0, 0, None, None, None, None, None, None, None,
+                                     empty, (f"not checked for a stream: {err}",))
+    stats = stream_stats(t, q)
+    if mode == "auto" and not stats.continuous:
+        return unchanged, StreamInfo(False, mode, False, rows, rows, 0, 0, stats.still_fraction, stats.coherence,
+                                     None, None, None, None, None, empty, ())
+
+    # ---- reduce
+    quat_c, rotvec_c = _rotation_columns(pose_cols, quat_cols, rotvec_cols)
+    pose = np.stack([_column(table, c, rows) for c in pose_cols], axis=1)
+    screened = pose
+    if quat_c:  # a zero quaternion is a bad row, as a non-finite entry
+        qi = [pose_cols.index(c) for c in quat_c]
+        zero = np.linalg.norm(np.where(np.isfinite(pose[:, qi]), pose[:, qi], 0.0), axis=1) <= 1e-6
+        screened = np.where(zero[:, None], np.nan, pose)
+    idx = np.flatnonzero(_usable(t, q, screened))
+    if idx.size < 3:
+        raise ValueError(f"reduce_stream: {idx.size} usable rows (finite, increasing {t_col}); a stream needs many")
+    t_k, q_k, pose_k = t[idx], q[idx], pose[idx]
+    notes: list[str] = []
+
+    latency_s: float | None = None
+    est: LatencyEstimate | None = None
+    if latency == "auto":
+        rot = set(quat_c) | set(rotvec_c)
+        pos = [j for j, c in enumerate(pose_cols) if c not in rot] or list(range(len(pose_cols)))
+        try:
+            est = latency_estimate(t_k, q_k, pose_k[:, pos], max_lag_s=max_lag_s)
+        except ValueError as err:
+            notes.append(f"tracker latency not estimated ({err}); no shift applied")
+        else:
+            if est.correlation >= LATENCY_MIN_CORR:
+                latency_s = est.seconds
+            else:
+                notes.append(f"tracker latency estimate {1e3 * est.seconds:.1f} ms not used: speed correlation "
+                             f"{est.correlation:.2f} < {LATENCY_MIN_CORR}; no shift applied")
+    elif latency is not None:
+        latency_s = float(latency)  # checked above: a number
+    if latency_s is not None and latency_s != 0.0:
+        shifted = shift_tracker(t_k, {c: pose_k[:, j] for j, c in enumerate(pose_cols)}, latency_s,
+                                quat_cols=quat_c, rotvec_cols=rotvec_c)
+        pose_k = np.stack([shifted[c] for c in pose_cols], axis=1)
+
+    seg = settled_intervals(t_k, q_k, v_tol=v_tol, min_settle_s=min_settle_s)
+    K = int(seg.start.shape[0])
+    if K < 2:
+        raise ValueError(f"only one settled interval found (t = {t_k[seg.start[0]]:.3f} to {t_k[seg.stop[0]]:.3f} s, "
+                         f"joint speed below v_tol={seg.v_tol:.3g}/s for >= {seg.min_settle_s:.3g} s); a sample needs "
+                         f"two: give a smaller settle speed (--settle-speed) or settle time (--settle-time), or treat "
+                         f"the log as one row per move (--mode moves)")
+    if latency_s is not None:
+        short = (t_k[seg.stop] - t_k[seg.start]) / 2 < abs(latency_s)
+        if short.any() and latency == "auto":
+            notes.append(f"{int(short.sum())} settled intervals shorter than twice the tracker latency")
+
+    q_out = np.empty((K, q_k.shape[1]))
+    pose_out = np.empty((K, pose_k.shape[1]))
+    qi = [pose_cols.index(c) for c in quat_c]
+    ri = [pose_cols.index(c) for c in rotvec_c]
+    for k, (a, b) in enumerate(zip(seg.start, seg.stop)):
+        half = slice(a + int(np.searchsorted(t_k[a:b + 1], 0.5 * (t_k[a] + t_k[b]), side="left")), b + 1)
+        q_out[k] = q_k[half].mean(axis=0)
+        pose_out[k] = pose_k[half].mean(axis=0)
+        for cols, to_q, back in ((qi, _normalise, _normalise), (ri, _rotvec_to_quat, _quat_to_rotvec)):
+            if cols:
+                quats = to_q(pose_k[half][:, cols])
+                ref = quats[-1]
+                quats = np.where((quats @ ref < 0)[:, None], -quats, quats)
+                pose_out[k, cols] = back(_normalise(quats.mean(axis=0)))
+    last = idx[seg.stop]
+    out: dict[str, np.ndarray] = {}
+    for c in names:
+        if c == t_col:
+            out[c] = t_k[seg.stop]
+        elif c in q_cols:
+            out[c] = q_out[:, q_cols.index(c)]
+        elif c in pose_cols:
+            out[c] = pose_out[:, pose_cols.index(c)]
+        else:
+            out[c] = unchanged[c][last]
+    info = StreamInfo(
+        continuous=True, mode=mode, detected=stats.continuous, rows_in=rows, rows_out=K,
+        rows_dropped=int(rows - idx.size), segments=K, still_fraction=stats.still_fraction,
+        coherence=stats.coherence, v_tol=seg.v_tol, min_settle_s=seg.min_settle_s, latency_s=latency_s,
+        latency_estimate_s=None if est is None else est.seconds,
+        latency_correlation=None if est is None else est.correlation,
+        intervals=np.stack([t_k[seg.start], t_k[seg.stop]], axis=1), notes=tuple(notes))
+    return out, info
