@@ -37,6 +37,7 @@ import jaxlie
 import numpy as np
 
 from selfid_jax.articulated import scenes, tacman, tactile
+from selfid_jax.math.checks import warn_if_host_bound
 
 __all__ = ["CONTROLLERS", "Controller", "ControllerLabel", "RolloutParams", "RolloutResult", "Static", "rollout",
            "make_static", "spring_wrench", "time_weighted_jerk"]
@@ -153,6 +154,9 @@ def make_static(backend, layout, mj_model, pads, arm, q0, *, steps, substeps, st
     if backend == "mjx" and layout.grasp == "spring":
         raise ValueError("grasp model 'spring' runs on the native backend only (its wrench is applied between "
                          "MuJoCo's position and velocity stages, mj_step1 / mj_step2); use backend: native")
+    if backend == "native":
+        warn_if_host_bound("the articulated rollout's backend 'native'",
+                           "Use backend: mjx for the rigid and soft grasps (the spring grasp runs on native only).")
     if backend == "mjx":
         from mujoco import mjx
 

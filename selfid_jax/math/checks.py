@@ -91,3 +91,21 @@ def check_magnitude(name: str, m_a, n: int):
     if np.ndim(m_a) not in (0, 1) or (np.ndim(m_a) == 1 and np.shape(m_a)[0] != n):
         raise ValueError(f"{name}: expected a scalar or shape ({n},) (one per actuator), got shape {np.shape(m_a)}")
     return check_scalar(name, m_a, gt=0.0)
+
+
+class HostBoundWarning(UserWarning):
+    """A program that steps on the host (a ``jax.pure_callback`` into MuJoCo) built where the default device is
+    an accelerator: every call waits on the host."""
+
+
+def warn_if_host_bound(what: str, alternative: str) -> bool:
+    """Warn (:class:`HostBoundWarning`, once per call site) that ``what`` runs on the host when JAX's default
+    backend is not the CPU, naming ``alternative``; returns whether it warned. Nothing on the CPU."""
+    backend = jax.default_backend()
+    if backend == "cpu":
+        return False
+    import warnings
+
+    warnings.warn(f"{what} runs on the host (MuJoCo through a host callback), not on the default device "
+                  f"({backend}): each call waits on the host. {alternative}", HostBoundWarning, stacklevel=3)
+    return True

@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from selfid_jax.math.checks import warn_if_host_bound
 from selfid_jax.systems.kinematics import _mjx
 
 __all__ = [
@@ -362,6 +363,10 @@ class NativeSettlePose:
     tol: float = 1e-9
     patience: int = 3
     qpos0: object = None
+
+    def __post_init__(self):
+        warn_if_host_bound("a hand's native settling (backend='native')",
+                           "Use backend='mjx' (MJX's settling, on the device) for batches on an accelerator.")
 
     def __call__(self, params, q):
         q_low, q_high = params
