@@ -34,6 +34,10 @@ from selfid_jax.identify import estimator as E
 from selfid_jax.identify import refine as RF
 from selfid_jax.identify.step import sample_step
 
+# a CI check of what a GPU would run, not a behaviour a change to the numerics would break: the slow tier (13 s of
+# tracing and lowering, 25 s with the MJX programs)
+pytestmark = pytest.mark.slow
+
 CUSOLVER_BATCHED_MAX = 32
 HOST = ("callback", "host")
 B = 1000
