@@ -160,12 +160,14 @@ def estimate_units(axis_names) -> list[str]:
 
 
 def summary(result: FitResult, *, log: Path | str, units: dict[str, str] | None = None,
-            notes: list[str] | None = None) -> dict[str, Any]:
-    """``summary.json`` of a fit: options, sample counts, rejected rows, convergence, the trust figures and units."""
+            notes: list[str] | None = None, trusted: tuple[dict[str, Any], list[str]] | None = None
+            ) -> dict[str, Any]:
+    """``summary.json`` of a fit: options, sample counts, rejected rows, convergence, the trust figures and units
+    (``trusted``: :func:`trust` of ``result`` where the caller has it)."""
     s = result.samples
     n, m = result.estimate.shape
     T = int(result.deltas.shape[0])
-    figures, warnings = trust(result)
+    figures, warnings = trust(result) if trusted is None else trusted
     return {
         "command": "fit",
         "log": str(log),
@@ -287,7 +289,8 @@ def redraw(run_dir: Path) -> list[Path] | None:
 
 
 def write_run(result: FitResult, out: Path, *, log: Path | str, units: dict[str, str] | None = None,
-              notes: list[str] | None = None) -> dict[str, Path]:
+              notes: list[str] | None = None, trusted: tuple[dict[str, Any], list[str]] | None = None
+              ) -> dict[str, Path]:
     """Write every output file of a fit into ``out`` (each atomically); returns name -> path.
 
     Only a converged fit writes ``inverse_jacobian.npz`` / ``.json`` (and one
@@ -300,7 +303,7 @@ def write_run(result: FitResult, out: Path, *, log: Path | str, units: dict[str,
     from selfid_jax.runner.layout import FIGURES_DIR
 
     s = result.samples
-    info = summary(result, log=log, units=units, notes=notes)
+    info = summary(result, log=log, units=units, notes=notes, trusted=trusted)
     paths = {name: out / name for name in (ESTIMATES_FILE, SUMMARY_FILE)}
     atomic_write_bytes(paths[ESTIMATES_FILE], _npz(
         estimates=result.estimates, deltas=result.deltas, thresholds=result.thresholds, accepted=result.accepted,
@@ -369,8 +372,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {refused} samples refused by the estimator (all-zero dtheta or V)")
     with hold(out):
         signals.phase("write")
-        files = write_run(result, out, log=log, units=units, notes=notes)
-    figures, warnings = trust(result)
+        figures, warnings = trusted = trust(result)
+        files = write_run(result, out, log=log, units=units, notes=notes, trusted=trusted)
     effect = figures["actuator_effect"]
     print(f"trust: held-out error {figures['heldout_error']:.3g}, condition number {figures['condition']:.3g}, "
           f"{100 * figures['refused_fraction']:.0f}% refused, actuator effect "
@@ -400,6 +403,11 @@ def read_samples(log: Path, args: argparse.Namespace):
     from selfid_jax.robot.tables import Units
 
     names = None if args.joint_names is None else [x.strip() for x in args.joint_names.split(",") if x.strip()]
+    text = str(args.latency).strip().lower()
+    try:
+        latency = {"auto": "auto", "none": None}[text] if text in ("auto", "none") else float(text)
+    except ValueError:
+        raise LogError(f"--latency: expected auto, none or seconds, got {args.latency!r}") from None
     notes: list[str] = []
     if is_bag(log):
         from selfid_jax.robot.bags import read_bag
@@ -408,9 +416,7 @@ def read_samples(log: Path, args: argparse.Namespace):
             raise LogError(f"{log}: a bag needs --joints TOPIC (sensor_msgs/JointState) and --tracker TOPIC")
         table, info = read_bag(log, joints=args.joints, tracker=args.tracker, joint_names=names,
                                child_frame=args.child_frame)
-        notes.append(f"bag: {info.rows} poses of {args.tracker} ({info.tracker_type}) matched by header stamp to "
-                     f"{args.joints} ({', '.join(info.joint_names)}); dropped {info.outside_span} outside the "
-                     f"joints' span, {info.skewed} between joint messages too far apart")
+        notes += [f"bag: {line.strip()}" for line in info.lines()]
         names = None
         row_units: dict[str, str] = {}
     else:
@@ -429,20 +435,14 @@ def read_samples(log: Path, args: argparse.Namespace):
         quat = [c for c in ("q_w", "q_x", "q_y", "q_z") if c in table]
         rotvec = [c for c in ("r_x", "r_y", "r_z") if c in table]
         pose = [c for c in ("p_x", "p_y", "p_z") if c in table] + quat + rotvec
-        latency = {"auto": "auto", "none": None}.get(str(args.latency).lower(), args.latency)
         try:
-            latency = latency if latency in ("auto", None) else float(latency)
             table, s_info = streams.reduce_stream(table, q_cols, pose, mode=args.mode, latency=latency,
                                                   v_tol=args.settle_speed, min_settle_s=args.settle_time,
                                                   quat_cols=quat or None, rotvec_cols=rotvec or None)
         except ValueError as err:
             raise LogError(f"{log}: {err}") from None
         if s_info.continuous:
-            lat = "" if s_info.latency_s is None else f", tracker latency {1e3 * s_info.latency_s:.1f} ms " \
-                f"({'estimated' if s_info.latency_estimate_s is not None else 'given'}) taken out"
-            notes.append(f"a continuous stream: {s_info.rows_in} rows -> {s_info.rows_out} settled rows (one per "
-                         f"rest of >= {s_info.min_settle_s:.3g} s below {s_info.v_tol:.3g}/s){lat}; "
-                         f"{s_info.rows_dropped} bad rows dropped first")
+            notes.append(s_info.line())
         notes += list(s_info.notes)
     samples = samples_from_table(table, task=args.task, task_dim=args.task_dim, start=args.start, stop=args.stop,
                                  max_gap="auto" if args.max_gap is None else args.max_gap, source=str(log))

@@ -138,13 +138,7 @@ def read_table_units(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str,
         if suffix == ".csv":
             from selfid_jax.robot.tables import read_csv
 
-            # read raw (pandas would rename a repeated header name: the second q_0 becomes q_0.1)
-            with open(path, encoding="utf-8-sig", errors="replace") as f:
-                head = f.readline()
-            sep = max((",", ";", "\t"), key=head.count)
-            _refuse_duplicates(str(path), [v.strip() for v in head.rstrip("\r\n").split(sep)] if head else [],
-                               "header columns")
-            return read_csv(path)
+            return read_csv(path, lambda names: _refuse_duplicates(str(path), names, "header columns"))
         else:
             df = pd.read_parquet(path)
             _refuse_duplicates(str(path), [str(c) for c in df.columns], "columns")

@@ -147,17 +147,23 @@ class StreamInfo(NamedTuple):
     notes: tuple[str, ...]  # one line each: what was not done and why
 
     def line(self) -> str:
-        """One line for the fit's report, e.g. ``continuous stream: 2050 rows -> 41 settled intervals (...)``."""
+        """One line for the fit's report, e.g. ``a continuous stream: 2050 rows -> 41 settled rows (...)``."""
         if not self.continuous:
             why = ("as asked" if self.mode == "moves" else "not checked" if self.still_fraction is None
                    else f"still fraction {self.still_fraction:.2f} < {CONTINUOUS_STILL_FRACTION}")
             return f"per-move log ({why}): {self.rows_in} rows used as they are"
-        lat = "no tracker shift" if self.latency_s is None else f"tracker shifted by {1e3 * self.latency_s:.1f} ms"
-        if self.latency_estimate_s is not None:
-            lat += f" (estimated latency {1e3 * self.latency_estimate_s:.1f} ms, corr {self.latency_correlation:.2f})"
-        dropped = f", {self.rows_dropped} bad rows dropped" if self.rows_dropped else ""
-        return (f"continuous stream: {self.rows_in} rows -> {self.segments} settled intervals (joint speed < "
-                f"{self.v_tol:.3g}/s for >= {self.min_settle_s:.3g} s{dropped}; {lat})")
+        estimate = self.latency_estimate_s
+        if self.latency_s is not None:
+            how = "given" if estimate is None else "estimated"
+            lat = f", tracker latency {1e3 * self.latency_s:.1f} ms ({how}) taken out"
+        elif estimate is not None:
+            lat = (f", tracker latency estimated {1e3 * estimate:.1f} ms (corr "
+                   f"{self.latency_correlation:.2f}), not taken out")
+        else:
+            lat = ", no tracker shift"
+        return (f"a continuous stream: {self.rows_in} rows -> {self.segments} settled rows (one per rest of >= "
+                f"{self.min_settle_s:.3g} s below {self.v_tol:.3g}/s){lat}; {self.rows_dropped} bad rows dropped "
+                "first")
 
 
 # ------------------------------------------------------------------ helpers

@@ -26,7 +26,7 @@ samples (:func:`selfid_jax.robot.log.samples_from_table`):
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -103,13 +103,17 @@ def parse_columns(spec: str | Path | Mapping[str, str] | None) -> dict[str, str]
     return out
 
 
-def read_csv(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+def read_csv(path: str | Path, check_names: Callable[[list[str]], None] | None = None
+             ) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Columns of a CSV (``name -> 1-D array``: float64 where pandas reads numbers, else text) and the units row's
     ``name -> unit`` ({} if none).
 
     The delimiter is the one of ``,``, ``;`` and tab that splits the header
     most; with ``;`` or tab, a number written ``0,25`` is read as 0.25. A
     first data row whose every non-empty entry is a unit name is the units row.
+    ``check_names`` is called on the header's names as written, before pandas
+    reads the file (pandas renames a repeated name: the second ``q_0`` becomes
+    ``q_0.1``).
     """
     import pandas as pd
 
@@ -118,7 +122,9 @@ def read_csv(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
         header, second = f.readline(), f.readline()
     sep = max((",", ";", "\t"), key=header.count)
     decimal = "," if sep != "," else "."
-    names = [v.strip() for v in header.rstrip("\r\n").split(sep)]
+    names = [v.strip() for v in header.rstrip("\r\n").split(sep)] if header else []
+    if check_names is not None:
+        check_names(names)
     first = [v.strip() for v in second.rstrip("\r\n").split(sep)] if second.strip() else []
     units: dict[str, str] = {}
     if first and any(first) and all(v.lower() in UNIT_NAMES for v in first) and \
