@@ -151,7 +151,7 @@ def _opts(model, iterations, ls_iterations):
     return model.replace(opt=model.opt.replace(**o)) if o else model
 
 
-def _hand_scene(name, B, seed, it, ls, jacobian=None, mjcf_options=False):
+def _hand_scene(name, B, seed, it, ls, jacobian=None, mjcf_options=False, warp=False):
     from selfid_jax.systems.hands import settle
 
     if name == "stewart":
@@ -179,11 +179,13 @@ def _hand_scene(name, B, seed, it, ls, jacobian=None, mjcf_options=False):
         return d.replace(qpos=jnp.asarray(qpos0, d.qpos.dtype), ctrl=c.astype(d.ctrl.dtype))
 
     d0 = jax.jit(jax.vmap(make))(jnp.asarray(ctrl))
-    return Scene(name, mj, lambda _: model, jnp.zeros(B), d0, systems=_hand_systems(name, model), q=ctrl)
+    return Scene(name, mj, lambda _: model, jnp.zeros(B), d0, systems=_hand_systems(name, model, mj if warp else None),
+                 q=ctrl)
 
 
-def _hand_systems(name, model):
-    """``{"mjx": System, "native": System}`` of the hand, the mjx one settling with ``model`` (``mjx.Model``)."""
+def _hand_systems(name, model, warp_mj=None):
+    """``{"mjx": System, "native": System}`` of the hand, the mjx one settling with ``model`` (``mjx.Model``);
+    with ``warp_mj`` (the ``MjModel``) also ``"mjx_warp"``, MJX's ``impl="warp"`` (or why it cannot run here)."""
     import dataclasses
 
     from selfid_jax.systems.hands import settle
@@ -193,12 +195,24 @@ def _hand_systems(name, model):
     else:
         from selfid_jax.systems.hands.model_o_hand import model_o as factory
     mjx_sys, native = factory(backend="mjx"), factory(backend="native")
-    prm = mjx_sys.params
-    if isinstance(prm, settle.SettleParams):
-        prm = dataclasses.replace(prm, model=model)
-    else:  # Model O: (SettleParams, max_tilt)
-        prm = (dataclasses.replace(prm[0], model=model), prm[1])
-    return {"mjx": dataclasses.replace(mjx_sys, params=prm), "native": native}
+
+    def with_model(model):
+        prm = mjx_sys.params
+        if isinstance(prm, settle.SettleParams):
+            prm = dataclasses.replace(prm, model=model)
+        else:  # Model O: (SettleParams, max_tilt)
+            prm = (dataclasses.replace(prm[0], model=model), prm[1])
+        return dataclasses.replace(mjx_sys, params=prm)
+
+    systems = {"mjx": with_model(model), "native": native}
+    if warp_mj is not None:
+        try:
+            import mujoco_warp  # noqa: F401
+
+            systems["mjx_warp"] = with_model(settle.mjx_model(warp_mj, sparse=False, impl="warp"))
+        except Exception as err:  # noqa: BLE001  (not installed, no CUDA device...: the row says why)
+            systems["mjx_warp"] = f"{type(err).__name__}: {err}"[:300]
+    return systems
 
 
 def settle_rates(scene: Scene, reps: int = 2) -> dict:
@@ -207,12 +221,25 @@ def settle_rates(scene: Scene, reps: int = 2) -> dict:
     out, poses = {}, {}
     q = jnp.asarray(scene.q)
     for backend, system in scene.systems.items():
+        if isinstance(system, str):
+            out[f"{backend}_error"] = system
+            continue
         fn = jax.jit(jax.vmap(system.pose))
-        t = time_call(fn, q, reps=reps, stat=min)
+        try:
+            t = time_call(fn, q, reps=reps, stat=min)
+        except Exception as err:
+            if backend != "mjx_warp":
+                raise
+            out[f"{backend}_error"] = f"{type(err).__name__}: {err}"[:300]
+            continue
         poses[backend] = np.asarray(t.out[0])
         out[f"{backend}_poses_per_s"] = q.shape[0] / t.run_s
     out["mjx_time_x_native"] = out["native_poses_per_s"] / out["mjx_poses_per_s"]
+    if "mjx_warp_poses_per_s" in out:
+        out["mjx_warp_time_x_native"] = out["native_poses_per_s"] / out["mjx_warp_poses_per_s"]
     out["max_pose_diff_m"] = float(np.nanmax(np.abs(poses["mjx"] - poses["native"])))
+    if "mjx_warp" in poses:
+        out["warp_max_pose_diff_m"] = float(np.nanmax(np.abs(poses["mjx_warp"] - poses["native"])))
     out["nan_fraction"] = {k: float(np.mean(np.isnan(v[:, 0]))) for k, v in poses.items()}
     return out
 
@@ -438,12 +465,18 @@ def report(res: dict) -> str:
                          f"native {st['native_poses_per_s']:.1f} poses/s: MJX takes {st['mjx_time_x_native']:.2f}x "
                          f"native's time (goal <= 3x); poses differ by <= {st['max_pose_diff_m']:.1e} m; NaN "
                          f"{st['nan_fraction']}")
+            if "mjx_warp_poses_per_s" in st:
+                lines.append(f"  impl='warp': {st['mjx_warp_poses_per_s']:.1f} poses/s, "
+                             f"{st['mjx_warp_time_x_native']:.2f}x native's time; poses differ from native by <= "
+                             f"{st['warp_max_pose_diff_m']:.1e} m")
+            elif "mjx_warp_error" in st:
+                lines.append(f"  impl='warp': not measured: {st['mjx_warp_error']}")
     return "\n".join(lines)
 
 
 def run(scenes=("stewart", "model_o", "articulated"), batch=1000, warm=20, n_native=64, native_steps=20,
         min_time=0.3, iterations=None, ls_iterations=None, jacobian=None, mjcf_options=False, settle=True,
-        stages_table=True, seed=0) -> dict:
+        stages_table=True, seed=0, warp=False) -> dict:
     out = {"device": str(jax.devices()[0].platform), "load": " ".join(f"{x:.2f}" for x in os.getloadavg()),
            "scenes": []}
     with jax.enable_x64(True):
@@ -451,7 +484,7 @@ def run(scenes=("stewart", "model_o", "articulated"), batch=1000, warm=20, n_nat
             if name == "articulated":
                 sc = _articulated_scene(batch, seed, iterations, ls_iterations)
             else:
-                sc = _hand_scene(name, batch, seed, iterations, ls_iterations, jacobian, mjcf_options)
+                sc = _hand_scene(name, batch, seed, iterations, ls_iterations, jacobian, mjcf_options, warp)
             rec = profile(sc, warm, n_native, native_steps, min_time, stages_table=stages_table)
             if sc.systems is not None and settle:
                 rec["settle"] = settle_rates(sc)
@@ -476,10 +509,13 @@ def main():
                     help="MJX hands: the MJCF's solver options and a dense mass matrix, not settle.mjx_model's")
     ap.add_argument("--no-settle", action="store_true", help="hands: skip the settled-poses/s comparison")
     ap.add_argument("--no-stages", action="store_true", help="whole steps only, no MJX stage rows (a quick run)")
+    ap.add_argument("--warp", action="store_true",
+                    help="hands: also settle with MJX's impl='warp' (mujoco-warp, an NVIDIA GPU), side by side")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     res = run(args.scenes, args.batch, args.warm, args.native, args.native_steps, args.min_time, args.iterations,
-              args.ls_iterations, args.jacobian, args.mjcf_options, not args.no_settle, not args.no_stages)
+              args.ls_iterations, args.jacobian, args.mjcf_options, not args.no_settle, not args.no_stages,
+              warp=args.warp)
     emit(res, "", args.json)
 
 

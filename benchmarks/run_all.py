@@ -16,8 +16,15 @@ The record is rewritten after each benchmark (so a stopped or failed run keeps w
 is a row of its own and the others still run); ``--resume`` runs only those the record lacks.
 
 On a machine with a GPU the same command measures there (the scripts use
-JAX's default device); ``--gpu-scale`` raises the sizes to 100,000 rollouts,
-1,000,000 estimators and 200 articulated objects.
+JAX's default device, and each row names it); ``--gpu-scale`` raises the sizes
+to 1,000,000 estimators (and the step against the device's bandwidth bound),
+100,000 rollouts, the paper-protocol UR5e valid-region map and the whole
+``_full`` map and ablation as whole processes, the hands' MJX settling at batch
+10,000 (with ``impl="warp"`` beside it where ``mujoco-warp`` imports) and 200
+articulated objects, and skips the rows that measure the CPU itself (each with
+its reason, :data:`CPU_ONLY`). ``--budget S`` starts no script after ``S``
+seconds and gives each the time left (``benchmarks/gpu.sh`` runs it with 420).
+``--plan`` prints what would run, with which arguments, and exits.
 """
 
 from __future__ import annotations
@@ -36,8 +43,22 @@ from timing import run_process
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-BENCHMARKS = ("estimator", "estimator_2dev", "rls_floor", "rollouts", "refine", "valid_region", "ablation",
-              "articulated", "scaling", "demo_cold", "compile_time", "mjx_profile", "test_suite")
+BENCHMARKS = ("estimator", "estimator_2dev", "bandwidth", "rls_floor", "rollouts", "refine", "valid_region",
+              "ablation", "articulated", "scaling", "demo_cold", "compile_time", "mjx_profile", "test_suite")
+
+#: The GPU plan's order: the short rows first, the whole ``_full`` sweeps (the longest) last.
+GPU_ORDER = ("estimator", "bandwidth", "rollouts", "refine", "articulated", "mjx_profile", "scaling", "valid_region",
+             "ablation")
+
+#: Rows ``--gpu-scale`` skips, and why: each measures the CPU itself, not the programs users scale.
+CPU_ONLY = {
+    "estimator_2dev": "splits the batch over two forced host devices (the CPU's two cores)",
+    "rls_floor": "the 2-core CPU's RLS floor and host-dispatch latency (issue 27); the bandwidth row measures the "
+                 "step's bound on the device instead",
+    "demo_cold": "the demo's 20 s cold start is a goal for a 2-core CPU without a GPU",
+    "compile_time": "XLA CPU compile-time goals (the CPU backend's LLVM level)",
+    "test_suite": "the test suite runs on the CPU, in CI",
+}
 
 
 def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 900) -> tuple[dict, float]:
@@ -52,12 +73,12 @@ def _script(name: str, args: list[str], env: dict | None = None, timeout: int = 
         return json.loads(out.read_text()), wall
 
 
-def collect(skip=(), gpu_scale=False, done: dict | None = None, save=None) -> dict:
-    """Run each benchmark not in ``skip`` nor already in ``done`` (a previous run's records, kept); ``save(res)``
-    after each, so an interrupted or failed run keeps what finished. A script that fails is recorded with its
-    error and the rest still run."""
+def plans(gpu_scale: bool = False) -> dict[str, tuple[str, list[str], dict | None]]:
+    """``{benchmark: (script, arguments, extra environment)}`` at the small (CPU) or the GPU scale; the GPU plan
+    lacks the :data:`CPU_ONLY` rows."""
     batch_est, batch_roll = (1_000_000, 100_000) if gpu_scale else (10_000, 10_000)
-    plans = {
+    whole = "1000000"  # chunks: more than any _full config has, so the whole config runs
+    plans: dict[str, tuple[str, list[str], dict | None]] = {
         "estimator": ("estimator", ["--batch", str(batch_est), "--steps", "50", "--reps", "3", "--rounds", "2"], None),
         "estimator_2dev": ("estimator", ["--batch", str(batch_est), "--steps", "50", "--reps", "3", "--rounds", "2",
                                          "--shard"],
@@ -71,30 +92,66 @@ def collect(skip=(), gpu_scale=False, done: dict | None = None, save=None) -> di
         "compile_time": ("compile_time", ["--configs", "valid_region_two_link", "valid_region_ur5e",
                                           "tracking_ur5e_cube", "tracking_peg_in_hole", "design_all"], None),
         "refine": ("refine", ["--batch", "2000", "--slsqp", "20"], None),
-        "valid_region": ("valid_region", ["--full-chunks", "1"], None),
-        "ablation": ("ablation", ["--full-chunks", "1"], None),
+        "valid_region": ("valid_region", ["--full-chunks", whole, "--no-warm-full"] if gpu_scale
+                         else ["--full-chunks", "1"], None),
+        "ablation": ("ablation", ["--full-chunks", whole if gpu_scale else "1"], None),
         "articulated": ("articulated", ["--batch", "200" if gpu_scale else "8", "--steps", "100"], None),
         "mjx_profile": ("mjx_profile", ["--scenes", "stewart", "--no-stages", "--native", "16", "--native-steps", "10",
-                                        "--batch", "10000" if gpu_scale else "500"], None),
+                                        "--batch", "10000" if gpu_scale else "500"] + (["--warp"] if gpu_scale else []),
+                        None),
         "test_suite": ("suite_time", ["--tiers", "fast", "whole", "--shipped"], None),
+        "bandwidth": ("bandwidth", ["--batch", str(batch_est), "--copy-mib", "2048" if gpu_scale else "256"], None),
     }
-    if gpu_scale:
-        plans.pop("estimator_2dev")
+    order = GPU_ORDER if gpu_scale else [k for k in BENCHMARKS if k in plans]
+    return {k: plans[k] for k in order}
+
+
+def collect(skip=(), gpu_scale=False, done: dict | None = None, save=None, budget_s: float | None = None) -> dict:
+    """Run each benchmark not in ``skip`` nor already in ``done`` (a previous run's records, kept); ``save(res)``
+    after each, so an interrupted or failed run keeps what finished. A script that fails is recorded with its
+    error and the rest still run. ``budget_s``: start no script after that many seconds and give each at most
+    the time left (a script stopped at it is a failed row); those not started are recorded as skipped."""
+    t_start = time.perf_counter()
     res = dict(done or {})
-    for key, (script, args, env) in plans.items():
+    if gpu_scale:
+        for key, why in CPU_ONLY.items():
+            res.setdefault(key, {"skipped": f"a CPU row: {why}"})
+    device = _default_device()
+    for key in plans(gpu_scale):
+        if key in skip and key not in res:
+            res[key] = {"skipped": "--skip", "device": device}
+    for key, (script, args, env) in plans(gpu_scale).items():
         if key in skip or key in res:
             continue
-        print(f"== {key}", flush=True)
+        timeout = 3600 if key in ("compile_time", "test_suite") else 900
+        if budget_s is not None:
+            left = budget_s - (time.perf_counter() - t_start)
+            if left < 10:
+                res[key] = {"skipped": f"the time budget of {budget_s:.0f} s was spent", "device": device}
+                print(f"== {key} skipped: budget spent", flush=True)
+                continue
+            timeout = int(min(timeout, left))
+        print(f"== {key} ({device})", flush=True)
         t0 = time.perf_counter()
         try:
-            data, wall = _script(script, args, env, timeout=3600 if key in ("compile_time", "test_suite") else 900)
-            res[key] = {"result": data, "script_wall_s": wall}
+            data, wall = _script(script, args, env, timeout=timeout)
+            res[key] = {"result": data, "script_wall_s": wall, "device": device}
         except (RuntimeError, subprocess.TimeoutExpired) as err:
             print(f"== {key} FAILED: {str(err)[-2000:]}", flush=True)
-            res[key] = {"error": str(err)[-4000:], "script_wall_s": time.perf_counter() - t0}
+            res[key] = {"error": str(err)[-4000:], "script_wall_s": time.perf_counter() - t0, "device": device}
         if save is not None:
             save(res)
     return res
+
+
+def _default_device() -> str:
+    """JAX's default device here, as ``"platform (kind)"``: what each script's computations run on."""
+    import jax
+
+    import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
+
+    d = jax.devices()[0]
+    return f"{d.platform} ({d.device_kind})"
 
 
 def _row(rows, what, value, unit, goal, met, note=""):
@@ -102,11 +159,25 @@ def _row(rows, what, value, unit, goal, met, note=""):
 
 
 def table(res: dict) -> list[dict]:
+    """One row per figure, benchmark by benchmark in :data:`BENCHMARKS` order, each with the ``device`` its
+    script ran on (a failed or skipped benchmark is one row saying so)."""
     rows: list[dict] = []
-    for key, r in res.items():
-        if "error" in r:
-            _row(rows, f"{key}: the script failed", None, "", "", False, r["error"].strip().splitlines()[-1][:200])
-    res = {k: r for k, r in res.items() if "error" not in r}
+    for key in [k for k in BENCHMARKS if k in res] + [k for k in res if k not in BENCHMARKS]:
+        r = res[key]
+        if "skipped" in r:
+            part = [{"benchmark": f"{key}: skipped", "value": None, "unit": "", "goal": "", "met": None,
+                     "note": r["skipped"]}]
+        elif "error" in r:
+            part = [{"benchmark": f"{key}: the script failed", "value": None, "unit": "", "goal": "", "met": False,
+                     "note": r["error"].strip().splitlines()[-1][:200]}]
+        else:
+            part = _rows({key: r})
+        rows += [{**row, "device": r.get("device", "")} for row in part]
+    return rows
+
+
+def _rows(res: dict) -> list[dict]:
+    rows: list[dict] = []
     for key in ("estimator", "estimator_2dev"):
         if key not in res:
             continue
@@ -123,6 +194,13 @@ def table(res: dict) -> list[dict]:
             _row(rows, "  ... against the 64-sample buffer (before)", ours["steps_per_s"] / before["steps_per_s"],
                  "x before", "", None,
                  f"before {before['steps_per_s']:.1f} steps/s = {before['ratio_to_rls']:.3f}x RLS")
+    if "bandwidth" in res:
+        r = res["bandwidth"]["result"]
+        t = r["traffic"]
+        _row(rows, f"self-ID step against the bandwidth bound ({r['batch']} estimators, {r['device']})",
+             r["fraction_of_bound"], "x bound", ">= 0.25", r["fraction_of_bound"] >= 0.25,
+             f"{r['estimator_steps_per_s']:.3g} estimator-steps/s; {t['bytes_per_step']} B per estimator and sample "
+             f"({r['xla_bytes_per_step'] or 0:.0f} B as XLA counts); copy {r['copy_bandwidth_gb_s']:.0f} GB/s")
     if "rls_floor" in res:
         r = res["rls_floor"]["result"]
         new, old = r["rows"]["new step, block"], r["rows"]["old full step"]
@@ -259,6 +337,8 @@ def table(res: dict) -> list[dict]:
 
 
 def _fmt(v):
+    if v is None:
+        return "-"
     if isinstance(v, float):
         return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.3e}"
     return str(v)
@@ -267,13 +347,13 @@ def _fmt(v):
 def render(rows: list[dict], markdown: bool = False) -> str:
     status = {True: "met", False: "NOT met", None: ""}
     if markdown:
-        lines = ["| benchmark | value | unit | goal | status | note |", "|---|---|---|---|---|---|"]
-        lines += [f"| {r['benchmark']} | {_fmt(r['value'])} | {r['unit']} | {r['goal']} | {status[r['met']]} | "
-                  f"{r['note']} |" for r in rows]
+        lines = ["| benchmark | device | value | unit | goal | status | note |", "|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['benchmark']} | {r.get('device', '')} | {_fmt(r['value'])} | {r['unit']} | {r['goal']} | "
+                  f"{status[r['met']]} | {r['note']} |" for r in rows]
         return "\n".join(lines)
-    lines = [f"{'benchmark':64s} {'value':>10s} {'unit':16s} {'goal':9s} {'status':8s} note"]
-    lines += [f"{r['benchmark'][:64]:64s} {_fmt(r['value']):>10s} {r['unit']:16s} {r['goal']:9s} "
-              f"{status[r['met']]:8s} {r['note']}" for r in rows]
+    lines = [f"{'benchmark':64s} {'device':14s} {'value':>10s} {'unit':16s} {'goal':9s} {'status':8s} note"]
+    lines += [f"{r['benchmark'][:64]:64s} {r.get('device', '')[:14]:14s} {_fmt(r['value']):>10s} {r['unit']:16s} "
+              f"{r['goal']:9s} {status[r['met']]:8s} {r['note']}" for r in rows]
     return "\n".join(lines)
 
 
@@ -282,15 +362,27 @@ def main():
     ap.add_argument("--out", default=str(HERE / "results.json"))
     ap.add_argument("--skip", nargs="*", default=[], choices=BENCHMARKS)
     ap.add_argument("--markdown", action="store_true", help="also print the table as Markdown (the README table)")
-    ap.add_argument("--gpu-scale", action="store_true", help="100,000 rollouts and 1,000,000 estimators")
+    ap.add_argument("--gpu-scale", action="store_true",
+                    help="the GPU plan: 1,000,000 estimators, 100,000 rollouts, whole _full sweeps; no CPU rows")
+    ap.add_argument("--budget", type=float, default=None, help="seconds: start no benchmark after this")
+    ap.add_argument("--plan", action="store_true", help="print the benchmarks that would run, and exit")
     ap.add_argument("--resume", action="store_true",
                     help="keep the benchmarks --out already holds (those that did not fail) and run the others")
     args = ap.parse_args()
+    if args.plan:
+        for key, (script, script_args, env) in plans(args.gpu_scale).items():
+            if key not in args.skip:
+                extra = " ".join(f"{k}={v!r}" for k, v in (env or {}).items())
+                print(f"{key:15s} {extra + ' ' if extra else ''}python benchmarks/{script}.py {' '.join(script_args)}")
+        for key, why in (CPU_ONLY.items() if args.gpu_scale else ()):
+            print(f"{key:15s} skipped: {why}")
+        return
     t0 = time.perf_counter()
     out = Path(args.out)
     done = {}
     if args.resume and out.exists():
-        done = {k: r for k, r in json.loads(out.read_text())["benchmarks"].items() if "error" not in r}
+        done = {k: r for k, r in json.loads(out.read_text())["benchmarks"].items()
+                if "error" not in r and "skipped" not in r}
         print(f"resuming: {', '.join(done) or 'nothing'} kept from {out}", flush=True)
     started = time.strftime("%Y-%m-%d %H:%M:%S")
 
@@ -308,7 +400,7 @@ def main():
         tmp.write_text(json.dumps(record, indent=2, default=str))
         os.replace(tmp, out)  # whole or not at all
 
-    res = collect(set(args.skip), args.gpu_scale, done, save)
+    res = collect(set(args.skip), args.gpu_scale, done, save, args.budget)
     save(res)
     rows = table(res)
     print()

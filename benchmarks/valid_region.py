@@ -44,13 +44,15 @@ def _overrides(path: Path, full_chunks: int):
 
 def run(configs=(ROOT / "configs/valid_region/valid_region_ur5e.yaml",
                  ROOT / "configs/valid_region/valid_region_ur5e_full.yaml"),
-        full_chunks: int = 2, warm: bool = True) -> dict:
+        full_chunks: int = 2, warm: bool = True, warm_full: bool = True) -> dict:
+    """Cold (and ``warm``) whole-process runs of each config; ``_full`` configs cut to ``full_chunks`` chunks (a
+    number above their chunk count runs them whole) and run warm only if ``warm_full``."""
     res = {}
     for path in map(Path, configs):
         overrides, n_full = _overrides(path, full_chunks)
         with tempfile.TemporaryDirectory() as cache:
             entry = {"cold": measure(path, cache, overrides)}
-            if warm:
+            if warm and (warm_full or not path.stem.endswith("_full")):
                 entry["warm"] = measure(path, cache, overrides)
         entry["rows_full"] = n_full
         if overrides:
@@ -82,10 +84,12 @@ def main():
     ap.add_argument("--configs", nargs="+", default=[str(ROOT / "configs/valid_region/valid_region_ur5e.yaml"),
                                                      str(ROOT / "configs/valid_region/valid_region_ur5e_full.yaml")])
     ap.add_argument("--full-chunks", type=int, default=2,
-                    help="run only this many chunks of configs named *_full (projects the total)")
+                    help="run only this many chunks of configs named *_full (projects the total); more than the "
+                         "config has: the whole config")
+    ap.add_argument("--no-warm-full", action="store_true", help="run *_full configs cold only")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    res = run(args.configs, args.full_chunks)
+    res = run(args.configs, args.full_chunks, warm_full=not args.no_warm_full)
     print(report(res))
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=2, default=str))

@@ -71,8 +71,8 @@ SETTLE_LS_ITERATIONS = 4
 
 
 def mjx_model(mj, *, iterations: int | None = SETTLE_ITERATIONS, ls_iterations: int | None = SETTLE_LS_ITERATIONS,
-              sparse: bool | None = None):
-    """``mjx.put_model`` (JAX implementation) of ``mj`` set up for settling, arrays in the current default float dtype.
+              sparse: bool | None = None, impl: str = "jax"):
+    """``mjx.put_model`` of ``mj`` (``impl``, JAX's by default) set up for settling, arrays in the default float dtype.
 
     A settle wants the equilibrium, not each step's exact constraint force, and
     MJX under ``vmap`` pays for solver work native MuJoCo skips
@@ -97,6 +97,8 @@ def mjx_model(mj, *, iterations: int | None = SETTLE_ITERATIONS, ls_iterations: 
         are trees of short chains, so the factorisation is nearly free);
         False: dense; None: sparse on a CPU default backend, else the MJCF's
         setting (MJX's ``auto``: dense below 60 dofs, its advice for GPUs).
+      impl: MJX's implementation, ``"jax"`` (default; runs on any JAX backend) or ``"warp"`` (NVIDIA GPUs,
+        needs the ``mujoco-warp`` package).
 
     Returns:
       ``mjx.Model``.
@@ -110,7 +112,7 @@ def mjx_model(mj, *, iterations: int | None = SETTLE_ITERATIONS, ls_iterations: 
     if sparse is not None:
         mj = copy.copy(mj)
         mj.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE if sparse else mujoco.mjtJacobian.mjJAC_DENSE
-    model = _mjx().put_model(mj, impl="jax")
+    model = _mjx().put_model(mj, impl=impl)
     opt = {}
     if iterations is not None:
         opt["iterations"] = int(iterations)
