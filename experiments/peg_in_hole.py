@@ -23,7 +23,8 @@ self-ID convergence iterations of both and whether the peg ended within the
 insertion tolerance.
 
 What is simulated: kinematics (the closed-chain Model O equilibrium, the
-UR5e chain), actuator limits, tracker noise. What is not: contact between the
+UR5e chain), actuator limits, tracker noise (on every reading of both self-IDs
+and of the three motions). What is not: contact between the
 peg and the hole, the grasp itself (the peg is in the hand from the start),
 slip of the peg in the grasp, and the arm's dynamics. The paper rotates its
 peg to perpendicular; our Model O model's safe tilt range is 15 degrees, so
@@ -140,8 +141,13 @@ class Static(NamedTuple):
     hand_steps: int
     insert_tol_mm: float
     insert_rot_tol_deg: float
-    max_latency: int | None = None  # with realism: the tracker's history length - 1 [steps]; None: the ideal loop
+    # the motions' tracker history length - 1 [steps] (with realism; without, 0 if level_noise); None: the ideal
+    # loop, which reads exact poses
+    max_latency: int | None = None
     max_settle: int = 1  # with realism: the longest self-ID settle [steps]
+    # some level has pose_noise or rot_noise > 0: the motions read it too (False: the program of a config without
+    # noise levels is the one it always was)
+    level_noise: bool = False
 
 
 class Params(NamedTuple):
@@ -185,8 +191,15 @@ class Outputs(NamedTuple):
 
 
 def compute(static: Static, p: Params) -> Outputs:
-    """The five phases from ``p.q_arm``, with the self-ID estimates and with the true inverse Jacobians (under
-    ``p.realism`` where given: both self-IDs and the three motions, :mod:`selfid_jax.control.realism`)."""
+    """The five phases from ``p.q_arm``, with the self-ID estimates and with the true inverse Jacobians.
+
+    Both self-IDs and the three motions read one tracker
+    (:func:`selfid_jax.control.realism.with_tracker_noise`): the noise level's
+    ``p.pose_noise`` [m] and ``p.rot_noise`` [rad] on every reading, and under
+    ``p.realism`` where given its latency, dropouts and servo too
+    (:mod:`selfid_jax.control.realism`). Each motion draws from its own
+    ``fold_in`` of its lane's key, apart from the self-IDs' draws.
+    """
     system = static.system
     k_arm, k_est, k_true = jax.random.split(jax.random.wrap_key_data(jnp.asarray(p.key)), 3)
     arm0 = compose.arm_part(system, p.q_hand)
@@ -197,8 +210,12 @@ def compute(static: Static, p: Params) -> Outputs:
                                                 rot_noise=p.rot_noise, **real)
     zeros3 = jnp.zeros((3,), p.grasp.dtype)
 
+    sensed = p.realism  # what the tracker adds to the poses the motions read
+    if static.level_noise:
+        sensed = realism_lib.with_tracker_noise(p.realism, p.pose_noise, p.rot_noise)
+
     def follow(part, src, path, q, ctrl, steps, key):
-        return control.follow(part, src, path, q, ctrl, steps=steps, realism=p.realism, key=key,
+        return control.follow(part, src, path, q, ctrl, steps=steps, realism=sensed, key=key,
                               max_latency=static.max_latency)
 
     def pipeline(use_true, key):
@@ -288,6 +305,8 @@ def _build(cfg: PegConfig) -> Part:
     )
     static = Static(system, jnp.asarray(rotation), cfg.arm.iters, cfg.hand.iters, cfg.arm.controller.steps,
                     cfg.hand.controller.steps, 1e3 * cfg.insert_tol, cfg.insert_rot_tol_deg)
+    if any(v > 0 for v in (*cfg.pose_noise, *cfg.rot_noise)):  # the motions read the noisy tracker too
+        static = static._replace(level_noise=True, max_latency=0)
     if cfg.realism is not None:
         rows = cfg.realism.rows(meta)
         params = params._replace(realism=rows.realism, settle=rows.settle)

@@ -1,10 +1,12 @@
 """Tracking (paper Sec. V-B to V-F, Tables I-II): self-ID on a system, then a path with the estimate and the truth.
 
 Every row of the grid (start configuration x trial x tracker-noise level)
-runs Algorithm 1 on the system (with Gaussian tracker noise on every pose
-reading), then follows the path (letters, a cube's 12 edges or a star) from
-where self-ID left the robot, once with the final estimate and once with the
-true ("analytical") inverse Jacobian, recording the trajectory. Metrics per
+runs Algorithm 1 on the system, then follows the path (letters, a cube's 12
+edges or a star) from where self-ID left the robot, once with the final
+estimate and once with the true ("analytical") inverse Jacobian, recording
+the trajectory. Self-ID and the follow loop read one tracker: the level's
+Gaussian noise is on every pose reading of both (and a ``realism`` section's
+latency and dropouts too); the metrics are of the true pose. Metrics per
 rollout and inverse Jacobian: the mean per-axis distance of the POM to the
 commanded path over the steps used (x, y, z, mm, Table I), the waypoint error
 (mm), completion, the final orientation error (deg, Table II; 0 for position
@@ -149,9 +151,14 @@ class Static(NamedTuple):
     path: jax.Array  # (L, W, task_dim) waypoint offsets, one path per letter (L = 1 unless kind 'letters')
     iters: int
     steps: int
-    max_latency: int | None = None  # with realism: the tracker's history length - 1 [steps]; None: the ideal loop
+    # the follow loop's tracker history length - 1 [steps] (with realism; without, 0 if level_noise); None: the
+    # ideal loop, which reads exact poses
+    max_latency: int | None = None
     max_settle: int = 1  # with realism: the longest self-ID settle [steps]
     plant: realism_lib.Plant | None = None  # with realism.plant 'dynamic': the arm's physics; None: kinematic
+    # some level has pose_noise or rot_noise > 0: the follow loop reads it too (False: the program of a config
+    # without noise levels is the one it always was)
+    level_noise: bool = False
 
 
 class Params(NamedTuple):
@@ -190,9 +197,14 @@ class Outputs(NamedTuple):
 def compute(static: Static, p: Params) -> Outputs:
     """Self-ID from ``p.q0`` with tracker noise, then the path with the estimate and with the truth.
 
-    With a realism section (``p.realism``) both run the real loop
-    (:mod:`selfid_jax.control.realism`); the two paths see the same tracker
-    noise and dropout draws.
+    Both read one tracker (:func:`selfid_jax.control.realism.with_tracker_noise`):
+    the noise level's ``p.pose_noise`` [m] and ``p.rot_noise`` [rad] on every
+    self-ID reading and every pose the follow loop reads, and with a realism
+    section (``p.realism``) its latency, dropouts and servo too
+    (:mod:`selfid_jax.control.realism`). Self-ID draws from the row's key, the
+    follow loop from ``fold_in(key, 1)``; the two paths see the same tracker
+    noise and dropout draws. Without realism and without noise on any level
+    (``static.level_noise`` False) the follow loop reads exact poses.
     """
     system = static.system
     key = jax.random.wrap_key_data(jnp.asarray(p.key))
@@ -213,9 +225,13 @@ def compute(static: Static, p: Params) -> Outputs:
         w = geometry.so3_log(R_g @ jnp.swapaxes(R, -1, -2))[..., jnp.asarray(rot)]
         return jnp.degrees(jnp.sqrt(jnp.sum(w * w, axis=-1)))
 
+    sensed = p.realism  # what the tracker adds to the poses the follow loop reads
+    if static.level_noise:
+        sensed = realism_lib.with_tracker_noise(p.realism, p.pose_noise, p.rot_noise)
+
     def track(jinv):
         res = control.follow(system, jinv, path, q_start, p.controller, steps=static.steps,
-                             return_trajectory=True, realism=p.realism, key=follow_key,
+                             return_trajectory=True, realism=sensed, key=follow_key,
                              max_latency=static.max_latency, plant=static.plant)
         used = jnp.arange(res.positions.shape[0]) <= res.steps_used  # the steps taken, and where they ended
         dtype = res.positions.dtype
@@ -278,6 +294,8 @@ def _build(cfg: TrackingConfig) -> Part:
         controller=controller_rows(cfg.controller, n),
     )
     static = Static(system, path, cfg.iters, cfg.controller.steps)
+    if any(v > 0 for v in (*cfg.pose_noise, *cfg.rot_noise)):  # the follow loop reads the noisy tracker too
+        static = static._replace(level_noise=True, max_latency=0)
     if cfg.realism is not None:
         rows = cfg.realism.rows(meta)
         params = params._replace(realism=rows.realism, settle=rows.settle)

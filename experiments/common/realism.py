@@ -30,7 +30,7 @@ def self_identify(system, key, q0, *, iters: int, eps, eps_rel, m_a, pose_noise,
     """Algorithm 1 on ``system`` from ``q0 (n,)``: ``(result, dropouts)``, ``result.env`` the final ``(n,)`` q.
 
     ``realism=None``: :func:`selfid_jax.identify.algorithm.run` (tracker noise
-    ``pose_noise`` [m], ``rot_noise`` [rad] on self-ID readings only) and
+    ``pose_noise`` [m], ``rot_noise`` [rad] on every self-ID reading) and
     ``dropouts`` None. Otherwise each sample runs under ``realism``
     (:func:`selfid_jax.control.realism.self_id_sampler`: ``settle`` control
     steps between the command and the second reading, traced under the static

@@ -354,7 +354,7 @@ class SelfIdRealismConfig(RealismConfig):
     reads again (:func:`selfid_jax.control.realism.self_id_sampler`).
     ``realism.noise_pos`` / ``noise_rot`` are the tracker's noise on every
     reading, self-ID and path following; the experiment's ``pose_noise`` /
-    ``rot_noise`` (self-ID readings only) must then stay 0.
+    ``rot_noise`` (the same tracker's noise, level by level) must then stay 0.
     """
 
     settle: Annotated[list[Annotated[int, Field(ge=1, le=1000)]], Field(min_length=1, max_length=1000)] = Field(
@@ -373,22 +373,23 @@ class SelfIdRealismConfig(RealismConfig):
 
 
 def check_realism_noise(realism: RealismConfig | None, pose_noise: list, rot_noise: list, where: str = "") -> None:
-    """``ValueError`` if both the ``realism`` tracker noise and the self-ID-only noise lists are set (two sources of
-    one number)."""
+    """``ValueError`` if both the ``realism`` tracker noise and the noise-level lists are set (two sources of one
+    number)."""
     if realism is None:
         return
     for own, other in (("noise_pos", pose_noise), ("noise_rot", rot_noise)):
         if any(v > 0 for v in getattr(realism, own)) and any(v > 0 for v in other):
             name = "pose_noise" if own == "noise_pos" else "rot_noise"
             raise ValueError(f"{where}realism.{own} is the tracker noise of every reading (self-ID and path "
-                             f"following); leave {where}{name} (self-ID readings only) at [0.0] when it is set")
+                             f"following); leave {where}{name} (the same tracker's noise, level by level) at [0.0] "
+                             f"when it is set")
 
 
 PoseNoise = Annotated[list[Annotated[float, Field(ge=0, le=0.1)]], Field(min_length=1)]
-"""Tracker position noise sd per level [m], on self-ID readings: one or more values in [0, 0.1]."""
+"""Tracker position noise sd per level [m]: one or more values in [0, 0.1]."""
 
 RotNoise = Annotated[list[Annotated[float, Field(ge=0, le=1.0)]], Field(min_length=1)]
-"""Tracker rotation noise sd per level [rad], on self-ID readings: one or more values in [0, 1]."""
+"""Tracker rotation noise sd per level [rad]: one or more values in [0, 1]."""
 
 
 NOISE_COLUMNS = {
@@ -400,19 +401,22 @@ NOISE_COLUMNS = {
 
 
 class TrackerNoiseConfig(BaseModel):
-    """The tracker's noise on self-ID readings, level by level, and the real loop's non-idealities.
+    """The tracker's noise on every reading, level by level, and the real loop's non-idealities.
 
     ``pose_noise[i]`` and ``rot_noise[i]`` form noise level ``i`` (the lists
-    pair up); a ``realism`` section adds the real loop on every self-ID and
-    motion, whose own tracker noise then replaces these
-    (:func:`check_realism_noise`). A base of the configs of the experiments
+    pair up), on every tracker reading of self-ID and of the motions
+    (:func:`selfid_jax.control.realism.with_tracker_noise`); a ``realism``
+    section adds the real loop on every self-ID and motion, whose own tracker
+    noise then replaces these (:func:`check_realism_noise`). A base of the configs of the experiments
     that self-identify and then move (``tracking``, ``peg_in_hole``).
     """
 
     model_config = STRICT
 
-    pose_noise: PoseNoise = Field([0.0], description="tracker position noise sd per level, self-ID readings [m]")
-    rot_noise: RotNoise = Field([0.0], description="tracker rotation noise sd per level, self-ID readings [rad]")
+    pose_noise: PoseNoise = Field([0.0], description="tracker position noise sd per level, every reading "
+                                     "(self-ID and following) [m]")
+    rot_noise: RotNoise = Field([0.0], description="tracker rotation noise sd per level, every reading "
+                                   "(self-ID and following) [rad]")
     realism: SelfIdRealismConfig | None = Field(
         None, description="the real loop's non-idealities, on every self-ID and motion (default: the ideal loop)")
 

@@ -48,7 +48,8 @@ overshoot as the servo gains and masses make them.
 
 Functions (pure, jit- and vmap-able): :func:`servo` (one control step of the
 actuators), :func:`tracker` / :func:`push` / :func:`read` (the tracker's
-history and its readings), and :func:`self_id_sampler`, Algorithm 1's
+history and its readings; :func:`with_tracker_noise` adds an experiment's
+noise levels to them), and :func:`self_id_sampler`, Algorithm 1's
 move-then-observe sample under these effects (an ``observe`` for
 :func:`selfid_jax.identify.algorithm.self_identify`). The follow loop uses them
 in :func:`selfid_jax.control.loop.follow_law` (its ``realism`` argument).
@@ -67,7 +68,7 @@ from selfid_jax.math.geometry import noisy_pose
 
 __all__ = ["Realism", "IDEAL", "Plant", "SelfIdEnv", "Tracker", "check_max_latency", "check_plant", "check_realism",
            "dynamic_plant", "latency_bound", "push", "read", "self_id_sampler", "servo", "servo_gain", "servo_plant",
-           "tracker"]
+           "tracker", "with_tracker_noise"]
 
 
 class Realism(NamedTuple):
@@ -245,6 +246,19 @@ class Tracker(NamedTuple):
     held_R: jax.Array  # (3, 3) last good reading's orientation
 
 
+def with_tracker_noise(r: Realism | None, pose_noise=0.0, rot_noise=0.0) -> Realism:
+    """``r`` (:data:`IDEAL` if None) with ``pose_noise`` [m] and ``rot_noise`` [rad] added to its tracker noise.
+
+    The one tracker the experiments' self-ID samples and path following both
+    read: an experiment's noise levels (``pose_noise``, ``rot_noise``) and a
+    ``realism`` section's ``noise_pos``, ``noise_rot`` (configs set at most
+    one of each pair) are the sd of one reading. Pure; every argument may be
+    traced. Zero noise leaves ``r``'s values as they were, bit for bit.
+    """
+    r = IDEAL if r is None else r
+    return r._replace(noise_pos=pose_noise + r.noise_pos, noise_rot=rot_noise + r.noise_rot)
+
+
 def tracker(pose0, max_latency: int) -> Tracker:
     """A tracker whose history is ``max_latency + 1`` copies of ``pose0 = (p (3,), R (3, 3))`` (at rest before
     the start), which is also its last good reading. ``max_latency`` is static."""
@@ -321,8 +335,9 @@ def self_id_sampler(system, r: Realism, q0, *, pose_noise=0.0, rot_noise=0.0, se
     ``V`` NaN: the estimator rejects the sample and counts it
     (``state.rejected``) and the sampler counts the dropout
     (``env.dropouts``). Tracker noise per reading: ``pose_noise +
-    r.noise_pos`` [m] and ``rot_noise + r.noise_rot`` [rad] (the self-ID-only
-    noise of :func:`selfid_jax.identify.algorithm.run` plus the tracker's own;
+    r.noise_pos`` [m] and ``rot_noise + r.noise_rot`` [rad]
+    (:func:`with_tracker_noise`: the noise of
+    :func:`selfid_jax.identify.algorithm.run` plus the tracker's own;
     configs set at most one of each pair), with the keys that ``run`` uses,
     so under :data:`IDEAL` with ``settle = 1`` each sample is ``run``'s, bit
     for bit. With ``settle <= latency`` the after-reading still shows the
@@ -343,7 +358,7 @@ def self_id_sampler(system, r: Realism, q0, *, pose_noise=0.0, rot_noise=0.0, se
     if isinstance(max_settle, bool) or not isinstance(max_settle, (int, np.integer)) or max_settle < 1:
         raise ValueError(f"max_settle: expected a positive integer, got {max_settle!r}")
     max_settle = int(max_settle)
-    sensed = r._replace(noise_pos=pose_noise + r.noise_pos, noise_rot=rot_noise + r.noise_rot)
+    sensed = with_tracker_noise(r, pose_noise, rot_noise)
     q0 = jnp.asarray(q0, jnp.result_type(float))
     settle = jnp.clip(jnp.asarray(settle).astype(jnp.int32), 1, max_settle)
 
