@@ -13,12 +13,18 @@ jerk [s^-3], path deviation (gripper to handle) [mm], mean and max contact
 deviation [mm], steps with an invalid contact set (Eq. 11-12), slips and
 non-finite states (counted, never NaN).
 
+Objects: per-kind counts, or ``objects.paper: n`` in the seed's proportions
+(Sec. 4.1: 1/4 drawers, 1/4 doors, 1/2 Bezier tracks of orders 2-5; the seed
+has no cranks in simulation). Eq. 2 threshold: fixed (``pads.contact_eps``,
+the default) or the seed's rule (``pads.contact_rule: paper``, Sec. 5.1:
+exactly ``pads.contact_points`` markers in the first reading).
+
 Grid axes besides object x controller x arm: ``grasp.k`` (the spring grasp's
 stiffness, N/m) and ``resistance`` (a scale on every object's damping and
 friction loss): the two quantities the paper leaves open
 (``configs/articulated/articulated_plane.yaml`` sweeps them).
 
-Size: about 470 lines, one experiment's contract (the config schema with the seed's physical checks on the
+Size: about 530 lines, one experiment's contract (the config schema with the seed's physical checks on the
 grasp spring, build, compute, tabulate, summarize, report); the figures are in ``experiments/figures``.
 """
 
@@ -45,13 +51,30 @@ RANGES = ("damping", "frictionloss", "radius", "crank", "pitch", "track")  # Pop
 
 
 class Objects(BaseModel):
-    """How many objects of each kind (paper: 50 prismatic, 50 revolute, 100 Bezier)."""
+    """How many objects of each kind, or ``paper: n`` objects in the seed's proportions (Sec. 4.1: 50 prismatic,
+    50 revolute, 100 Bezier tracks of orders 2-5 in 200; :func:`selfid_jax.articulated.scenes.paper_counts`)."""
 
     model_config = STRICT
+    paper: int = Field(0, ge=0, le=10**4, description="n objects in the seed's mix (1/4 drawers, 1/4 doors, 1/2 "
+                       "Bezier tracks); excludes the per-kind counts")
     prismatic: int = Field(0, ge=0, le=10**4)
     revolute: int = Field(0, ge=0, le=10**4)
-    helical: int = Field(0, ge=0, le=10**4)
+    helical: int = Field(0, ge=0, le=10**4, description="cranks (a hinge coupled to a slide): not in the seed's "
+                         "simulated population")
     bezier: int = Field(0, ge=0, le=10**4)
+
+    @model_validator(mode="after")
+    def _paper_alone(self):
+        if self.paper and any(getattr(self, k) for k in scenes.KINDS):
+            raise ValueError(f"objects.paper ({self.paper}) sets every kind's count (the seed's mix); leave "
+                             f"objects.{', objects.'.join(scenes.KINDS)} at 0 or set objects.paper to 0")
+        return self
+
+    def counts(self) -> dict[str, int]:
+        """Objects per kind (``scenes.KINDS`` order)."""
+        if self.paper:
+            return scenes.paper_counts(self.paper)
+        return {k: int(getattr(self, k)) for k in scenes.KINDS}
 
 
 class Population(BaseModel):
@@ -89,7 +112,30 @@ class Pads(BaseModel):
     cols: int = Field(8, ge=1, le=32)
     pitch: float = Field(0.0025, gt=0, le=0.01, description="marker pitch [m]")
     marker_noise: float = Field(5e-6, ge=0, le=1e-3, description="marker reading noise sd [m]")
-    contact_eps: float = Field(3e-4, gt=0, le=1e-2, description="Eq. 2 threshold on normal deformation [m]")
+    contact_rule: Literal["fixed", "paper"] = Field("fixed", description="Eq. 2 threshold: 'fixed' (contact_eps) "
+                                                    "or 'paper' (seed Sec. 5.1: the smallest threshold leaving exactly "
+                                                    "contact_points markers in the first reading)")
+    contact_eps: float = Field(3e-4, gt=0, le=1e-2, description="Eq. 2 threshold on normal deformation [m] "
+                               "(contact_rule 'fixed')")
+    contact_points: int = Field(9, ge=3, le=2048, description="contact_rule 'paper': markers in the initial contact "
+                                "set (the seed: 9, one more than its longest line of markers)")
+
+    @model_validator(mode="after")
+    def _rule_applies(self):
+        """The seed's rule needs ``contact_points`` below the markers touching the bar, and no tie at the boundary."""
+        if self.contact_rule != "paper":
+            return self
+        d0 = tactile.pads(rows=self.rows, cols=self.cols, pitch=self.pitch).delta0
+        n_touch = int(np.sum(d0 > 0))
+        if not self.contact_points < n_touch:
+            raise ValueError(f"pads.contact_points ({self.contact_points}) must be below the {n_touch} markers "
+                             f"touching the handle at the grasp (pads.contact_rule 'paper')")
+        if self.marker_noise == 0 and not (np.sort(d0)[::-1][self.contact_points - 1]
+                                           > np.sort(d0)[::-1][self.contact_points]):
+            raise ValueError(f"pads.contact_rule 'paper' finds no threshold leaving exactly pads.contact_points = "
+                             f"{self.contact_points} markers: the pads' initial deformations tie "
+                             f"({n_touch} markers at {1e3 * d0.max():.3f} mm) and pads.marker_noise is 0")
+        return self
 
 
 class TacManCfg(BaseModel):
@@ -284,15 +330,17 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
     settings = scenes.SceneSettings(timestep=cfg.control_dt / cfg.substeps, gel_k=cfg.gel_k, gel_kr=cfg.gel_kr,
                                     grasp=cfg.grasp.model)
     pads = tactile.pads(rows=cfg.pads.rows, cols=cfg.pads.cols, pitch=cfg.pads.pitch)
-    if int(np.sum(pads.delta0 >= cfg.pads.contact_eps)) < 3:
+    paper_rule = cfg.pads.contact_rule == "paper"
+    if not paper_rule and int(np.sum(pads.delta0 >= cfg.pads.contact_eps)) < 3:
         raise ValueError(f"pads.contact_eps ({cfg.pads.contact_eps}) leaves fewer than 3 markers in contact "
                          f"at the grasp (max deformation {pads.delta0.max():.2e} m)")
     steps = int(round(cfg.max_time / cfg.control_dt))
     stride = max(1, steps // cfg.trace_points)
     pop_kw = cfg.population.model_dump()
     parts = []
+    counts = cfg.objects.counts()
     for k_i, kind in enumerate(scenes.KINDS):
-        n_obj = getattr(cfg.objects, kind)
+        n_obj = counts[kind]
         if n_obj == 0:
             continue
         mj, layout = scenes.compile_scene(kind, p1, R1, settings)
@@ -320,7 +368,9 @@ def _build(cfg: ArticulatedConfig) -> list[Part]:
             use_estimate=(meta["arm"] == "selfid").to_numpy(),
             jinv_est=np.zeros((n, 6, 6)),
             key=row_keys(cfg.seed + 1000 * k_i, n), speed=full(cfg.speed), marker_noise=full(cfg.pads.marker_noise),
-            contact_eps=full(cfg.pads.contact_eps), qdot_max=np.full((n, 6), cfg.qdot_max), beta=full(cfg.beta),
+            contact_eps=full(cfg.pads.contact_eps),
+            contact_points=np.full((n,), cfg.pads.contact_points if paper_rule else 0, np.int32),
+            qdot_max=np.full((n, 6), cfg.qdot_max), beta=full(cfg.beta),
             dev_high=tac("dev_high"), dev_low=tac("dev_low"),
             recovery_gain=tac("recovery_gain"), slip=full(cfg.slip), slip_rot=full(cfg.slip_rot),
             lead_max=full(cfg.turbo_lead.lead_max), twist_tau=full(cfg.turbo_lead.twist_tau),
@@ -340,7 +390,8 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: ArticulatedConfig) -> pd.DataF
     df["dev_mean_mm"] = 1e3 * df["dev_mean"]
     df["dev_max_mm"] = 1e3 * df["dev_max"]
     df["path_dev_mm"] = 1e3 * df["path_dev"]
-    return df.drop(columns=["dev_mean", "dev_max", "path_dev"])
+    df["contact_eps_mm"] = 1e3 * df["contact_eps"]
+    return df.drop(columns=["dev_mean", "dev_max", "path_dev", "contact_eps"])
 
 
 def _stats(g: pd.DataFrame) -> dict[str, Any]:
@@ -348,6 +399,7 @@ def _stats(g: pd.DataFrame) -> dict[str, Any]:
     out: dict[str, Any] = {"n": int(len(g)), "success_rate": float(g["success"].mean()),
                            "slips": int(g["slipped"].sum()), "nonfinite": int(g["nonfinite"].sum()),
                            "invalid_contact_steps": int(g["invalid_steps"].sum()),
+                           "invalid_share": float((g["invalid_steps"] / g["steps_used"].clip(lower=1)).mean()),
                            "alpha_min": float(g["alpha_min"].min()),
                            "recovery_share": float((g["recovery_steps"] / g["steps_used"].clip(lower=1)).mean())}
     for m in METRICS:  # over successful rollouts (the paper's convention for time); efficiency etc. likewise
@@ -374,7 +426,8 @@ def summarize(table: pd.DataFrame, cfg: ArticulatedConfig) -> dict[str, Any]:
                 if tm in cs and tb in cs:
                     ratios.setdefault(str(arm), {})[f"{tm}/{tb}"] = None if a is None or b is None else a / b
     return {"backend": cfg.backend, "speed": cfg.speed, "control_dt": cfg.control_dt, "max_time": cfg.max_time,
-            "objects": cfg.objects.model_dump(),
+            "objects": cfg.objects.counts(), "paper_mix": cfg.objects.paper > 0,
+            "contact_rule": cfg.pads.contact_rule,
             "self_id": {"iterations": cfg.selfid_iters, **m_a_summary(table), "eps": cfg.eps},
             "grasp": cfg.grasp.model, "kinds": kinds, "overall": overall, "plane": plane, "time_ratios": ratios,
             "paper": {"turbo": {"time_s": "7.6 +- 2.3", "efficiency": "0.239 +- 0.063", "jerk": "109.82 +- 147.71"},
@@ -445,6 +498,11 @@ COLUMNS = {
     "invalid_steps": "steps whose contact set failed Eq. 11-12 [steps]",
     "alpha_min": "smallest velocity scaling alpha applied (Eq. 25) [-]",
     "recovery_steps": "Tac-Man control steps spent in recovery, the object not driven (0 for Turbo) [steps]",
+    "contact_eps_mm": "Eq. 2 threshold used: pads.contact_eps, or set by the seed's rule (pads.contact_rule "
+                      "'paper') on the first reading [mm]",
+    "contact_n": "markers in the initial contact set C_1 [count]",
+    "contact_ok": "the seed's rule found a threshold with exactly pads.contact_points markers (True under the "
+                  "fixed threshold) [bool]",
     "recovery_trace": "(S,) the step was a Tac-Man recovery, every stride-th step [bool]",
     "handle_trace": "(3 S,) handle positions in the G1 frame every stride-th step, row-major (S, 3) [m]",
     "gripper_trace": "(3 S,) gripper positions in the G1 frame every stride-th step, row-major (S, 3) [m]",

@@ -189,7 +189,8 @@ def _params(obj, controllers, *, use_estimate=False, jinv=None):
         use_estimate=jnp.full((B,), use_estimate),
         jinv_est=jnp.zeros((B, 6, 6)) if jinv is None else jnp.broadcast_to(jinv, (B, 6, 6)),
         key=jax.random.key_data(jax.random.split(jax.random.key(0), B)), speed=full(0.03), marker_noise=full(5e-6),
-        contact_eps=full(3e-4), qdot_max=jnp.ones((B, 6)), beta=full(0.9), dev_high=full(1e-3), dev_low=full(2e-4),
+        contact_eps=full(3e-4), contact_points=jnp.zeros((B,), jnp.int32),
+        qdot_max=jnp.ones((B, 6)), beta=full(0.9), dev_high=full(1e-3), dev_low=full(2e-4),
         recovery_gain=full(0.5), slip=full(5e-3), slip_rot=full(0.3), lead_max=full(1e-3), twist_tau=full(0.06),
         grasp=jnp.tile(jnp.array([2e4, 280.0, 5.0, 0.44]), (B, 1)))
 

@@ -55,6 +55,15 @@ Kinds:
   recorded in ``fit_error``). ``Q`` is the least-squares quartic of the track
   heading ``atan P'(x) - atan P'(0)``. Progress = x / L; the end is reached at
   progress ``>= 0.98``.
+
+The seed's simulated population (its Sec. 4.1 and Fig. 3: 50 prismatic-joint
+and 50 revolute-joint objects from PartNet-Mobility, and 100 Bezier tracks,
+25 each of orders 2, 3, 4 and 5) is :data:`PAPER_MIX`; :func:`paper_counts`
+splits any number of objects in its proportions and :func:`paper_population`
+draws them from a seed. The seed has no cranks in simulation (its helical
+vise is a real-world object, Sec. 5.1); ``helical`` stays a kind of its own.
+Drawers and doors here are generated (a slide or a hinge with random axis,
+radius and resistance), not PartNet-Mobility meshes.
 """
 
 from __future__ import annotations
@@ -77,6 +86,8 @@ __all__ = [
     "apply_mjx",
     "apply_native",
     "compile_scene",
+    "paper_counts",
+    "paper_population",
     "population",
     "progress",
     "scene_xml",
@@ -85,6 +96,8 @@ __all__ = [
 KINDS = ("prismatic", "revolute", "helical", "bezier")
 SUCCESS = {"prismatic": 0.25, "revolute": np.pi / 3, "helical": np.pi / 3}  # m, rad, rad; bezier: L
 BEZIER_END = 0.98
+PAPER_MIX = {"prismatic": 50, "revolute": 50, "bezier": 100}  # the seed's Sec. 4.1: 200 objects, no cranks
+PAPER_ORDERS = (2, 3, 4, 5)  # the seed's Bezier orders, 25 tracks of each
 
 
 class SceneSettings(NamedTuple):
@@ -427,3 +440,29 @@ def population(kind: str, n: int, seed: int, *, misalign_deg: float = 15.0, damp
         rows.append(ObjectParams(axis, hinge, f64(damp), f64(fric), poly, f64(scale), np.asarray(order, np.int32),
                                  f64(fit)))
     return ObjectParams(*(np.stack([np.asarray(getattr(r, f)) for r in rows]) for f in ObjectParams._fields))
+
+
+def paper_counts(n: int) -> dict[str, int]:
+    """Objects per kind (every kind of :data:`KINDS`, in order) for ``n`` objects in the seed's proportions.
+
+    :data:`PAPER_MIX` scaled to ``n`` (1/4 prismatic, 1/4 revolute, 1/2
+    Bezier; 0 helical) and rounded by largest remainder (ties to the earlier
+    kind), so the counts sum to ``n``; ``n = 200`` gives the seed's 50 / 50 /
+    100. Bezier orders cycle through :data:`PAPER_ORDERS` in
+    :func:`population`, so a multiple of 4 tracks has each order equally often.
+    """
+    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 0:
+        raise ValueError(f"paper_counts needs an int n >= 0, got {n!r}")
+    total = sum(PAPER_MIX.values())
+    exact = {k: n * PAPER_MIX.get(k, 0) / total for k in KINDS}
+    out = {k: int(np.floor(v)) for k, v in exact.items()}
+    rest = n - sum(out.values())
+    for k in sorted(KINDS, key=lambda k: (-(exact[k] - out[k]), KINDS.index(k)))[:rest]:
+        out[k] += 1
+    return out
+
+
+def paper_population(n: int, seed: int, **ranges) -> dict[str, ObjectParams]:
+    """``n`` objects in the seed's mix (:func:`paper_counts`) from ``seed``: ``{kind: ObjectParams}`` (kinds with a
+    count > 0; each as :func:`population` draws it, with the ``ranges`` keywords and Bezier orders 2-5)."""
+    return {k: population(k, c, seed, orders=PAPER_ORDERS, **ranges) for k, c in paper_counts(n).items() if c}

@@ -1,7 +1,9 @@
 """Closed-loop rollout: tactile controller -> gripper twist -> arm inverse Jacobian -> mocap -> MuJoCo or MJX.
 
 One rollout (:func:`rollout`) is a ``lax.scan`` over control steps (pure JAX,
-jit + vmap). Each step: read the gripper pose and the markers (:mod:`.tactile`),
+jit + vmap), after a first reading at the grasp that fixes the initial contact
+set ``C_1`` and the Eq. 2 threshold (:func:`~.tactile.initial_contact`: fixed,
+or the seed's Sec. 5.1 rule). Each step: read the gripper pose and the markers (:mod:`.tactile`),
 run the controller (Tac-Man stop-and-go as its papers describe it, Tac-Man
 re-aiming after each recovery, TacMan-Turbo literal, TacMan-Turbo keeping
 ``u0``, or TacMan-Turbo with an integral lead; a traced :class:`Controller`), map
@@ -22,7 +24,7 @@ Backends (static): ``"native"`` steps ``mujoco.MjModel`` on the host through
 skipping finished rollouts); ``"mjx"`` steps ``mjx.Model`` with per-object
 fields set by :func:`~.scenes.apply_mjx` (compiled; worth it on a GPU).
 
-Size: about 490 lines, one rollout: its carry, the physics step on both backends and the sensor model are
+Size: about 510 lines, one rollout: its carry, the physics step on both backends and the sensor model are
 private helpers of a single ``lax.scan`` body.
 """
 
@@ -103,7 +105,9 @@ class RolloutParams(NamedTuple):
     key: scenes.ParamArray  # (2,) uint32 key data (marker noise)
     speed: scenes.ParamArray  # () |u0| [m/s] along the gripper's x axis
     marker_noise: scenes.ParamArray  # () marker reading noise sd [m] (tactile.read)
-    contact_eps: scenes.ParamArray  # () Eq. 2 threshold [m]
+    contact_eps: scenes.ParamArray  # () Eq. 2 threshold [m] when contact_points is 0
+    contact_points: scenes.ParamArray  # () int32: 0 = the fixed contact_eps; n > 0 = the seed's rule (Sec. 5.1), the
+    # smallest threshold leaving exactly n markers in the initial reading (tactile.initial_contact; the paper: 9)
     qdot_max: scenes.ParamArray  # (n,) joint-velocity limits [rad/s]
     beta: scenes.ParamArray  # () Eq. 25 safety factor
     dev_high: scenes.ParamArray  # () Tac-Man exploration -> recovery [m]
@@ -133,6 +137,10 @@ class RolloutResult(NamedTuple):
     invalid_steps: jax.Array  # () int32 steps whose contact set failed Eq. 11-12
     alpha_min: jax.Array  # () smallest alpha applied
     recovery_steps: jax.Array  # () int32 Tac-Man steps spent in recovery (0 for the Turbo controllers)
+    contact_eps: jax.Array  # () the Eq. 2 threshold used [m] (fixed, or set by the seed's rule on the first reading)
+    contact_n: jax.Array  # () int32 markers in the initial contact set C_1
+    contact_ok: jax.Array  # () bool: the seed's rule found a threshold with exactly contact_points markers (True if
+    # the threshold is fixed)
     handle_trace: jax.Array  # (S, 3) handle positions in G1 frame [m], every stride-th step
     gripper_trace: jax.Array  # (S, 3) gripper positions in G1 frame [m]
     progress_trace: jax.Array  # (S,) progress
@@ -386,6 +394,10 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     n = q0.shape[0]
 
     phys = _phys_init(static, p.obj)
+    # C_1 and the Eq. 2 threshold from the reading at the grasp (its own key: the scan's noise stream is unchanged)
+    eps, start, eps_ok = tactile.initial_contact(static.pads, jax.random.fold_in(jax.random.wrap_key_data(
+        jnp.asarray(p.key)), 0x0C1), p.marker_noise, p.contact_eps, p.contact_points)
+    eps = eps.astype(f)
     sens0 = jnp.concatenate([p1, jaxlie.SO3.from_matrix(R1).wxyz, p1, jaxlie.SO3.from_matrix(R1).wxyz])
     T_g0, T_h0 = _poses(sens0)
     zero_i = jnp.zeros((), jnp.int32)
@@ -399,7 +411,7 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
         T_s, T_h = _poses(c.sens)  # the gripper body carrying the sensor, and the handle (physics)
         X_rel = (T_s.inverse() @ T_h) @ c.X1.inverse()
         key, k_read = jax.random.split(c.key)
-        cur, mask, _ = tactile.read(static.pads, X_rel, k_read, p.marker_noise, p.contact_eps)
+        cur, mask, _ = tactile.read(static.pads, X_rel, k_read, p.marker_noise, eps, start)
         T_g = _arm_pose(arm, c.q)  # the gripper pose where the step is applied: the arm's (tracker / encoders)
         reading = tacman.Reading(T_g, ref, cur, mask)
         turbo, u_turbo, (valid_t, _) = tacman.turbo_step(c.turbo, reading, turbo_p)
@@ -438,7 +450,6 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
         # truth after the step (noise-free): progress, in-hand deviation, slip
         T_s2, T_h2 = _poses(sens)
         X2 = (T_s2.inverse() @ T_h2) @ c.X1.inverse()
-        start = jnp.asarray(static.pads.delta0) >= p.contact_eps
         dev = tacman.deviation(X2, ref, start)
         slip = (jnp.linalg.norm(X2.translation()) > p.slip) | (jnp.linalg.norm(X2.rotation().log()) > p.slip_rot)
         prog = scenes.progress(phys.qpos, lay, p.obj)
@@ -477,7 +488,8 @@ def rollout(static: Static, p: RolloutParams) -> RolloutResult:
     sl = slice(0, None, static.stride)
     return RolloutResult(c.success, c.slipped | c.nonfinite, c.slipped, c.nonfinite, c.steps_used, prog_end,
                          efficiency, efficiency_60hz, jerk, jerk_tw, path_dev, dev_mean, dev_max, c.invalid,
-                         c.alpha_min, jnp.sum(rec_tr.astype(jnp.int32)), h_tr[sl], g_tr[sl], prog[sl], dev[sl],
+                         c.alpha_min, jnp.sum(rec_tr.astype(jnp.int32)), eps, jnp.sum(start.astype(jnp.int32)),
+                         eps_ok, h_tr[sl], g_tr[sl], prog[sl], dev[sl],
                          rec_tr[sl], jnp.asarray(static.scene_id, jnp.int32))
 
 
