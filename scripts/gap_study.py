@@ -10,12 +10,20 @@ control period; the values and their sources are in each config's header). Per r
   completion;
 * peg-in-hole: the UR5e's position error at insertion [mm] and the fraction inserted.
 
-Nothing here is tuned toward the paper's numbers: the rows are what the sweeps gave.
+Nothing here is tuned toward the paper's numbers: the rows are what the sweeps gave. Each robot's realism
+profile (:data:`PROFILE`: one set of values per robot, chosen from the sources in the configs' headers before the
+results were seen) is one level of each sweep; :func:`profile_table` sets that level beside the paper, column by
+column, with completion beside every error and the protocol each number was measured under
+(:data:`PAPER_SOURCE`, :data:`PROTOCOL`). The other levels are a sensitivity study.
 
-    python scripts/gap_study.py [--runs runs] [--figure docs/gap_study.png]
+    python scripts/gap_study.py [--runs runs] [--figure docs/figures/gap_study.png] [--json F] [--page PAGE]
+    python scripts/gap_study.py --from-json docs/results/data/gap_study.json --page docs/results/gap.md
 
 with the runs made by ``selfid-jax sweep gap_<name>`` (``configs/studies/gap/gap_<name>.yaml``; default run
-directories ``runs/gap_<name>``).
+directories ``runs/gap_<name>``). ``--json`` writes the per-level numbers the tables are made of;
+``--from-json`` renders from such a file instead of the runs; ``--page`` rewrites the generated blocks of a
+results page (between ``<!-- gap_study:NAME -->`` and ``<!-- /gap_study:NAME -->``), which
+``tests/test_results_pages.py`` checks against the JSON, so the page cannot drift from its runs.
 """
 
 from __future__ import annotations
@@ -34,6 +42,33 @@ PAPER = {
     "grablab": 0.41,
     "stewart_e": 0.28,
     "peg_in_hole": (0.97, 1.54),
+}
+#: Where each paper number comes from: only Fig. 2 is a simulation (kinematic); the tables are the real robots.
+PAPER_SOURCE = {
+    "valid_region": "Fig. 2 (kinematic simulation of a UR5e)",
+    "cube": "Table I (real UR5e, AprilTag)",
+    "grablab": "Sec. V-B text (real Model O, 12 mm letters, waypoint error)",
+    "stewart_e": "Sec. V-C text (real Stewart Hand, waypoint error)",
+    "peg_in_hole": "Table III (real UR5e, per-waypoint error, mean of 5 objects 0.97-1.54)",
+}
+#: Where our protocol differs from the paper's, per column (empty: the same protocol).
+PROTOCOL = {
+    "valid_region": "",
+    "cube": "ours: mean distance to the path per axis over the control steps, as Table I",
+    "grablab": "ours: 2 mm letters (the model's workspace, docs/results/hands.md), tolerance 0.05 mm",
+    "stewart_e": "ours: a 4 mm 'E', tolerance 0.1 mm",
+    "peg_in_hole": "ours: the arm's distance to the hole at insertion, not the waypoint error",
+}
+#: One realism profile per robot (a level of each gap sweep): latency 0 (the paper's incremental steps wait for
+#: the next frame after each move), tracker noise from a stereo camera's manual (0.4 mm lateral, 0.9 mm depth) at
+#: the arm's distance, less for the hands' closer camera, servo lag by actuator (UR5e joints, Dynamixel tendon
+#: servos, the Stewart Hand's geared linear actuators). Set before the results were read, as the configs' headers.
+PROFILE = {
+    "valid_region": dict(latency=0, noise_pos=0.0005, servo_tau=0.02),
+    "cube": dict(latency=0, noise_pos=0.0005, servo_tau=0.02),
+    "grablab": dict(latency=0, noise_pos=0.0002, servo_tau=0.05),
+    "stewart_e": dict(latency=0, noise_pos=0.0002, servo_tau=0.1),
+    "peg_in_hole": dict(latency=0, noise_pos=0.0005, servo_tau=0.05),
 }
 LEVEL_KEYS = ("latency", "noise_pos", "servo_tau")
 
@@ -107,17 +142,18 @@ def table(frames: dict) -> str:
     if len(n) != 1:
         raise SystemExit(f"the gap runs have different numbers of realism levels: {sorted(n)}")
     lines = [
-        f"| latency [steps], noise, lag | UR5e valid region ({_values(vr)}) | UR5e cube x / y / z mm, estimated "
-        f"({_values(ce)}) | analytical | GRABLAB mm, completion ({_values(ge)}) | Stewart 'E' mm, completion "
+        f"| latency [steps], noise, lag | UR5e valid region ({_values(vr)}) | UR5e cube x / y / z mm, completion, "
+        f"estimated ({_values(ce)}) | analytical | GRABLAB mm, completion ({_values(ge)}) | Stewart 'E' mm, completion "
         f"({_values(se)}) | peg-in-hole mm, inserted ({_values(pe)}) |",
         "| --- | --- | --- | --- | --- | --- | --- |",
-        f"| **paper (real robots)** | {PAPER['valid_region'][0]}-{PAPER['valid_region'][1]} | "
+        "| **paper** (Fig. 2: simulation; the rest: real robots) | "
+        f"{PAPER['valid_region'][0]}-{PAPER['valid_region'][1]} | "
         f"{' / '.join(map(str, PAPER['cube_estimated']))} | {' / '.join(map(str, PAPER['cube_analytical']))} | "
         f"{PAPER['grablab']} +- 0.16 | {PAPER['stewart_e']} | {PAPER['peg_in_hole'][0]}-{PAPER['peg_in_hole'][1]} |",
     ]
 
     def axes(r):
-        return f"{r['error_x_mm']:.2f} / {r['error_y_mm']:.2f} / {r['error_z_mm']:.2f}"
+        return f"{r['error_x_mm']:.2f} / {r['error_y_mm']:.2f} / {r['error_z_mm']:.2f}, {100 * r['completion']:.0f}%"
 
     def wp(r):
         return f"{r['waypoint_error_mm']:.2f}, {100 * r['completion']:.0f}%"
@@ -130,6 +166,88 @@ def table(frames: dict) -> str:
         lines.append(f"| {label} | {region} | {axes(ce.iloc[i])} | {axes(ca.iloc[i])} | {wp(ge.iloc[i])} | "
                      f"{wp(se.iloc[i])} | {pos}, {100 * p['inserted']:.0f}% |")
     return "\n".join(lines)
+
+
+def _level(frame: pd.DataFrame, level: dict) -> pd.Series:
+    """The row of ``frame`` at ``level`` (its latency, noise and lag)."""
+    hit = frame[np.logical_and.reduce([np.isclose(frame[k], v) for k, v in level.items()])]
+    if len(hit) != 1:
+        raise SystemExit(f"the runs have {len(hit)} rows at the profile level {level}")
+    return hit.iloc[0]
+
+
+def profile_table(frames: dict) -> str:
+    """Each column's paper number (with its source) beside ours under that robot's realism profile and ideal,
+    completion beside every error, and where the protocols differ. Markdown."""
+    def wp(r):
+        return f"{r['waypoint_error_mm']:.2f} mm, {100 * r['completion']:.0f}% completed"
+
+    def axes(r):
+        return (f"{r['error_x_mm']:.2f} / {r['error_y_mm']:.2f} / {r['error_z_mm']:.2f} mm, "
+                f"{100 * r['completion']:.0f}% completed")
+
+    def region(r):
+        return "none around 1" if np.isnan(r["lower"]) else f"{r['lower']:.1f}-{r['upper']:.1f}"
+
+    def peg(r):
+        pos = "all failed" if np.isnan(r["arm_pos_mm"]) else f"{r['arm_pos_mm']:.2f} mm"
+        return f"{pos}, {100 * r['inserted']:.0f}% inserted"
+
+    ideal = dict(latency=0, noise_pos=0.0, servo_tau=0.0)
+    cols = [
+        ("UR5e valid region", "valid_region", f"{PAPER['valid_region'][0]}-{PAPER['valid_region'][1]}",
+         frames["valid_region"], region),
+        ("UR5e cube, estimated", "cube", " / ".join(map(str, PAPER["cube_estimated"])) + " mm", frames["cube_est"],
+         axes),
+        ("UR5e cube, analytical", "cube", " / ".join(map(str, PAPER["cube_analytical"])) + " mm",
+         frames["cube_ana"], axes),
+        ("GRABLAB, Model O", "grablab", f"{PAPER['grablab']} +- 0.16 mm", frames["grablab"], wp),
+        ("'E', Stewart Hand", "stewart_e", f"{PAPER['stewart_e']} +- 0.22 mm", frames["stewart"], wp),
+        ("peg-in-hole, UR5e", "peg_in_hole", f"{PAPER['peg_in_hole'][0]}-{PAPER['peg_in_hole'][1]} mm",
+         frames["peg"], peg),
+    ]
+    lines = ["| column | paper (source) | ours, profile (latency, noise, lag) | ours, ideal | protocol |",
+             "| --- | --- | --- | --- | --- |"]
+    for name, key, paper, frame, fmt in cols:
+        prof = PROFILE[key]
+        label = (f"{prof['latency']}, {1e3 * prof['noise_pos']:g} mm, {1e3 * prof['servo_tau']:g} ms")
+        lines.append(f"| {name} | {paper} ({PAPER_SOURCE[key]}) | {fmt(_level(frame, prof))} ({label}) | "
+                     f"{fmt(_level(frame, ideal))} | {PROTOCOL[key] or 'the same'} |")
+    return "\n".join(lines)
+
+
+FRAMES = ("valid_region", "cube_est", "cube_ana", "grablab", "stewart", "peg")
+
+
+def to_json(frames: dict) -> dict:
+    """The frames as ``{name: [row records]}`` (NaN as null), what ``--json`` writes and ``from_json`` reads."""
+    return {k: json.loads(frames[k].to_json(orient="records")) for k in FRAMES}
+
+
+def from_json(data: dict) -> dict:
+    """Inverse of :func:`to_json`."""
+    frames = {}
+    for k in FRAMES:
+        f = pd.DataFrame.from_records(data[k])
+        frames[k] = f.astype({c: float for c in f.columns if c != "inverse"})
+    return frames
+
+
+def blocks(frames: dict) -> dict[str, str]:
+    """The generated blocks of the results page: ``{"profile": ..., "levels": ...}``."""
+    return {"profile": profile_table(frames), "levels": table(frames)}
+
+
+def write_page(page: Path, frames: dict) -> None:
+    """Replace each ``<!-- gap_study:NAME -->`` ... ``<!-- /gap_study:NAME -->`` block of ``page``."""
+    text = page.read_text()
+    for name, body in blocks(frames).items():
+        begin, end = f"<!-- gap_study:{name} -->", f"<!-- /gap_study:{name} -->"
+        if begin not in text or end not in text:
+            raise SystemExit(f"{page}: no {begin} ... {end} block")
+        i, j = text.index(begin) + len(begin), text.index(end)
+        text = text[:i] + "\n" + body + "\n" + text[j:]
+    page.write_text(text)
 
 
 def figure(frames: dict, path: Path) -> None:
@@ -186,9 +304,23 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", default="runs", help="folder holding the gap_* run directories")
     ap.add_argument("--figure", default=None, help="write the figure here (PNG)")
+    ap.add_argument("--json", default=None, help="write the per-level numbers here")
+    ap.add_argument("--from-json", default=None, help="read the per-level numbers from here, not from the runs")
+    ap.add_argument("--page", default=None, help="rewrite this page's generated blocks")
     args = ap.parse_args()
-    frames = load(Path(args.runs))
+    if args.from_json:
+        frames = from_json(json.loads(Path(args.from_json).read_text()))
+    else:
+        frames = load(Path(args.runs))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(to_json(frames), indent=1) + "\n")
+    print(profile_table(frames))
+    print()
     print(table(frames))
+    if args.page:
+        write_page(Path(args.page), frames)
+        print(f"\nrewrote the generated blocks of {args.page}")
     if args.figure:
         figure(frames, Path(args.figure))
         print(f"\nfigure: {args.figure}")
