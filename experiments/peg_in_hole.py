@@ -16,11 +16,14 @@ hole), trial and tracker-noise level, one compiled function runs:
    the arm once).
 
 Once with the self-ID estimates ("estimated") and once with the true inverse
-Jacobians ("analytical"). Table III's columns: the final position [mm] and
-orientation [deg] error of the arm at the insertion pose, and the hand's
-final rotation error [deg] within its task's rotation components; plus the
-self-ID convergence iterations of both and whether the peg ended within the
-insertion tolerance.
+Jacobians ("analytical"). Table III's columns: the arm's waypoint error
+[mm] (the paper's "UR5e waypoint errors": the position error at each of its
+four waypoints, grasp, lift, over the hole and insertion, when reached;
+mean +- sd over them), the final orientation [deg] error of the arm at the
+insertion pose, and the hand's final rotation error [deg] within its task's
+rotation components; beside them the final distance to the insertion
+position [mm], the self-ID convergence iterations of both and whether the
+peg ended within the insertion tolerance.
 
 What is simulated: kinematics (the closed-chain Model O equilibrium, the
 UR5e chain), actuator limits, tracker noise (on every reading of both self-IDs
@@ -181,6 +184,7 @@ class Outputs(NamedTuple):
     insert_completion: jax.Array  # (2,)
     hand_rot_deg: jax.Array  # (2,) hand's final rotation error within [rx, ry] [deg]
     arm_pos_mm: jax.Array  # (2,) final distance to the insertion position [mm]
+    arm_wp_mm: jax.Array  # (2, 4) arm's position error at each of its waypoints (grasp, lift, over, insert) [mm]
     arm_rot_deg: jax.Array  # (2,) final orientation error to the insertion orientation [deg]
     inserted: jax.Array  # (2,) bool: within insert_tol and insert_rot_tol_deg
     failed: jax.Array  # (2,) bool: a phase failed (non-finite pose, divergence)
@@ -248,14 +252,15 @@ def compute(static: Static, p: Params) -> Outputs:
         rot_deg = jnp.degrees(jnp.sqrt(jnp.sum(w_end * w_end)))
         failed = grasp.failed | tilt.failed | insert.failed
         drops = None if p.realism is None else (hand_drop, grasp.dropouts + tilt.dropouts + insert.dropouts)
+        wp_mm = 1e3 * jnp.concatenate([grasp.waypoint_errors, insert.waypoint_errors])
         return (sid_hand.converged_at, grasp.completion, tilt.completion, insert.completion, hand_rot, pos_mm, rot_deg,
-                failed, jnp.stack([grasp_pose[0], p1, p_end])), drops
+                wp_mm, failed, jnp.stack([grasp_pose[0], p1, p_end])), drops
 
     # INVERSES' order: the estimates, then the truth
-    (hand_conv, g, h, i, hr, pm, rd, failed, pos), drops = jax.vmap(pipeline)(jnp.array([False, True]),
-                                                                             jnp.stack([k_est, k_true]))
-    safe = lambda x: jnp.where(failed, 0.0, x)
-    out = Outputs(sid_arm.converged_at, hand_conv, g, h, i, safe(hr), safe(pm), safe(rd),
+    (hand_conv, g, h, i, hr, pm, rd, wp, failed, pos), drops = jax.vmap(pipeline)(jnp.array([False, True]),
+                                                                                 jnp.stack([k_est, k_true]))
+    safe = lambda x: jnp.where(failed.reshape(failed.shape + (1,) * (x.ndim - 1)), 0.0, x)
+    out = Outputs(sid_arm.converged_at, hand_conv, g, h, i, safe(hr), safe(pm), safe(wp), safe(rd),
                   ~failed & (i >= 1.0) & (pm <= static.insert_tol_mm) & (rd <= static.insert_rot_tol_deg), failed, pos)
     if p.realism is None:
         return out
@@ -331,11 +336,17 @@ def tabulate(wide: pd.DataFrame, part: Part, cfg: PegConfig) -> pd.DataFrame:
         df["inserted"] = df["inserted"].astype(bool)
         df["failed"] = df["failed"].astype(bool)
         df["positions"] = list(np.stack(wide["positions"].to_numpy()).reshape(len(wide), 2, -1)[:, i])
+        df["arm_wp_mm"] = list(np.stack(wide["arm_wp_mm"].to_numpy()).reshape(len(wide), 2, -1)[:, i])
         frames.append(df)
     return pd.concat(frames, ignore_index=True)
 
 
 TABLE = ("arm_pos_mm", "arm_rot_deg", "hand_rot_deg")
+
+
+def _wp(rows: pd.DataFrame) -> dict[str, float | None]:
+    """Mean +- sd of the arm's waypoint errors [mm] pooled over the rows' four waypoints (Table III's metric)."""
+    return _ms(np.concatenate([np.asarray(v, float) for v in rows["arm_wp_mm"]]) if len(rows) else [])
 
 
 def _ms(x) -> dict[str, float | None]:
@@ -362,11 +373,11 @@ def summarize(table: pd.DataFrame, cfg: PegConfig) -> dict[str, Any]:
         level = out.setdefault(key, {}).setdefault(str(inverse), {"layouts": {}})
         for layout, h in g.groupby("layout", sort=True):
             ok = h[~h["failed"]]
-            level["layouts"][str(int(layout))] = {m: _ms(ok[m]) for m in TABLE} | {
+            level["layouts"][str(int(layout))] = {m: _ms(ok[m]) for m in TABLE} | {"arm_wp_mm": _wp(ok),
                 "inserted": float(h["inserted"].mean()), "failed_fraction": float(h["failed"].mean())}
         ok = g[~g["failed"]]
         conv_a, conv_h = g["arm_converged_at"].to_numpy(), g["hand_converged_at"].to_numpy()
-        level["all"] = {m: _ms(ok[m]) for m in TABLE} | {
+        level["all"] = {m: _ms(ok[m]) for m in TABLE} | {"arm_wp_mm": _wp(ok),
             "inserted": float(g["inserted"].mean()), "failed_fraction": float(g["failed"].mean()),
             "arm_converged_at": _ms(conv_a[conv_a > 0]), "hand_converged_at": _ms(conv_h[conv_h > 0])}
         for col in ("arm_selfid_dropouts", "hand_selfid_dropouts", "dropouts"):
@@ -389,13 +400,14 @@ def report(summary: dict) -> str:
     def f(m):
         return "-" if m["mean"] is None else f"{m['mean']:.2f} +- {m['sd']:.2f}"
 
-    lines = [f"{'noise mm':>8s} {'inverse':>10s} {'layout':>6s} {'UR5e pos mm':>14s} {'UR5e rot deg':>14s} "
-             f"{'Model O rot deg':>15s} {'inserted':>8s}"]
+    lines = [f"{'noise mm':>8s} {'inverse':>10s} {'layout':>6s} {'UR5e wp mm':>14s} {'UR5e pos mm':>14s} "
+             f"{'UR5e rot deg':>14s} {'Model O rot deg':>15s} {'inserted':>8s}"]
     for noise, levels in summary["pose_noise_mm"].items():
         for inverse, level in levels.items():
             for name, m in list(level["layouts"].items()) + [("all", level["all"])]:
-                lines.append(f"{noise:>8s} {inverse:>10s} {name:>6s} {f(m['arm_pos_mm']):>14s} "
-                             f"{f(m['arm_rot_deg']):>14s} {f(m['hand_rot_deg']):>15s} {100 * m['inserted']:>7.0f}%")
+                lines.append(f"{noise:>8s} {inverse:>10s} {name:>6s} {f(m['arm_wp_mm']):>14s} "
+                             f"{f(m['arm_pos_mm']):>14s} {f(m['arm_rot_deg']):>14s} {f(m['hand_rot_deg']):>15s} "
+                             f"{100 * m['inserted']:>7.0f}%")
             a = level["all"]
             lines.append(f"{'':>8s} {'':>10s} self-ID iterations: arm {f(a['arm_converged_at'])}, "
                          f"hand {f(a['hand_converged_at'])}")
@@ -421,6 +433,9 @@ COLUMNS = {
     "insert_completion": "fraction of the arm's lift, move and lower waypoints reached [-]",
     "hand_rot_deg": "hand's final rotation error within its task's [rx, ry]; 0 where failed [deg]",
     "arm_pos_mm": "final distance to the insertion position; 0 where failed [mm]",
+    "arm_wp_mm": "(4,) arm's position error at its grasp, lift, over-the-hole and insertion waypoints when each was "
+                 "reached (at the end if not); Table III's metric, pooled mean +- sd in the summary; 0 where failed "
+                 "[mm]",
     "arm_rot_deg": "final orientation error to the insertion orientation; 0 where failed [deg]",
     "inserted": "insertion completed within insert_tol and insert_rot_tol_deg, no phase failed [bool]",
     "failed": "a phase failed (non-finite pose, divergence) [bool]",

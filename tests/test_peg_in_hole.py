@@ -1,6 +1,6 @@
 """Peg-in-hole (Table III) at the smallest size: one layout, noise-free. The truth inserts within tolerance, the
-self-ID estimates do too, and the reported position error equals the distance recomputed from the recorded
-positions; bad layouts are rejected before any compute."""
+self-ID estimates do too, the reported position error equals the distance recomputed from the recorded
+positions and the last waypoint error equals it; bad layouts are rejected before any compute."""
 
 import numpy as np
 import pytest
@@ -29,8 +29,15 @@ def test_inserts_and_reports_table_iii(tmp_path):
         grasp, _, end = np.asarray(row.positions).reshape(3, 3)
         target = grasp + np.array([0.05, 0.02, 0.0])
         assert row.arm_pos_mm == pytest.approx(1e3 * np.linalg.norm(end - target), abs=1e-9)
-    assert ({"arm_pos_mm", "arm_rot_deg", "hand_rot_deg", "inserted"}
+        # noise-free, every waypoint is reached within the arm's 0.5 mm tolerance and the loop stops at the last
+        wp = np.asarray(row.arm_wp_mm)
+        assert wp.shape == (4,) and np.all((wp >= 0) & (wp < 0.5))
+        assert wp[3] == pytest.approx(row.arm_pos_mm, abs=1e-9)
+    assert ({"arm_pos_mm", "arm_wp_mm", "arm_rot_deg", "hand_rot_deg", "inserted"}
             <= set(summary["pose_noise_mm"]["0"]["estimated"]["all"]))
+    pooled = summary["pose_noise_mm"]["0"]["estimated"]["all"]["arm_wp_mm"]
+    assert pooled["mean"] == pytest.approx(np.mean(est.arm_wp_mm))
+    assert pooled["sd"] == pytest.approx(np.std(est.arm_wp_mm))
     written = exp.plot(table, summary, tmp_path)
     assert [p.name for p in written] == ["peg_in_hole.png", "peg_in_hole.pdf"]
 

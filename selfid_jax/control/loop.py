@@ -64,6 +64,9 @@ class FollowResult(NamedTuple):
     # result without them
     start_pose: tuple[jax.Array, jax.Array] | None = None
     final_pose: tuple[jax.Array, jax.Array] | None = None
+    # (W,) position error (m) of each waypoint when it was reached, or at the end if not (its mean is
+    # waypoint_error); None where a caller built the result without them
+    waypoint_errors: jax.Array | None = None
 
 
 class _Carry(NamedTuple):
@@ -308,6 +311,7 @@ def follow_law(
         readings=traj[2] if return_trajectory and real else None,
         start_pose=carry.anchor,
         final_pose=carry.pose,
+        waypoint_errors=wp_err,
     )
     return result, carry.law
 
