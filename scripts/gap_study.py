@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from page_blocks import write_blocks  # scripts/page_blocks.py (run as python scripts/NAME.py)
 
 PAPER = {
     "valid_region": (0.33, 1.88),
@@ -257,14 +258,7 @@ def blocks(frames: dict) -> dict[str, str]:
 
 def write_page(page: Path, frames: dict) -> None:
     """Replace each ``<!-- gap_study:NAME -->`` ... ``<!-- /gap_study:NAME -->`` block of ``page``."""
-    text = page.read_text()
-    for name, body in blocks(frames).items():
-        begin, end = f"<!-- gap_study:{name} -->", f"<!-- /gap_study:{name} -->"
-        if begin not in text or end not in text:
-            raise SystemExit(f"{page}: no {begin} ... {end} block")
-        i, j = text.index(begin) + len(begin), text.index(end)
-        text = text[:i] + "\n" + body + "\n" + text[j:]
-    page.write_text(text)
+    write_blocks(page, "gap_study", blocks(frames))
 
 
 def figure(frames: dict, path: Path) -> None:

@@ -21,6 +21,7 @@ import json
 from pathlib import Path
 
 import yaml
+from page_blocks import write_blocks  # scripts/page_blocks.py (run as python scripts/NAME.py)
 
 #: Run directory name -> the config that makes it.
 RUNS = {
@@ -152,14 +153,7 @@ def blocks(data: dict) -> dict[str, str]:
 
 def write_page(page: Path, data: dict) -> None:
     """Replace each ``<!-- tracking:NAME -->`` ... ``<!-- /tracking:NAME -->`` block of ``page``."""
-    text = page.read_text()
-    for name, body in blocks(data).items():
-        begin, end = f"<!-- tracking:{name} -->", f"<!-- /tracking:{name} -->"
-        if begin not in text or end not in text:
-            raise SystemExit(f"{page}: no {begin} ... {end} block")
-        i, j = text.index(begin) + len(begin), text.index(end)
-        text = text[:i] + "\n" + body + "\n" + text[j:]
-    page.write_text(text)
+    write_blocks(page, "tracking", blocks(data))
 
 
 def main():

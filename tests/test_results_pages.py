@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import sys
 from pathlib import Path
 
 import pytest
@@ -21,20 +22,30 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "results" / "gap.md"
 DATA = ROOT / "docs" / "results" / "data" / "gap_study.json"
-_spec = importlib.util.spec_from_file_location("gap_study", ROOT / "scripts" / "gap_study.py")
-gap_study = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(gap_study)
 TRACKING_PAGE = ROOT / "docs" / "results" / "tracking.md"
 TRACKING_DATA = ROOT / "docs" / "results" / "data" / "tracking.json"
-_spec = importlib.util.spec_from_file_location("tracking_page", ROOT / "scripts" / "tracking_page.py")
-tracking_page = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(tracking_page)
+
+
+def _script(name: str):
+    """``scripts/NAME.py`` as a module (the scripts import their sibling ``page_blocks``)."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(ROOT / "scripts"))
+    return module
+
+
+gap_study, tracking_page, page_blocks = (_script(n) for n in ("gap_study", "tracking_page", "page_blocks"))
 
 
 def _block(text: str, name: str, prefix: str = "gap_study") -> str:
-    begin, end = f"<!-- {prefix}:{name} -->", f"<!-- /{prefix}:{name} -->"
-    assert begin in text and end in text, f"no generated block {prefix}:{name}"
-    return text[text.index(begin) + len(begin):text.index(end)].strip("\n")
+    try:
+        return page_blocks.read_block(text, prefix, name)
+    except KeyError as e:
+        raise AssertionError(str(e)) from None
 
 
 @pytest.fixture(scope="module")
