@@ -111,7 +111,8 @@ def _reference_qp_follow(system, linearise, model_state, path, q0, ctrl, *, obse
     wpe = jnp.where(wpe >= 0, wpe, jnp.where(jnp.isfinite(end), end, 0.0))
     res = control.FollowResult(completion=w.astype(dtype) / W, mean_error=es / jnp.maximum(used, 1).astype(dtype),
                                max_error=em, waypoint_error=jnp.mean(wpe), steps_used=used, failed=failed,
-                               final_q=q, positions=None, start_pose=system.pose(q0), final_pose=system.pose(q))
+                               final_q=q, positions=None, start_pose=system.pose(q0), final_pose=system.pose(q),
+                               waypoint_errors=wpe)
     return res, model
 
 
