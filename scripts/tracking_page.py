@@ -16,12 +16,11 @@ Every row is one tracker-noise level and inverse Jacobian of a run: nothing is p
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import yaml
-from page_blocks import write_blocks  # scripts/page_blocks.py (run as python scripts/NAME.py)
+from page_blocks import cli  # scripts/page_blocks.py (run as python scripts/NAME.py)
 
 #: Run directory name -> the config that makes it.
 RUNS = {
@@ -151,27 +150,8 @@ def blocks(data: dict) -> dict[str, str]:
     return {"tracking": tracking_table(data), "peg": peg_table(data)}
 
 
-def write_page(page: Path, data: dict) -> None:
-    """Replace each ``<!-- tracking:NAME -->`` ... ``<!-- /tracking:NAME -->`` block of ``page``."""
-    write_blocks(page, "tracking", blocks(data))
-
-
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--runs", default="runs", help="folder holding the run directories")
-    ap.add_argument("--json", default=None, help="write the numbers here")
-    ap.add_argument("--from-json", default=None, help="read the numbers from here, not from the runs")
-    ap.add_argument("--page", default=None, help="rewrite this page's generated blocks")
-    args = ap.parse_args()
-    data = json.loads(Path(args.from_json).read_text()) if args.from_json else extract(Path(args.runs))
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(data, indent=1) + "\n")
-    for body in blocks(data).values():
-        print(body + "\n")
-    if args.page:
-        write_page(Path(args.page), data)
-        print(f"rewrote the generated blocks of {args.page}")
+    cli(__doc__, "tracking", extract, blocks, run_flag="--runs", run_default="runs")
 
 
 if __name__ == "__main__":
