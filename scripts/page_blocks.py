@@ -1,6 +1,6 @@
 """Generated blocks of the results pages: the text between ``<!-- PREFIX:NAME -->`` and ``<!-- /PREFIX:NAME -->``,
 written by the scripts that render tables from runs (``gap_study.py``, ``tracking_page.py``,
-``valid_region_page.py``) and read back by ``tests/test_results_pages.py``."""
+``valid_region_page.py``, ``articulated_page.py``) and read back by ``tests/test_results_pages.py``."""
 
 from __future__ import annotations
 

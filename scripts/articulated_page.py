@@ -1,0 +1,104 @@
+"""The full-population table of ``docs/results/articulated.md``, generated from the run of
+``configs/articulated/articulated_full.yaml`` (the paper's 200 objects), so the page cannot drift from it.
+
+    python scripts/articulated_page.py [--run runs/articulated_full] [--json docs/results/data/articulated.json]
+                                       [--page docs/results/articulated.md]
+    python scripts/articulated_page.py --from-json docs/results/data/articulated.json \
+        --page docs/results/articulated.md
+
+``--json`` writes the numbers the tables are made of (the run's per arm x controller and per kind statistics, its
+time ratios, its population and how long it ran); ``--from-json`` renders from such a file; ``--page`` rewrites the
+page's generated blocks (between ``<!-- articulated:NAME -->`` and ``<!-- /articulated:NAME -->``), which
+``tests/test_results_pages.py`` checks against the JSON. Success is over every rollout; time, efficiency and jerk
+are mean +- sd over the successful ones, as the paper counts them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+from page_blocks import cli  # scripts/page_blocks.py (run as python scripts/NAME.py)
+
+CONFIG = "configs/articulated/articulated_full.yaml"
+ARMS = {"true": "true", "selfid": "self-ID"}
+CONTROLLERS = {"tacman": "`tacman`", "turbo": "`turbo` (literal)", "turbo_lead": "`turbo_lead` (ours)"}
+KEEP = ("n", "success_rate", "slips", "alpha_min", "time_s", "efficiency_60hz", "jerk_tw")
+PAPER_ROWS = (
+    "| paper (Isaac Sim, Franka + RMPFlow, 200 objects) | Tac-Man | 100 % | 250.7 +- 194.4 | 0.012 +- 0.011 | "
+    "4921.44 +- 3722.49 | - | 200 |",
+    "| paper | TacMan-Turbo | 100 % | 7.6 +- 2.3 | 0.239 +- 0.063 | 109.82 +- 147.71 | - | 200 |",
+)
+
+
+def extract(run: Path) -> dict:
+    """The run's statistics per arm x controller (``overall``) and per kind, its time ratios and population."""
+    if not (run / "summary.json").exists():
+        raise SystemExit(f"{run}: no summary.json; run: selfid-jax sweep {CONFIG}")
+    summary = json.loads((run / "summary.json").read_text())
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+
+    def keep(stats: dict) -> dict:
+        return {k: stats[k] for k in KEEP if k in stats}
+
+    return {"config": CONFIG, "objects": summary["objects"], "seed": cfg.get("seed"),
+            "resistance": cfg.get("resistance"), "max_time": summary["max_time"],
+            "contact_rule": summary["contact_rule"],
+            "overall": {a: {c: keep(m) for c, m in cs.items()} for a, cs in summary["overall"].items()},
+            "kinds": {k: {a: {c: keep(m) for c, m in cs.items()} for a, cs in arms.items()}
+                      for k, arms in summary["kinds"].items()},
+            "time_ratios": summary["time_ratios"]}
+
+
+def _ms(m: dict, digits: int) -> str:
+    return "-" if m.get("mean") is None else f"{m['mean']:.{digits}f} +- {m['sd']:.{digits}f}"
+
+
+def overall_table(data: dict) -> str:
+    """Per arm x controller over the whole population, below the paper's two rows. Markdown."""
+    lines = ["| arm | controller | success | time [s] | efficiency [% per 60 Hz step] | time-weighted jerk [s^-3] | "
+             "slips | n |", "|---|---|---|---|---|---|---|---|", *PAPER_ROWS]
+    for arm, arm_label in ARMS.items():
+        for ctrl, ctrl_label in CONTROLLERS.items():
+            m = data["overall"].get(arm, {}).get(ctrl)
+            if m is None:
+                continue
+            lines.append(f"| {arm_label} | {ctrl_label} | {100 * m['success_rate']:.0f} % | {_ms(m['time_s'], 1)} | "
+                         f"{_ms(m['efficiency_60hz'], 3)} | {_ms(m['jerk_tw'], 1)} | {m['slips']} | {m['n']} |")
+    return "\n".join(lines)
+
+
+def kinds_table(data: dict) -> str:
+    """Success and time per kind, arm and controller, and the Tac-Man / Turbo time ratios. Markdown."""
+    ctrls = [c for c in CONTROLLERS if any(c in cs for arms in data["kinds"].values() for cs in arms.values())]
+    lines = ["| kind | arm | " + " | ".join(CONTROLLERS[c] for c in ctrls) + " |",
+             "|---|---|" + "---|" * len(ctrls)]
+    for kind, arms in data["kinds"].items():
+        for arm, arm_label in ARMS.items():
+            cs = arms.get(arm, {})
+            cells = [f"{100 * cs[c]['success_rate']:.0f} %, {_ms(cs[c]['time_s'], 1)} s (n {cs[c]['n']})"
+                     if c in cs else "-" for c in ctrls]
+            lines.append(f"| {kind} | {arm_label} | " + " | ".join(cells) + " |")
+    ratios = []
+    for arm, rs in data["time_ratios"].items():
+        for pair in ("tacman/turbo", "tacman/turbo_lead"):
+            if pair in rs:
+                v = rs[pair]
+                ratios.append(f"{ARMS.get(arm, arm)} arm {pair}: {'-' if v is None else f'{v:.1f}x'}")
+    lines += ["", "Time ratios, mean time over mean time of the successful rollouts (the paper's Tac-Man / "
+              "TacMan-Turbo: 33x): " + "; ".join(ratios) + "."]
+    return "\n".join(lines)
+
+
+def blocks(data: dict) -> dict[str, str]:
+    """The generated blocks of the page: ``{"full": ..., "kinds": ...}``."""
+    return {"full": overall_table(data), "kinds": kinds_table(data)}
+
+
+def main():
+    cli(__doc__, "articulated", extract, blocks, run_flag="--run", run_default="runs/articulated_full")
+
+
+if __name__ == "__main__":
+    main()
