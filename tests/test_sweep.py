@@ -80,6 +80,37 @@ def test_chunked_equals_unchunked_and_compiles_once(tmp_path, static_shapes, max
     assert (manifest["n_rows"], manifest["chunk_size"], manifest["n_chunks"]) == (23, 5, 5)
 
 
+def test_an_execution_lock_gates_every_chunk_and_changes_no_result(tmp_path):
+    """With ``execution_lock`` each chunk's program runs while holding it (sweeps side by side in threads keep one
+    program in flight): held elsewhere, no chunk is computed; released, every chunk is, as without it."""
+    import threading
+
+    class Counting:
+        def __init__(self):
+            self.inner, self.entered = threading.Lock(), 0
+
+        def __enter__(self):
+            self.inner.acquire()
+            self.entered += 1
+
+        def __exit__(self, *exc):
+            self.inner.release()
+
+    meta, params = make_inputs()
+    gate = Counting()
+    gate.inner.acquire()  # held by the test: the sweep's thread must wait at its first chunk
+    out = {}
+    worker = threading.Thread(target=lambda: out.update(df=run_chunked(
+        synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False, execution_lock=gate)))
+    worker.start()
+    worker.join(timeout=1.0)
+    assert worker.is_alive() and not list((tmp_path / "chunks").glob("*.parquet"))
+    gate.inner.release()
+    worker.join(timeout=60)
+    assert not worker.is_alive() and gate.entered == 5  # one hold per chunk
+    assert_matches_reference(out["df"], reference(params))
+
+
 def test_row_keys_depend_only_on_seed_and_row():
     np.testing.assert_array_equal(row_keys(7, 10)[3:6], row_keys(7, np.arange(3, 6)))
     assert not np.array_equal(row_keys(7, 4), row_keys(8, 4))

@@ -12,6 +12,7 @@ after the run (``selfid-jax sweep`` and ``demo`` draw the figures) holds it arou
 from __future__ import annotations
 
 import contextlib
+import threading
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -161,6 +162,9 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
     fp = fingerprint(dump_config(cfg), inputs)
     parts = list(experiment.parts(cfg) if parts is None else parts)
 
+    threads = part_threads(len(parts)) if jax.process_count() == 1 else 1
+    execution_lock = threading.Lock() if threads > 1 else None  # see run_chunked: one program in flight at a time
+
     def one(index: int, part: Part):
         with precision(part.x64):
             return run_chunked(
@@ -174,12 +178,12 @@ def _run_parts(experiment: Experiment, cfg, out_dir: Path, fresh: bool, progress
                 desc=part.name,
                 fingerprint=fp,
                 position=index if len(parts) > 1 else None,
+                execution_lock=execution_lock,
             )
 
     # Several parts of one process run side by side in threads (XLA releases the GIL while it compiles and
     # computes): every part's table is what it would be alone. Several processes of a jax.distributed run must
     # dispatch in lockstep, so they run the parts in order.
-    threads = part_threads(len(parts)) if jax.process_count() == 1 else 1
     wides = side_by_side(one, parts, threads=threads)
     tables = []
     for wide, part in zip(wides, parts):

@@ -194,6 +194,7 @@ def run_chunked(
     desc: str = "sweep",
     fingerprint: Mapping[str, Any] | None = None,
     position: int | None = None,
+    execution_lock: contextlib.AbstractContextManager | None = None,
 ) -> pd.DataFrame:
     """Run ``compute_fn`` over ``N`` parameter rows in resumable, sharded chunks.
 
@@ -226,6 +227,11 @@ def run_chunked(
         files read, package source: :func:`selfid_jax.runner.fingerprint.fingerprint`),
         stored in the manifest; resuming chunks made with another one is refused.
       position: the progress bar's line (for sweeps run side by side in threads).
+      execution_lock: for sweeps run side by side in threads, a lock they share: each chunk's program runs
+        to completion while holding it, so one program executes at a time (compilation, placement and
+        writing still overlap). XLA's CPU client can hang forever with two programs in flight from two
+        threads (seen with jaxlib 0.10.2 on 2 cores: every worker idle, both results never ready).
+        None (one sweep alone): a chunk computes while the one before it is written.
 
     Returns:
       The results table, ``N`` rows sorted by ``row`` (int64, 0..N-1), with the
@@ -288,6 +294,7 @@ def run_chunked(
                 _row_function(compute_fn, treedef, list(params)), params, meta,
                 todo, out_dir=out_dir, manifest=manifest, batch=batch, devices=devices, writer=writer,
                 static_shapes=static_shapes, progress=progress, desc=desc, n_done=len(skipped), position=position,
+                execution_lock=execution_lock,
             )
         result = chunks.assemble(out_dir, manifest) if writer else None
     if jax.process_count() > 1:
@@ -382,7 +389,7 @@ def compute_rows(compute_fn: Callable[[Any], Any], params: Any, *, batch: int,
 
 def _compute_chunks(
     compute_fn, params, meta, todo, *, out_dir, manifest, batch, devices, writer, static_shapes, progress, desc,
-    n_done, position=None,
+    n_done, position=None, execution_lock=None,
 ) -> None:
     n_chunks = manifest["n_chunks"]
     executable, place = _executables(compute_fn, params, devices)
@@ -392,7 +399,11 @@ def _compute_chunks(
         size = batch if static_shapes else -(-len(rows) // len(devices)) * len(devices)
         idx = np.concatenate([rows, np.full(size - len(rows), rows[-1])])
         args = {k: place(v, idx, size) for k, v in params.items()}
-        return rows, executable(size)(args)
+        program = executable(size)  # compiles outside the lock
+        if execution_lock is None:
+            return rows, program(args)
+        with execution_lock:
+            return rows, jax.block_until_ready(program(args))
 
     bar = tqdm(
         total=n_chunks, initial=n_done, unit="chunk", desc=desc, dynamic_ncols=True, position=position,
