@@ -51,6 +51,12 @@ def extract(run: Path) -> dict:
             "time_ratios": summary["time_ratios"]}
 
 
+def _pct(rate: float) -> str:
+    """A success rate in %, to a tenth where a whole number would round it (199 of 200 is 99.5 %, not 100 %)."""
+    pct = 100 * rate
+    return f"{pct:.0f} %" if abs(pct - round(pct)) < 1e-9 else f"{pct:.1f} %"
+
+
 def _ms(m: dict, digits: int) -> str:
     return "-" if m.get("mean") is None else f"{m['mean']:.{digits}f} +- {m['sd']:.{digits}f}"
 
@@ -64,7 +70,7 @@ def overall_table(data: dict) -> str:
             m = data["overall"].get(arm, {}).get(ctrl)
             if m is None:
                 continue
-            lines.append(f"| {arm_label} | {ctrl_label} | {100 * m['success_rate']:.0f} % | {_ms(m['time_s'], 1)} | "
+            lines.append(f"| {arm_label} | {ctrl_label} | {_pct(m['success_rate'])} | {_ms(m['time_s'], 1)} | "
                          f"{_ms(m['efficiency_60hz'], 3)} | {_ms(m['jerk_tw'], 1)} | {m['slips']} | {m['n']} |")
     return "\n".join(lines)
 
@@ -77,7 +83,7 @@ def kinds_table(data: dict) -> str:
     for kind, arms in data["kinds"].items():
         for arm, arm_label in ARMS.items():
             cs = arms.get(arm, {})
-            cells = [f"{100 * cs[c]['success_rate']:.0f} %, {_ms(cs[c]['time_s'], 1)} s (n {cs[c]['n']})"
+            cells = [f"{_pct(cs[c]['success_rate'])}, {_ms(cs[c]['time_s'], 1)} s (n {cs[c]['n']})"
                      if c in cs else "-" for c in ctrls]
             lines.append(f"| {kind} | {arm_label} | " + " | ".join(cells) + " |")
     ratios = []
