@@ -103,7 +103,7 @@ def test_an_execution_lock_gates_every_chunk_and_changes_no_result(tmp_path):
     worker = threading.Thread(target=lambda: out.update(df=run_chunked(
         synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False, execution_lock=gate)))
     worker.start()
-    worker.join(timeout=1.0)
+    worker.join(timeout=0.3)
     assert worker.is_alive() and not list((tmp_path / "chunks").glob("*.parquet"))
     gate.inner.release()
     worker.join(timeout=60)
