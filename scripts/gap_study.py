@@ -262,7 +262,9 @@ def write_page(page: Path, frames: dict) -> None:
 
 
 def figure(frames: dict, path: Path) -> None:
-    """Four panels, one per table: ours per realism level (x) against the paper's value (a band or a line)."""
+    """Four panels, one per table: ours per realism level (x) against the paper's value (a band or a line). The
+    profile's level is shaded grey in each panel (every robot's profile is its config's "0, noise, lag" level);
+    hollow markers are levels that did not complete their path (or insert every peg)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -272,6 +274,18 @@ def figure(frames: dict, path: Path) -> None:
     labels = _levels(vr)
     x = np.arange(len(labels))
     fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), layout="constrained", sharex=True)
+    for ax, (key, frame) in zip(axes.flat, (("valid_region", vr), ("cube", frames["cube_est"]),
+                                            ("grablab", frames["grablab"]), ("peg_in_hole", frames["peg"]))):
+        at = [i for i in range(len(frame)) if all(np.isclose(frame.iloc[i][k], v) for k, v in PROFILE[key].items())]
+        for i in at:
+            ax.axvspan(i - 0.4, i + 0.4, color="0.85", zorder=0, label="the profile's level")
+
+    def line(ax, frame, y, done, color, label):
+        """Ours per level: filled markers where ``done`` (the path completed), hollow where not."""
+        y, done = np.asarray(y, float), np.asarray(done, bool)
+        ax.plot(x, y, "-", color=color, label=label)
+        ax.plot(x[done], y[done], "o", color=color)
+        ax.plot(x[~done], y[~done], "o", mfc="white", color=color)
     ax = axes[0, 0]
     ax.axhspan(*PAPER["valid_region"], color="C2", alpha=0.2, label="paper's UR5e: 0.33-1.88")
     none = np.isnan(vr["lower"].to_numpy())
@@ -285,8 +299,9 @@ def figure(frames: dict, path: Path) -> None:
                                                                             PAPER["cube_analytical"])):
         c = frames[key]
         name = "estimated" if key == "cube_est" else "analytical"
-        ax.semilogy(x, c[["error_x_mm", "error_y_mm", "error_z_mm"]].mean(axis=1), "o-", color=color,
-                    label=f"ours, {name} (mean of x/y/z)")
+        ax.set_yscale("log")
+        line(ax, c, c[["error_x_mm", "error_y_mm", "error_z_mm"]].mean(axis=1), c["completion"] >= 1.0, color,
+             f"ours, {name} (mean of x/y/z)")
         ax.axhline(np.mean(paper), color=color, ls="--", label=f"paper, {name}: {np.mean(paper):.2f}")
     ax.set(ylabel="mm", title="Table I: UR5e cube, per-axis path error")
     ax.text(0.02, 0.97, _values(frames["cube_est"]), transform=ax.transAxes, va="top", fontsize=7)
@@ -294,19 +309,23 @@ def figure(frames: dict, path: Path) -> None:
     ax = axes[1, 0]
     for key, color, name, paper in (("grablab", "C0", "GRABLAB (Model O)", PAPER["grablab"]),
                                     ("stewart", "C1", "'E' (Stewart hand)", PAPER["stewart_e"])):
-        ax.semilogy(x, frames[key]["waypoint_error_mm"], "o-", color=color,
-                    label=f"ours, {name} ({_values(frames[key])})")
+        ax.set_yscale("log")
+        line(ax, frames[key], frames[key]["waypoint_error_mm"], frames[key]["completion"] >= 1.0, color,
+             f"ours, {name} ({_values(frames[key])})")
         ax.axhline(paper, color=color, ls="--", label=f"paper, {name}: {paper}")
     ax.set(ylabel="mm", title="Sec. V-B, V-C: hands, waypoint error of the estimate")
     ax.legend(fontsize=7)
     ax = axes[1, 1]
     ax.axhspan(*PAPER["peg_in_hole"], color="C2", alpha=0.2, label="paper: 0.97-1.54")
-    ax.semilogy(x, frames["peg"]["arm_wp_mm"], "o-", label=f"ours, estimated ({_values(frames['peg'])})")
+    ax.set_yscale("log")
+    line(ax, frames["peg"], frames["peg"]["arm_wp_mm"], frames["peg"]["inserted"] >= 1.0, "C0",
+         f"ours, estimated ({_values(frames['peg'])})")
     ax.set(ylabel="mm", title="Table III: peg-in-hole, UR5e waypoint error")
     ax.legend(fontsize=7)
     for ax in axes[1]:
         ax.set_xticks(x, labels, rotation=60, ha="right", fontsize=7)
-        ax.set_xlabel("realism level: latency [control steps], tracker noise, servo lag")
+        ax.set_xlabel("realism level: latency [control steps], tracker noise, servo lag\n"
+                      "(grey: the profile's level; hollow: not completed / not every peg inserted)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
