@@ -23,6 +23,8 @@ if [ -d .whl ] && ls .whl/*.whl >/dev/null 2>&1; then
         || { echo "gpu.sh: installing .whl/ failed" >&2; exit 1; }
     export PYTHONPATH="/tmp/site${PYTHONPATH:+:$PYTHONPATH}"
 fi
+# `python -P -m ...` below: the installed package, not the checkout's selfid_jax/ (which holds no experiments/; an
+# editable install maps them, a wheel holds them)
 export SELFID_JAX_NO_XLA_FLAGS=1 PYTHONUNBUFFERED=1 MUJOCO_GL=egl
 T0=$(date +%s)
 DEADLINE=$(( T0 + ${GPU_SH_SECONDS:-470} ))  # the whole script, every step included
@@ -41,14 +43,14 @@ SELFID_JAX_NO_XLA_FLAGS=0 JAX_PLATFORMS=cpu timeout "$(left 60)" taskset -c 0,1 
     --json "$OUT/cpu2.json" 2>&1 | tee "$OUT/cpu2.txt"
 
 step "lowering check on the CUDA backend"
-timeout "$(left 60)" "$PY" -m pytest -q -p no:cacheprovider -o addopts="" tests/test_cuda_lowering.py 2>&1 | tail -15 \
+timeout "$(left 60)" "$PY" -P -m pytest -q -p no:cacheprovider -o addopts="" tests/test_cuda_lowering.py 2>&1 | tail -15 \
     | tee "$OUT/lowering.txt"
 
 step "sweeps: default device against the CPU"
 { for cfg in valid_region_ur5e ablation_ur5e; do
-    timeout "$(left 45)" "$PY" -m selfid_jax.cli sweep "$cfg" --out "/tmp/gpu_sweeps/$cfg/default" --fresh \
+    timeout "$(left 45)" "$PY" -P -m selfid_jax.cli sweep "$cfg" --out "/tmp/gpu_sweeps/$cfg/default" --fresh \
         --no-progress | tail -3
-    JAX_PLATFORMS=cpu SELFID_JAX_NO_XLA_FLAGS=0 timeout "$(left 60)" "$PY" -m selfid_jax.cli sweep "$cfg" \
+    JAX_PLATFORMS=cpu SELFID_JAX_NO_XLA_FLAGS=0 timeout "$(left 60)" "$PY" -P -m selfid_jax.cli sweep "$cfg" \
         --out "/tmp/gpu_sweeps/$cfg/cpu" --fresh --no-progress | tail -1
     "$PY" scripts/compare_runs.py "/tmp/gpu_sweeps/$cfg/default" "/tmp/gpu_sweeps/$cfg/cpu"
   done; } 2>&1 | tee "$OUT/sweeps.txt"

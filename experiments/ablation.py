@@ -29,10 +29,20 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
-from selfid_jax.experiments.common import ekm as ablation_ekm
-from selfid_jax.experiments.common.ekm import METHOD_CHOICES, MethodName, NominalSpec, is_model_based
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.schema import (
+
+from selfid_jax import baselines, control
+from selfid_jax.control import paths
+from selfid_jax.identify import algorithm as selfid
+from selfid_jax.identify import estimator
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.config import unique
+from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.systems import System
+
+from .common import ekm as ablation_ekm
+from .common.ekm import METHOD_CHOICES, MethodName, NominalSpec, is_model_based
+from .common.lazy_figures import figures_plot
+from .common.schema import (
     M_A_LABEL,
     NOISE_COLUMNS,
     ControllerConfig,
@@ -49,16 +59,7 @@ from selfid_jax.experiments.common.schema import (
     m_a_summary,
     resolve_m_a,
 )
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
-
-from selfid_jax import baselines, control
-from selfid_jax.control import paths
-from selfid_jax.identify import algorithm as selfid
-from selfid_jax.identify import estimator
-from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.runner.config import unique
-from selfid_jax.runner.grids import grid_table, row_keys
-from selfid_jax.systems import System
+from .common.specs import SystemSpec, build_system, needs_x64, system_name
 
 
 class MethodSpec(BaseModel):

@@ -37,14 +37,15 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_columns, m_a_summary
 
 from selfid_jax.articulated import scenes, sim, tactile
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.config import STRICT
 from selfid_jax.runner.grids import grid_table, row_keys
+
+from .common.lazy_figures import figures_plot
+from .common.schema import SelfIdConfig, StudyConfig, add_m_a_columns, m_a_columns, m_a_summary
 
 METRICS = ("time_s", "efficiency", "efficiency_60hz", "jerk", "jerk_tw", "path_dev_mm", "dev_mean_mm", "dev_max_mm")
 RANGES = ("damping", "frictionloss", "radius", "crank", "pitch", "track")  # Population's (lo, hi) fields

@@ -18,19 +18,6 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import Field, field_validator, model_validator
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.schema import (
-    ControllerConfig,
-    HostOrDevice,
-    PathConfig,
-    SelfIdConfig,
-    StudyConfig,
-    add_m_a_columns,
-    controller_rows,
-    m_a_columns,
-    m_a_summary,
-)
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 from selfid_jax import control
 from selfid_jax.control import paths
@@ -41,6 +28,20 @@ from selfid_jax.runner import Experiment, Part, part_threads, precision
 from selfid_jax.runner.config import unique
 from selfid_jax.runner.execute import side_by_side
 from selfid_jax.systems import System
+
+from .common.lazy_figures import figures_plot
+from .common.schema import (
+    ControllerConfig,
+    HostOrDevice,
+    PathConfig,
+    SelfIdConfig,
+    StudyConfig,
+    add_m_a_columns,
+    controller_rows,
+    m_a_columns,
+    m_a_summary,
+)
+from .common.specs import SystemSpec, build_system, needs_x64, system_name
 
 
 class DemoRun(SelfIdConfig):

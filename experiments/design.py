@@ -58,8 +58,16 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, field_validator, model_validator
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.schema import (
+
+from selfid_jax import control, design
+from selfid_jax.control import paths
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.config import STRICT, stop_after_start
+from selfid_jax.runner.grids import decimal_points, grid_table, row_keys
+from selfid_jax.systems import System
+
+from .common.lazy_figures import figures_plot
+from .common.schema import (
     NOISE_COLUMNS,
     ControllerConfig,
     PathConfig,
@@ -70,7 +78,7 @@ from selfid_jax.experiments.common.schema import (
     controller_rows,
     resolve_m_a,
 )
-from selfid_jax.experiments.common.specs import (
+from .common.specs import (
     SystemSpec,
     build_system,
     needs_x64,
@@ -78,13 +86,6 @@ from selfid_jax.experiments.common.specs import (
     system_name,
     unique_system_names,
 )
-
-from selfid_jax import control, design
-from selfid_jax.control import paths
-from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.runner.config import STRICT, stop_after_start
-from selfid_jax.runner.grids import decimal_points, grid_table, row_keys
-from selfid_jax.systems import System
 
 EVAL_DESIGNS = ("default", "grid", "scalar", "per_actuator")
 """The designs compared on held-out trials: the system's safe ``m_a``, the grid's best, the refined scalar, per

@@ -43,9 +43,20 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, model_validator
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.schema import (
+
+from selfid_jax import control
+from selfid_jax.control import realism as realism_lib
+from selfid_jax.identify import estimator
+from selfid_jax.math import geometry
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.config import STRICT
+from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.systems import System, compose, hands
+from selfid_jax.systems.ur5e import ur5e
+
+from .common import realism as realistic
+from .common.lazy_figures import figures_plot
+from .common.schema import (
     NOISE_COLUMNS,
     ControllerConfig,
     HostOrDevice,
@@ -58,16 +69,6 @@ from selfid_jax.experiments.common.schema import (
     m_a_summary,
     realism_columns,
 )
-
-from selfid_jax import control
-from selfid_jax.control import realism as realism_lib
-from selfid_jax.identify import estimator
-from selfid_jax.math import geometry
-from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.runner.config import STRICT
-from selfid_jax.runner.grids import grid_table, row_keys
-from selfid_jax.systems import System, compose, hands
-from selfid_jax.systems.ur5e import ur5e
 
 INVERSES = ("estimated", "analytical")
 HAND_AXES = ("z", "rx", "ry")

@@ -26,9 +26,21 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, Field, model_validator
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.schema import (
+
+from selfid_jax import control
+from selfid_jax.control import metrics, paths
+from selfid_jax.control import realism as realism_lib
+from selfid_jax.identify import estimator
+from selfid_jax.math import geometry
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.config import STRICT
+from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.systems import System
+from selfid_jax.systems.validation import AXIS_NAMES
+
+from .common import realism as realistic
+from .common.lazy_figures import figures_plot
+from .common.schema import (
     NOISE_COLUMNS,
     ControllerConfig,
     HostOrDevice,
@@ -42,18 +54,7 @@ from selfid_jax.experiments.common.schema import (
     m_a_summary,
     realism_columns,
 )
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
-
-from selfid_jax import control
-from selfid_jax.control import metrics, paths
-from selfid_jax.control import realism as realism_lib
-from selfid_jax.identify import estimator
-from selfid_jax.math import geometry
-from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.runner.config import STRICT
-from selfid_jax.runner.grids import grid_table, row_keys
-from selfid_jax.systems import System
-from selfid_jax.systems.validation import AXIS_NAMES
+from .common.specs import SystemSpec, build_system, needs_x64, system_name
 
 INVERSES = ("estimated", "analytical")
 
@@ -233,19 +234,21 @@ def compute(static: Static, p: Params) -> Outputs:
         res = control.follow(system, jinv, path, q_start, p.controller, steps=static.steps,
                              return_trajectory=True, realism=sensed, key=follow_key,
                              max_latency=static.max_latency, plant=static.plant)
-        used = jnp.arange(res.positions.shape[0]) <= res.steps_used  # the steps taken, and where they ended
-        dtype = res.positions.dtype
-        err = jnp.zeros((res.positions.shape[0], 3), dtype)
+        positions, orientations = res.positions, res.orientations  # the trajectory (return_trajectory=True)
+        assert positions is not None and orientations is not None and res.targets is not None
+        used = jnp.arange(positions.shape[0]) <= res.steps_used  # the steps taken, and where they ended
+        dtype = positions.dtype
+        err = jnp.zeros((positions.shape[0], 3), dtype)
         if pos:
-            err = err.at[:, jnp.asarray(pos)].set(metrics.axis_errors(res.positions[:, pos], vertices))
-        zero = jnp.zeros(res.positions.shape[0], dtype)
+            err = err.at[:, jnp.asarray(pos)].set(metrics.axis_errors(positions[:, pos], vertices))
+        zero = jnp.zeros(positions.shape[0], dtype)
         # the goal orientation at each step is that of the waypoint then pursued (the last one once done)
         goal = R_goal[jnp.minimum(res.targets, path.shape[0] - 1)]
-        per_step = rot_error_deg(goal, res.orientations) if rot else zero
-        final = rot_error_deg(R_goal[-1], res.orientations[-1]) if rot else zero[0]
+        per_step = rot_error_deg(goal, orientations) if rot else zero
+        final = rot_error_deg(R_goal[-1], orientations[-1]) if rot else zero[0]
         mean = jnp.sum(used).astype(dtype)
         return (res.completion, 1e3 * res.waypoint_error, 1e3 * jnp.sum(jnp.where(used[:, None], err, 0.0), 0) / mean,
-                final, jnp.sum(jnp.where(used, per_step, 0.0)) / mean, res.failed, res.steps_used, res.positions,
+                final, jnp.sum(jnp.where(used, per_step, 0.0)) / mean, res.failed, res.steps_used, positions,
                 1e3 * err, per_step), res.dropouts
 
     (est, est_drop), (true, true_drop) = track(control.fixed(sid.estimate)), track(control.true_inverse(system))

@@ -27,10 +27,18 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.region import valid_region_summary
-from selfid_jax.experiments.common.schema import (
+
+from selfid_jax import control
+from selfid_jax.control import paths
+from selfid_jax.control import realism as realism_lib
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
+from selfid_jax.systems import System
+
+from .common import realism as realistic
+from .common.lazy_figures import figures_plot
+from .common.region import valid_region_summary
+from .common.schema import (
     ControllerConfig,
     EpsLimits,
     HostOrDevice,
@@ -41,7 +49,7 @@ from selfid_jax.experiments.common.schema import (
     controller_rows,
     realism_columns,
 )
-from selfid_jax.experiments.common.specs import (
+from .common.specs import (
     SystemSpec,
     build_system,
     needs_x64,
@@ -49,13 +57,6 @@ from selfid_jax.experiments.common.specs import (
     system_name,
     unique_system_names,
 )
-
-from selfid_jax import control
-from selfid_jax.control import paths
-from selfid_jax.control import realism as realism_lib
-from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.runner.sweep import compiled_batch, compute_rows, grid_table, row_keys
-from selfid_jax.systems import System
 
 
 class SystemRun(BaseModel):

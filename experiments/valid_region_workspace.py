@@ -33,9 +33,16 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import Field
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.region import valid_region_bounds
-from selfid_jax.experiments.common.schema import (
+
+from selfid_jax import control
+from selfid_jax.control import paths
+from selfid_jax.runner import Experiment, Part, precision
+from selfid_jax.runner.grids import grid_table, row_keys
+from selfid_jax.systems import System, manipulability
+
+from .common.lazy_figures import figures_plot
+from .common.region import valid_region_bounds
+from .common.schema import (
     ControllerConfig,
     EpsLimits,
     HostOrDevice,
@@ -43,13 +50,7 @@ from selfid_jax.experiments.common.schema import (
     StudyConfig,
     controller_rows,
 )
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
-
-from selfid_jax import control
-from selfid_jax.control import paths
-from selfid_jax.runner import Experiment, Part, precision
-from selfid_jax.runner.grids import grid_table, row_keys
-from selfid_jax.systems import System, manipulability
+from .common.specs import SystemSpec, build_system, needs_x64, system_name
 
 
 class ValidRegionWorkspaceConfig(StudyConfig):

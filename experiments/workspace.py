@@ -29,13 +29,14 @@ import jax.numpy as jnp
 import numpy as np
 import pandas as pd
 from pydantic import Field
-from selfid_jax.experiments.common.lazy_figures import figures_plot
-from selfid_jax.experiments.common.schema import HostOrDevice, StudyConfig
-from selfid_jax.experiments.common.specs import SystemSpec, build_system, needs_x64, system_name
 
 from selfid_jax.runner import Experiment, Part, precision
 from selfid_jax.runner.grids import row_keys
 from selfid_jax.systems import System, manipulability
+
+from .common.lazy_figures import figures_plot
+from .common.schema import HostOrDevice, StudyConfig
+from .common.specs import SystemSpec, build_system, needs_x64, system_name
 
 PLANES = ("rz", "xz")
 METRIC_COLUMNS = ("sqrt_manipulability", "yoshikawa", "condition", "position_sqrt_manipulability",

@@ -17,7 +17,7 @@ def _config_dirs() -> tuple[tuple[str, Path], ...]:
     """Where ``selfid-jax sweep NAME`` looks: ``./configs``, then the configs installed with the package.
 
     The installed ones are the data package ``selfid_jax.configs`` (the top-level configs/ of a checkout, installed
-    by pyproject.toml's package-dir), a namespace package: its one folder is the first of its ``__path__``.
+    by pyproject.toml's package-dir): its one folder is the first of its ``__path__``.
     """
     from importlib import import_module
 

@@ -78,7 +78,7 @@ def check_methods(methods, system_spec) -> None:
         if bad:
             raise ValueError(f"{where}.options: {', '.join(bad)} are set by the ablation (use nominal:), not options")
         if system is None:
-            from selfid_jax.experiments.common.specs import build_system
+            from .specs import build_system
 
             system = build_system(system_spec)
         for key in ("scale", "offset"):

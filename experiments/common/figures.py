@@ -19,15 +19,16 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from selfid_jax.experiments.common.region import (
+
+from selfid_jax.runner.figures import save_figure
+
+from .region import (
     curves,
     finite,
     require,
     valid_region_bounds,
     valid_region_summary,  # noqa: F401 - callers that draw and summarise
 )
-
-from selfid_jax.runner.figures import save_figure
 
 __all__ = [
     "ablation_error_curves",

@@ -14,11 +14,12 @@ from typing import Any
 import jax
 import numpy as np
 import pandas as pd
-from selfid_jax.experiments.common.schema import REALISM_FIELDS, RealismConfig
-from selfid_jax.experiments.common.specs import build_dynamic_arm
 
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.identify import algorithm as selfid
+
+from .schema import REALISM_FIELDS, RealismConfig
+from .specs import build_dynamic_arm
 
 __all__ = ["add_realism_axis", "level_labels", "level_of", "plant", "realism_summary", "self_identify"]
 

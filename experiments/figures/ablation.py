@@ -11,7 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import pandas as pd
-from selfid_jax.experiments.common.figures import ablation_figures
+
+from ..common.figures import ablation_figures
 
 __all__ = ["plot"]
 

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from selfid_jax.experiments.articulated import METRICS
 
 from selfid_jax.runner.figures import save_figure
+
+from ..articulated import METRICS
 
 __all__ = ["metrics_figure", "plane_figure", "plot"]
 

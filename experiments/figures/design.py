@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from selfid_jax.experiments.design import best_point
 
 from selfid_jax.runner.figures import save_figure
+
+from ..design import best_point
 
 __all__ = ["plot"]
 

@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from selfid_jax.experiments.common.schema import format_m_a
-from selfid_jax.experiments.peg_in_hole import INVERSES, TABLE
 
 from selfid_jax.runner.figures import save_figure
+
+from ..common.schema import format_m_a
+from ..peg_in_hole import INVERSES, TABLE
 
 __all__ = ["plot"]
 

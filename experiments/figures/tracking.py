@@ -12,12 +12,13 @@ from typing import Any, cast
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from selfid_jax.experiments.common import realism as realistic
-from selfid_jax.experiments.common.schema import format_m_a
-from selfid_jax.experiments.tracking import INVERSES, TrackingPath
 
 from selfid_jax.control import paths
 from selfid_jax.runner.figures import save_figure
+
+from ..common import realism as realistic
+from ..common.schema import format_m_a
+from ..tracking import INVERSES, TrackingPath
 
 __all__ = ["commanded_paths", "plot", "tracked_position_axes"]
 

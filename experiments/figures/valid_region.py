@@ -11,8 +11,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pandas as pd
-from selfid_jax.experiments.common.figures import valid_region_figure
-from selfid_jax.experiments.valid_region import series
+
+from ..common.figures import valid_region_figure
+from ..valid_region import series
 
 __all__ = ["plot"]
 

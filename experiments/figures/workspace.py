@@ -11,9 +11,10 @@ import numpy as np
 import pandas as pd
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
-from selfid_jax.experiments.workspace import PLANES, cell_maps
 
 from selfid_jax.runner.figures import save_figure
+
+from ..workspace import PLANES, cell_maps
 
 __all__ = ["plot"]
 

@@ -8,6 +8,7 @@ one control step the simulation and the live robot share (:mod:`~selfid_jax.cont
 ``inverse_jacobian_law``, ``command``; the QP law is :func:`selfid_jax.control.qp.constrained_law`).
 """
 
+from selfid_jax.control import dls, font, law, loop, metrics, paths, qp, realism, sources, task
 from selfid_jax.control.law import Command, StepLaw, command, inverse_jacobian_law
 from selfid_jax.control.loop import (
     DEFAULT_STEPS,
@@ -31,6 +32,8 @@ from selfid_jax.control.sources import (
 from selfid_jax.control.task import ControllerParams, Task, cap_actuator_step, clip_norm, safe_norm, waypoint_poses
 
 __all__ = [
+    # the modules
+    "dls", "font", "law", "loop", "metrics", "paths", "qp", "realism", "sources", "task",
     "DEFAULT_STEPS",
     "Command",
     "ControllerParams",

@@ -7,3 +7,7 @@ the Sec. IV-D convergence record), :mod:`~selfid_jax.identify.magnitude`
 :mod:`~selfid_jax.identify.recursive` (Eq. 14 kept by rank-one steps once
 ``S_vv`` has full rank), :mod:`~selfid_jax.identify.algorithm` (Algorithm 1 on a system).
 """
+
+from selfid_jax.identify import algorithm, estimator, magnitude, recursive, refine, step
+
+__all__ = ["algorithm", "estimator", "magnitude", "recursive", "refine", "step"]

@@ -2,3 +2,7 @@
 
 The bottom layer: it imports nothing else of ``selfid_jax``.
 """
+
+from selfid_jax.math import checks, geometry, kernels, linalg
+
+__all__ = ["checks", "geometry", "kernels", "linalg"]

@@ -3,40 +3,11 @@
 It knows no robot, controller or method (an import-linter contract in
 ``pyproject.toml`` holds it to that). ``selfid_jax.runner`` re-exports the
 contract (:class:`Experiment`, :class:`Part`), the registry (:func:`get`,
-:func:`available`, :func:`register`, :func:`load`), :func:`run` and :func:`part_threads`, each
-imported on first use (so that :mod:`selfid_jax.runner.signals` loads alone).
+:func:`available`, :func:`register`, :func:`load`), :func:`run` and :func:`part_threads`, and its
+modules, each imported on first use (so that :mod:`selfid_jax.runner.signals` loads alone); the names are
+listed once, in ``__init__.pyi`` (read by type checkers and by :func:`lazy_loader.attach_stub`).
 """
 
-from typing import TYPE_CHECKING
+import lazy_loader as _lazy
 
-_LAZY = {
-    "Experiment": "selfid_jax.runner.contract",
-    "Part": "selfid_jax.runner.contract",
-    "precision": "selfid_jax.runner.execute",
-    "part_threads": "selfid_jax.runner.execute",
-    "run": "selfid_jax.runner.execute",
-    "ENTRY_POINT_GROUP": "selfid_jax.runner.registry",
-    "available": "selfid_jax.runner.registry",
-    "get": "selfid_jax.runner.registry",
-    "load": "selfid_jax.runner.registry",
-    "register": "selfid_jax.runner.registry",
-}
-
-if TYPE_CHECKING:
-    from selfid_jax.runner.contract import Experiment, Part
-    from selfid_jax.runner.execute import part_threads, precision, run
-    from selfid_jax.runner.registry import ENTRY_POINT_GROUP, available, get, load, register
-
-__all__ = ["ENTRY_POINT_GROUP", "Experiment", "Part", "available", "get", "load", "part_threads", "precision",
-           "register", "run"]
-
-
-def __getattr__(name: str):
-    """The re-exported names, imported on first use."""
-    if name not in _LAZY:
-        raise AttributeError(f"module 'selfid_jax.runner' has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(_LAZY[name]), name)
-    globals()[name] = value
-    return value
+__getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)

@@ -4,7 +4,13 @@ from collections.abc import Callable
 from functools import partial
 from typing import NamedTuple
 
-from selfid_jax.systems import manipulability  # noqa: F401
+from selfid_jax.systems import (  # noqa: F401  (public modules, reached as sj.systems.<module>)
+    actuation,
+    compose,
+    kinematics,
+    manipulability,
+    model_files,
+)
 from selfid_jax.systems.dynamic import DynamicArm, dynamic_arm, dynamic_ur5e
 from selfid_jax.systems.ets import arm5, from_ets
 from selfid_jax.systems.hands import model_o, stewart_hand

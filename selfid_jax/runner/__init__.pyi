@@ -1,0 +1,29 @@
+# selfid_jax.runner's public names, listed once: read by type checkers and by lazy_loader.attach_stub in __init__.py.
+
+from . import command_line as command_line
+from . import config as config
+from . import contract as contract
+from . import errors as errors
+from . import execute as execute
+from . import figures as figures
+from . import files as files
+from . import fingerprint as fingerprint
+from . import grids as grids
+from . import layout as layout
+from . import limits as limits
+from . import lock as lock
+from . import manifest as manifest
+from . import registry as registry
+from . import rundir as rundir
+from . import signals as signals
+from . import sweep as sweep
+from .contract import Experiment as Experiment
+from .contract import Part as Part
+from .execute import part_threads as part_threads
+from .execute import precision as precision
+from .execute import run as run
+from .registry import ENTRY_POINT_GROUP as ENTRY_POINT_GROUP
+from .registry import available as available
+from .registry import get as get
+from .registry import load as load
+from .registry import register as register
