@@ -72,19 +72,19 @@ def _layer_order() -> list[str]:
 
 
 def _folder_job(rel: str, folder: Path) -> str:
+    if rel in FOLDERS:  # a data folder (configs/ is a data package: its __init__.py only names it)
+        files = ", ".join(sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix != ".py"))
+        return FOLDERS[rel].format(files=files)
     if (folder / "__init__.py").exists():
         return first_line(folder / "__init__.py")
-    if rel not in FOLDERS:
-        raise SystemExit(f"{rel}/ is neither a package nor described in FOLDERS of scripts/readme_layout.py")
-    files = ", ".join(sorted(p.name for p in folder.iterdir() if p.is_file()))
-    return FOLDERS[rel].format(files=files)
+    raise SystemExit(f"{rel}/ is neither a package nor described in FOLDERS of scripts/readme_layout.py")
 
 
 def _walk(folder: Path, depth: int, rows: list[tuple[str, str]]) -> None:
     rel = folder.relative_to(ROOT).as_posix()
     indent = "  " * depth
     rows.append((f"{indent}{folder.name}/", _folder_job(rel, folder)))
-    if not (folder / "__init__.py").exists() and rel not in EXPANDED:
+    if rel not in EXPANDED and (rel in FOLDERS or not (folder / "__init__.py").exists()):
         return
     for module in sorted(folder.glob("*.py")):
         if module.name != "__init__.py":

@@ -11,14 +11,16 @@ functions a user calls: the estimator (``sj.init``, ``sj.update``,
 and the controller (``sj.follow`` with ``sj.ControllerParams``). Everything
 else by its package, under the package's own name: ``sj.math``,
 ``sj.systems``, ``sj.identify``, ``sj.control``, ``sj.baselines``,
-``sj.design``, ``sj.articulated``, ``sj.robot`` and ``sj.runner`` (e.g.
+``sj.design``, ``sj.articulated``, ``sj.robot``, ``sj.sessions`` (a fitted log or an online session
+written into a run directory, as the commands do) and ``sj.runner`` (e.g.
 ``sj.identify.algorithm.run``, Algorithm 1 on a system; ``sj.control.paths``;
 ``sj.runner.get``). Each is imported on first use, with its public modules. docs/api_guide.md has
 runnable examples.
 
 Layers, bottom to top (import-linter contracts in ``pyproject.toml``):
 ``math`` < ``systems`` < ``identify`` | ``control`` < ``baselines`` <
-``design`` | ``articulated`` | ``robot`` < ``experiments`` < ``commands`` < ``cli``; ``runner`` knows none of them.
+``design`` | ``articulated`` | ``robot`` < ``experiments`` | ``sessions`` < ``commands`` < ``cli``; ``runner``
+knows none of them.
 
 The public names are listed once, in ``selfid_jax/__init__.pyi``: type checkers
 read it, and :func:`lazy_loader.attach_stub` (SPEC 1) imports each name from it

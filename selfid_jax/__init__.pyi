@@ -11,6 +11,7 @@ from . import identify as identify
 from . import math as math
 from . import robot as robot
 from . import runner as runner
+from . import sessions as sessions
 from . import systems as systems
 
 # the controller

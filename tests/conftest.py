@@ -80,3 +80,18 @@ def console() -> list[str]:
     """The ``selfid-jax`` console script as a command list (its installed script, else ``python -c`` calling it)."""
     exe = shutil.which("selfid-jax", path=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
     return [exe] if exe else [sys.executable, "-c", "import sys; from selfid_jax.cli import main; sys.exit(main())"]
+
+
+# ------------------------------------------------------------ the hands (test_model_o.py, test_stewart_hand.py)
+
+@pytest.fixture(scope="session")
+def poses():
+    """``poses(system, q (B, n)) -> (p (B, 3), R (B, 3, 3))``, jitted: the System is a traced argument, so every
+    system and test of one pose-map type and batch shares one compiled program."""
+    return jax.jit(jax.vmap(lambda system, q: system.pose(q), in_axes=(None, 0)))
+
+
+@pytest.fixture(scope="session")
+def mjx_batch() -> int:
+    """Commands per MJX settle in the hands' tests: every MJX settle of one hand is one compiled program."""
+    return 16

@@ -9,10 +9,10 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
+from helpers_articulated import PADS, rollout_params, ur5e_arm
 
 from selfid_jax.articulated import scenes, sim, tacman, tactile
 
-PADS = tactile.pads()
 
 
 def _random_pose(seed, angle=0.1, shift=0.003):
@@ -172,29 +172,6 @@ def test_tactile_options_keep_their_config_names_in_the_rollout_params():
 # ----------------------------------------------------------------------------- closed loop (slow)
 
 
-def _arm():
-    from selfid_jax.systems.ur5e import UR5E_HOME, ur5e
-
-    arm = ur5e(task_dim=6)
-    q0 = np.asarray(UR5E_HOME)
-    p1, R1 = (np.asarray(a) for a in arm.pose(jnp.asarray(q0)))
-    return arm, q0, p1, R1
-
-
-def _params(obj, controllers, *, use_estimate=False, jinv=None):
-    B = len(controllers)
-    full = lambda v: jnp.full((B,), v)
-    return sim.RolloutParams(
-        obj=scenes.ObjectParams(*(jnp.asarray(a) for a in obj)), controller=jnp.asarray(controllers, jnp.int32),
-        use_estimate=jnp.full((B,), use_estimate),
-        jinv_est=jnp.zeros((B, 6, 6)) if jinv is None else jnp.broadcast_to(jinv, (B, 6, 6)),
-        key=jax.random.key_data(jax.random.split(jax.random.key(0), B)), speed=full(0.03), marker_noise=full(5e-6),
-        contact_eps=full(3e-4), contact_points=jnp.zeros((B,), jnp.int32),
-        qdot_max=jnp.ones((B, 6)), beta=full(0.9), dev_high=full(1e-3), dev_low=full(2e-4),
-        recovery_gain=full(0.5), slip=full(5e-3), slip_rot=full(0.3), lead_max=full(1e-3), twist_tau=full(0.06),
-        grasp=jnp.tile(jnp.array([2e4, 280.0, 5.0, 0.44]), (B, 1)))
-
-
 def _objects(kind, n_rows, frictionloss=1.0):
     pop = scenes.population(kind, 1, 3, misalign_deg=10.0, radius=(0.25, 0.25), damping=(5.0, 5.0),
                             frictionloss=(frictionloss, frictionloss))
@@ -209,12 +186,12 @@ def test_drawer_and_door_opened_by_both_controllers(kind, steps):
 
     Literal Turbo stalls; the lead keeps |v0| where keep_speed's proportional shear slows down."""
     with jax.numpy_rank_promotion("allow"):
-        arm, q0, p1, R1 = _arm()
+        arm, q0, p1, R1 = ur5e_arm()
         m, lay = scenes.compile_scene(kind, p1, R1)
         st = sim.make_static("native", lay, m, PADS, arm, q0, steps=steps, substeps=10, stride=50)
         C = sim.Controller
         ctrl = [C.TACMAN_REAIM, C.TURBO_U0, C.TURBO, C.TURBO_LEAD]
-        r = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))(_params(_objects(kind, 4), ctrl))
+        r = jax.jit(jax.vmap(lambda p: sim.rollout(st, p)))(rollout_params(_objects(kind, 4), ctrl))
     assert list(np.asarray(r.success)) == [True, True, False, True]
     assert not np.any(np.asarray(r.failed))
     assert float(r.progress[2]) < 0.2  # the literal Eq. 16-18 drive the force-carrying shear to zero

@@ -9,7 +9,7 @@ template has no friction loss). The reference is native MuJoCo.
 import jax
 import numpy as np
 import pytest
-from test_articulated import PADS, _arm, _params  # the closed-loop helpers (tests/ is on the path)
+from helpers_articulated import PADS, rollout_params, ur5e_arm
 
 from selfid_jax.articulated import scenes, sim
 
@@ -41,14 +41,14 @@ def test_native_and_mjx_agree_with_friction_loss():
 
     Before apply_mjx marked the friction-loss dofs, MJX dropped the 1 N friction loss and moved the handle
     2.4x further in the first control step."""
-    arm, q0, p1, R1 = _arm()
+    arm, q0, p1, R1 = ur5e_arm()
     m, lay = scenes.compile_scene("prismatic", p1, R1)
     obj = _drawers([0.0, 1.0])
     out = {}
     with jax.numpy_rank_promotion("allow"):
         for backend in ("native", "mjx"):
             st = sim.make_static(backend, lay, m, PADS, arm, q0, steps=15, substeps=10, stride=1)
-            params = _params(obj, [sim.Controller.TURBO_U0] * 2)
+            params = rollout_params(obj, [sim.Controller.TURBO_U0] * 2)
             out[backend] = jax.jit(jax.vmap(lambda p, st=st: sim.rollout(st, p)))(params)
     a, b = out["native"], out["mjx"]
     h = np.asarray(a.handle_trace)

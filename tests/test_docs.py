@@ -30,14 +30,10 @@ import typing
 from pathlib import Path
 
 import pytest
+from helpers_docs import DOCS, README, ROOT, check_block_prints_what_it_says, doc_pages, python_blocks, stated_outputs
 from pydantic import BaseModel
-from test_readme import check_block_prints_what_it_says, doc_pages, python_blocks, stated_outputs
 
 from selfid_jax import runner
-
-ROOT = Path(__file__).resolve().parents[1]
-DOCS = ROOT / "docs"
-README = ROOT / "README.md"
 
 
 def _script(name: str):

@@ -26,7 +26,8 @@ def test_native_hand_settling_warns_on_an_accelerator_only(monkeypatch):
 
 def test_the_articulated_native_backend_warns_on_an_accelerator(monkeypatch):
     """sim.make_static('native') on a GPU default warns; 'mjx' does not (a door scene, the test arm)."""
-    from test_articulated import PADS, _arm
+    from helpers_articulated import PADS
+    from helpers_articulated import ur5e_arm as _arm
 
     from selfid_jax.articulated import scenes, sim
 

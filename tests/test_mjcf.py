@@ -5,6 +5,7 @@ import jax
 import mujoco
 import numpy as np
 import pytest
+from helpers_mjcf import TENDON_ARM_XML
 from scipy.spatial.transform import Rotation
 
 from selfid_jax import control
@@ -12,75 +13,10 @@ from selfid_jax.control import paths
 from selfid_jax.identify import algorithm as selfid
 from selfid_jax.systems import from_mjcf
 
-# A 3-hinge arm (j1 yaw, j2/j3 pitch), a passive hinge jf = 0.5 j3 (joint equality), a wrist pair ja/jb
-# driven by one actuator on the fixed tendon 'pair' (length ja + 0.5 jb; ja has ref 0.2, so qpos0 = 0.2),
-# an unactuated hinge jh (held by joints_fixed) and slide ext (held at qpos0 = ref = 0.01), the tip site,
-# a finger slide off the site's chain, a site-transmission actuator (unsupported: skipped), and a free box
-# (7 qpos before the arm). Actuators: a1 position servo (ctrlrange narrower than the joint range),
-# a2 Menagerie-style <general> servo, a3 motor (ctrlrange is a torque), a_pair position servo on the tendon.
-XML = """
-<mujoco model="tendon_arm">
-  <compiler angle="radian" autolimits="true"/>
-  <option integrator="implicit" timestep="0.002" density="1.2" viscosity="1e-5"/>
-  <default><joint damping="0.5"/><geom size="0.03"/></default>
-  <worldbody>
-    <geom name="floor" type="plane" size="2 2 0.1"/>
-    <body name="box" pos="0.6 0.4 0.1">
-      <joint name="box_free" type="free"/>
-      <geom type="box" size="0.05 0.05 0.05"/>
-      <site name="box_site"/>
-    </body>
-    <body name="base" pos="0 0 0.1">
-      <joint name="j1" axis="0 0 1" range="-2.5 2.5"/>
-      <geom type="cylinder" size="0.05 0.05"/>
-      <body name="upper" pos="0 0 0.1" euler="0.1 0 0">
-        <joint name="j2" axis="0 1 0" range="-2 2"/>
-        <geom type="capsule" fromto="0 0 0 0.3 0 0"/>
-        <body name="fore" pos="0.3 0 0">
-          <joint name="j3" axis="0 1 0" range="-2 2"/>
-          <geom type="capsule" fromto="0 0 0 0.2 0 0"/>
-          <body name="passive" pos="0.2 0 0">
-            <joint name="jf" axis="0 0 1" pos="0.01 0 0" range="-0.5 0.5"/>
-            <joint name="ext" type="slide" axis="1 0 0" ref="0.01" range="-0.05 0.05"/>
-            <geom type="capsule" fromto="0 0 0 0.06 0 0"/>
-            <body name="wrist" pos="0.06 0 0">
-              <joint name="ja" axis="0 1 0" ref="0.2" range="-1 1"/>
-              <geom type="sphere"/>
-              <body name="hand" pos="0.05 0 0" quat="0.9 0.1 0.3 -0.2">
-                <joint name="jb" axis="1 0 0" range="-1 1"/>
-                <joint name="jh" axis="0 0 1" pos="0 0.01 0"/>
-                <geom type="box" size="0.02 0.03 0.01"/>
-                <site name="tip" pos="0.08 0.01 0.02" euler="0.2 -0.1 0.3"/>
-                <body name="finger" pos="0.03 0 0">
-                  <joint name="finger" type="slide" axis="0 1 0" range="0 0.04"/>
-                  <geom type="box" size="0.01 0.01 0.02"/>
-                </body>
-              </body>
-            </body>
-          </body>
-        </body>
-      </body>
-    </body>
-  </worldbody>
-  <tendon>
-    <fixed name="pair"><joint joint="ja" coef="1"/><joint joint="jb" coef="0.5"/></fixed>
-  </tendon>
-  <equality>
-    <joint name="follow" joint1="jf" joint2="j3" polycoef="0 0.5 0 0 0"/>
-  </equality>
-  <actuator>
-    <position name="a1" joint="j1" kp="100" ctrlrange="-2 2"/>
-    <general name="a2" joint="j2" biastype="affine" gainprm="200" biasprm="0 -200 -20" ctrlrange="-1.5 1.5"/>
-    <motor name="a3" joint="j3" ctrlrange="-5 5"/>
-    <position name="a_pair" tendon="pair" kp="50" ctrlrange="-1 1"/>
-    <motor name="a_finger" joint="finger" ctrlrange="-1 1"/>
-    <general name="a_site" site="tip" gear="0 0 1 0 0 0"/>
-  </actuator>
-</mujoco>
-"""
+# The arm (its joints, tendon and actuators): tests/helpers_mjcf.py.
 ACTS = ["a1", "a_pair", "a2", "a3"]  # q order (not the model's)
 FIXED = {"jh": 0.3}
-MJ = mujoco.MjModel.from_xml_string(XML)
+MJ = mujoco.MjModel.from_xml_string(TENDON_ARM_XML)
 
 
 def qpos_of(u):
@@ -120,7 +56,7 @@ def mj_site(qpos, site="tip"):
 
 @pytest.fixture(scope="module")
 def arm():
-    return from_mjcf(XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=6, m_a=0.02)
+    return from_mjcf(TENDON_ARM_XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=6, m_a=0.02)
 
 
 U = np.array([[0.3, 0.4, -0.5, 0.8], [-1.2, -0.7, 1.0, -1.5], [1.9, 0.9, 0.1, 0.2]])
@@ -165,13 +101,13 @@ def test_pose_and_jacobian_match_mujoco(arm):
             fd[:3, i] = (pp - pm) / (2 * h)
             fd[3:, i] = Rotation.from_matrix(Rp @ Rm.T).as_rotvec() / (2 * h)
         np.testing.assert_allclose(J, fd, atol=1e-8)
-    again = from_mjcf(XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=6, m_a=0.02)
+    again = from_mjcf(TENDON_ARM_XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=6, m_a=0.02)
     assert again.pose_fn == arm.pose_fn and hash(again.pose_fn) == hash(arm.pose_fn)  # no recompilation
 
 
 @pytest.mark.slow
 def test_mjx_path_loads_the_implicit_model_and_agrees(arm):
-    s = from_mjcf(XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=6, m_a=0.02, fk="mjx")
+    s = from_mjcf(TENDON_ARM_XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=6, m_a=0.02, fk="mjx")
     assert s.params.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER  # the kinematic copy
     assert MJ.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICIT
     p, R = jax.jit(lambda system, q: system.pose(q))(s, U[0])
@@ -191,8 +127,8 @@ def _selfid_then_follow(system, key, q0):
 @pytest.mark.slow
 def test_selfid_converges_and_star_completes(arm):
     # qpos0 is the outstretched (singular) arm: sample around a bent home instead
-    arm3 = from_mjcf(XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=3, m_a=[0.02, 0.02, 0.02, 0.03],
-                     home=[0.0, 0.2, 0.5, 0.8], min_sigma=0.05)
+    arm3 = from_mjcf(TENDON_ARM_XML, "tip", actuators=ACTS, joints_fixed=FIXED, task_dim=3,
+                     m_a=[0.02, 0.02, 0.02, 0.03], home=[0.0, 0.2, 0.5, 0.8], min_sigma=0.05)
     np.testing.assert_allclose(arm3.m_a, [0.02, 0.02, 0.02, 0.03])
     np.testing.assert_allclose(arm3.sample_low, [-0.5, -0.3, 0.0, 0.3], atol=1e-12)
     np.testing.assert_allclose(arm3.sample_high, [0.5, 0.7, 1.0, 1.0], atol=1e-12)
@@ -210,7 +146,7 @@ def test_selfid_converges_and_star_completes(arm):
 
 def test_default_actuators_skip_unsupported_ones_with_a_warning():
     with pytest.warns(UserWarning, match="'a_site' has a site transmission"):
-        s = from_mjcf(XML, "tip", task_dim=3, m_a=0.02)
+        s = from_mjcf(TENDON_ARM_XML, "tip", task_dim=3, m_a=0.02)
     assert s.pose_fn.qmap.names == ("a1", "a2", "a3", "a_pair", "a_finger")
     # the finger slide (off the chain) has range [0, 0.04]: default box = home 0 + 1/4 of the range
     np.testing.assert_allclose([s.sample_low[4], s.sample_high[4]], [0.0, 0.01], atol=1e-15)
@@ -245,7 +181,7 @@ NO_ACT = "<mujoco><worldbody><body><joint name='h'/><geom size='.1'/><site name=
 def test_clear_errors(args, kw, match):
     kw = dict(dict(task_dim=3, m_a=0.02), **kw)
     with pytest.raises(ValueError, match=match):
-        from_mjcf(XML, *args, **kw)
+        from_mjcf(TENDON_ARM_XML, *args, **kw)
 
 
 def test_clear_errors_on_other_models():

@@ -19,9 +19,6 @@ JAC_RTOL = 1e-3  # relative: kinematic vs finite-difference settled Jacobians
 # a few commands (m) about the grasp, asymmetric (symmetric ones hide slow modes)
 OFFSETS = np.array([[0.0, 0.0, 0.0], [1e-3, -2e-3, 0.5e-3], [-3e-3, 2.5e-3, 1e-3], [2e-3, 1e-3, -4e-3]])
 ROLL_OVER = np.array([7e-3, -7e-3, 0.0])  # pulls f0, releases f1: past the fold, the object rolls over
-# one compilation per pose-map type and batch, shared by every system and test (the System is a traced argument)
-POSES = jax.jit(jax.vmap(lambda system, q: system.pose(q), in_axes=(None, 0)))
-MJX_BATCH = 16  # commands per MJX settle in the hands' tests: one MJX program per hand
 
 
 def _native(q, tol=1e-12):
@@ -82,7 +79,7 @@ def test_needs_x64_and_checks_arguments():
 
 # ------------------------------------------------------------------ slow: the kinematic equilibrium
 @pytest.mark.slow
-def test_kinematic_matches_native(hand):
+def test_kinematic_matches_native(hand, poses):
     home = mo.model_o_home()
     Q = home + OFFSETS
     (p, R), J = jax.jit(jax.vmap(hand.pose_and_jacobian))(jnp.asarray(Q))
@@ -94,7 +91,7 @@ def test_kinematic_matches_native(hand):
     for q, Jk in zip(Q, np.asarray(J)):
         Jn = _native_jacobian(q, 1e-4)
         assert np.abs(Jk - Jn).max() < JAC_RTOL * np.abs(Jn).max()
-    pn_sys = POSES(mo.model_o(backend="native"), jnp.asarray(Q))[0]  # the native System: pure_callback, guards
+    pn_sys = poses(mo.model_o(backend="native"), jnp.asarray(Q))[0]  # the native System: pure_callback, guards
     assert np.abs(np.asarray(pn_sys) - pn).max() < 1e-9
     s = np.linalg.svd(J[0], compute_uv=False)
     assert 1.5 < s[0] / s[-1] < 3  # well conditioned at the grasp (2.17)
@@ -117,11 +114,11 @@ def test_jacobians_forward_mode_through_solve_and_rotation(hand):
 
 
 @pytest.mark.slow
-def test_mjx_matches_kinematic(hand):
+def test_mjx_matches_kinematic(hand, poses, mjx_batch):
     hm = mo.model_o(backend="mjx")
-    extra = np.random.default_rng(12).uniform(-0.001, 0.001, (MJX_BATCH - 2, 3))
+    extra = np.random.default_rng(12).uniform(-0.001, 0.001, (mjx_batch - 2, 3))
     Q = jnp.asarray(mo.model_o_home() + np.concatenate([OFFSETS[1:3], extra]))
-    pm, pk = POSES(hm, Q)[0], POSES(hand, Q)[0]
+    pm, pk = poses(hm, Q)[0], poses(hand, Q)[0]
     assert np.all(np.isfinite(pm)) and np.abs(pm - pk).max() < POSE_TOL
 
 
@@ -135,16 +132,16 @@ def test_grasp_held_over_random_selfid_actuations(hand):
 
 
 @pytest.mark.slow
-def test_roll_over_is_flagged(hand):
+def test_roll_over_is_flagged(hand, poses):
     home = mo.model_o_home()
     q = jnp.asarray(home + ROLL_OVER)
-    assert np.all(np.isnan(POSES(hand, q[None])[0]))
+    assert np.all(np.isnan(poses(hand, q[None])[0]))
     # native MuJoCo rolls the object over there; with the box widened the branch guard still flags it
     _, Rn, ok = _native(home + ROLL_OVER, tol=1e-10)
     assert ok.all() and np.degrees(mo.tilt_angle(jnp.asarray(Rn[0]))) > 45
     wide = mo.model_o(safe_range=(-0.02, 0.02))
-    assert np.all(np.isnan(POSES(wide, q[None])[0]))
-    assert np.all(np.isnan(POSES(mo.model_o(backend="native", safe_range=(-0.02, 0.02)), q[None])[0]))  # tilt
+    assert np.all(np.isnan(poses(wide, q[None])[0]))
+    assert np.all(np.isnan(poses(mo.model_o(backend="native", safe_range=(-0.02, 0.02)), q[None])[0]))  # tilt
     ctrl = sj.ControllerParams(max_step=0.0005, tol=0.00005)
     path = jnp.array([[0.0, -0.02, 0.0]])  # 20 mm sideways: the controller pulls the object over
     starts = jnp.stack([q, jnp.asarray(home)])

@@ -9,28 +9,10 @@ import warnings
 import mujoco
 import numpy as np
 import pytest
+from helpers_mjcf import URDF  # tests/ is on the path
+from helpers_mjcf import body_point_jacobian as _body_point_jacobian
 
 from selfid_jax.systems.mjcf import POM_SITE, from_mjcf
-
-URDF = textwrap.dedent("""\
-    <robot name="arm3">
-      <link name="base"/>
-      <link name="l1"><inertial><origin xyz="0 0 0.1"/><mass value="1"/>
-        <inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-      <link name="l2"><inertial><origin xyz="0.15 0 0"/><mass value="1"/>
-        <inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
-      <link name="l3"><inertial><origin xyz="0.1 0 0"/><mass value="0.5"/>
-        <inertia ixx="0.005" iyy="0.005" izz="0.005" ixy="0" ixz="0" iyz="0"/></inertial></link>
-      <link name="tool"/>
-      <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><origin xyz="0 0 0.1"/>
-        <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="10" velocity="1"/></joint>
-      <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/><origin xyz="0 0 0.2"/>
-        <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="10" velocity="1"/></joint>
-      <joint name="j3" type="revolute"><parent link="l2"/><child link="l3"/><origin xyz="0.3 0 0"/>
-        <axis xyz="0 1 0"/><limit lower="-2.5" upper="2.5" effort="10" velocity="1"/></joint>
-      <joint name="flange" type="fixed"><parent link="l3"/><child link="tool"/><origin xyz="0.25 0 0.02"/></joint>
-    </robot>
-    """)
 
 # Two hinges, no site, a 'home' keyframe and a second keyframe; qpos0 of j2 (0) is outside its range [0.2, 2].
 SITELESS = textwrap.dedent("""\
@@ -56,16 +38,7 @@ SITELESS = textwrap.dedent("""\
     """)
 
 
-def _body_point_jacobian(model: mujoco.MjModel, qpos, body: str, offset) -> tuple[np.ndarray, np.ndarray]:
-    """MuJoCo's own position and (3, nv) Jacobian of a point fixed in ``body`` (mj_jac, no site involved)."""
-    d = mujoco.MjData(model)
-    d.qpos[:] = qpos
-    mujoco.mj_forward(model, d)
-    b = model.body(body).id
-    point = d.xpos[b] + d.xmat[b].reshape(3, 3) @ np.asarray(offset, float)
-    jacp, jacr = np.zeros((3, model.nv)), np.zeros((3, model.nv))
-    mujoco.mj_jac(model, d, jacp, jacr, point, b)
-    return point, np.vstack([jacp, jacr])
+
 
 
 def test_urdf_loads_with_its_tool_link_and_matches_mujocos_jacobian(tmp_path):

@@ -21,16 +21,16 @@ import numpy as np
 import pandas as pd
 import pydantic
 import pytest
-from selfid_jax.experiments.common import figures as plots
-from test_sweep import (
+from helpers_sweep import (
     TESTS,
     SyntheticConfig,
-    _env,
     make_inputs,
     reference,
+    subprocess_env,
     synthetic_build,
     synthetic_fn,
 )
+from selfid_jax.experiments.common import figures as plots
 
 from selfid_jax import cli
 from selfid_jax import runner as experiment
@@ -154,7 +154,8 @@ def test_two_sweeps_into_one_directory(tmp_path, capsys):
     cfg, out = _config(tmp_path), tmp_path / "run"
     script = (f"import sys; sys.path.insert(0, {str(TESTS)!r}); import test_rundir; from selfid_jax import cli; "
               f"sys.exit(cli.main(['sweep', {str(cfg)!r}, '--out', {str(out)!r}, '--no-progress']))")
-    first = subprocess.Popen([sys.executable, "-c", script], env=_env(JAX_PLATFORMS="cpu", SELFID_TEST_SLEEP="0.15"),
+    first = subprocess.Popen([sys.executable, "-c", script],
+                             env=subprocess_env(JAX_PLATFORMS="cpu", SELFID_TEST_SLEEP="0.15"),
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     chunk_dir = out / "parts" / "synthetic" / "chunks"
     deadline = time.monotonic() + 90

@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from test_model_o import MJX_BATCH, POSES  # one compiled MJX settle per hand (tests/ is on the path)
 
 import selfid_jax as sj
 from selfid_jax.systems.hands import settle
@@ -125,7 +124,7 @@ def test_native_system_by_callback(hand):
 
 
 @pytest.mark.slow
-def test_mjx_matches_kinematic_pose_and_jacobian(hand):
+def test_mjx_matches_kinematic_pose_and_jacobian(hand, poses, mjx_batch):
     """MJX settling (float64): poses within 1e-6 m of Newton's; central-difference Jacobian within 1e-3."""
     mjx_hand = stewart_hand(backend="mjx")
     q = _box(4, 3)
@@ -134,8 +133,8 @@ def test_mjx_matches_kinematic_pose_and_jacobian(hand):
     bad = HOME.copy()
     bad[2] = 0.0705
     batch = jnp.asarray(np.concatenate([q, q_fd, bad[None]]))
-    assert batch.shape[0] == MJX_BATCH
-    p, R = POSES(mjx_hand, batch)
+    assert batch.shape[0] == mjx_batch
+    p, R = poses(mjx_hand, batch)
     p_k, R_k = jax.vmap(hand.pose)(batch[:3])
     ep, eR = _pose_err(p[:3], R[:3], p_k, R_k)
     assert ep < 1e-6 and eR < 1e-5, (ep, eR)
@@ -219,7 +218,7 @@ def test_three_backends_agree_on_a_short_rollout(hand):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["stewart", "model_o"])
-def test_settle_options_keep_the_settled_pose(name):
+def test_settle_options_keep_the_settled_pose(name, poses, mjx_batch):
     """settle.mjx_model's settling options (one Newton iteration and 4 line-search steps a step, sparse mass matrix
     on CPU; the loop carrying the state only), which the hands' MJX backend uses, settle 16 random commands to the
     pose MJX gives with the MJCF's own options (up to 100 iterations, 50 line-search steps, dense) and to native
@@ -230,14 +229,14 @@ def test_settle_options_keep_the_settled_pose(name):
     if name == "stewart":
         mj, qpos0 = mujoco.MjModel.from_xml_path(STEWART_XML), None
         steps, tol = STEWART_SETTLE_STEPS, STEWART_SETTLE_TOL
-        q = _box(11, MJX_BATCH)
+        q = _box(11, mjx_batch)
         fast = stewart_hand(backend="mjx")
         inner = fast.params
         with_model = lambda model: fast.replace(params=dataclasses.replace(inner, model=model))
     else:
         mj, steps, tol = mo.model_o_mjmodel(), mo.MODEL_O_SETTLE_STEPS, mo.MODEL_O_SETTLE_TOL
         qpos0, home = mo.model_o_keyframe()
-        q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (MJX_BATCH, 3))
+        q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (mjx_batch, 3))
         fast = mo.model_o(backend="mjx")
         inner, max_tilt = fast.params
         with_model = lambda model: fast.replace(params=(dataclasses.replace(inner, model=model), max_tilt))
@@ -246,8 +245,8 @@ def test_settle_options_keep_the_settled_pose(name):
     assert (int(mjcf.opt.iterations), int(mjcf.opt.ls_iterations)) == (mj.opt.iterations, mj.opt.ls_iterations)
     settle_pose = fast.pose_fn if name == "stewart" else fast.pose_fn.inner
     assert (settle_pose.max_steps, settle_pose.tol) == (steps, tol)
-    p_f, R_f = POSES(fast, jnp.asarray(q))
-    p_m, R_m = POSES(with_model(mjcf), jnp.asarray(q))
+    p_f, R_f = poses(fast, jnp.asarray(q))
+    p_m, R_m = poses(with_model(mjcf), jnp.asarray(q))
     p_n, R_n, ok_n = settle.native_settle(mj, int(mj.site("pom").id), q, qpos0=qpos0, max_steps=steps, tol=tol)
     assert ok_n.all() and np.all(np.isfinite(p_f)) and np.all(np.isfinite(p_m))
     e_fm, eR_fm = _pose_err(p_f, R_f, p_m, R_m)

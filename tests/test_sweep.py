@@ -9,52 +9,18 @@ import subprocess
 import sys
 import textwrap
 import time
-from pathlib import Path
-from typing import NamedTuple
 
 import chex
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pandas as pd
-import pydantic
 import pytest
-from selfid_jax.experiments.common.figures import save_figure
+from helpers_sweep import RUNS, TESTS, make_inputs, reference, subprocess_env, synthetic_fn
 
 import selfid_jax.runner.sweep as sweep
 from selfid_jax import cli
 from selfid_jax import runner as experiment
-from selfid_jax.runner.config import BaseConfig
 from selfid_jax.runner.rundir import load_results, read_summary
-from selfid_jax.runner.sweep import SweepResumeError, grid_table, row_keys, run_chunked
-
-TESTS = Path(__file__).resolve().parent
-
-
-def synthetic_fn(p):
-    """Per row: a noisy 3-state nonlinear recursion, 6 steps (lax.scan), from the row's key."""
-
-    def row(a, key):
-        k = jax.random.wrap_key_data(key)
-        m = jax.random.normal(k, (3, 3))
-        def step(x, t):
-            x = jnp.tanh(a * (m @ x) + jnp.sin(t))
-            return x, x[0]
-        x_final, traj = jax.lax.scan(step, jnp.ones(3), jnp.arange(6.0))
-        return {"final": jnp.sum(x_final), "traj": traj, "negative": x_final[0] < 0}
-
-    return jax.vmap(row)(p["a"], p["key"])
-
-
-def make_inputs(seed: int = 0):
-    """23 rows: 2 systems x 3 gains x 4 trials, minus one row (so the last chunk is short)."""
-    meta = grid_table({"system": ["s1", "s2"], "a": [0.3, 0.8, 1.4], "trial": range(4)}).iloc[:23]
-    params = {"a": meta["a"].to_numpy(), "key": row_keys(seed, len(meta))}
-    return meta, params
-
-
-def reference(params) -> dict[str, np.ndarray]:
-    return {k: np.asarray(v) for k, v in jax.jit(synthetic_fn)(params).items()}
+from selfid_jax.runner.sweep import SweepResumeError, row_keys, run_chunked
 
 
 def assert_matches_reference(df: pd.DataFrame, ref: dict[str, np.ndarray]) -> None:
@@ -179,7 +145,7 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     import jax, pandas as pd
     import selfid_jax.runner.sweep as sweep
-    from test_sweep import make_inputs, synthetic_fn
+    from helpers_sweep import make_inputs, synthetic_fn
     assert len(jax.devices()) == 2, jax.devices()
     out = {out!r}
     meta, params = make_inputs()
@@ -202,20 +168,12 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
 )
 
 
-def _env(**extra) -> dict[str, str]:
-    env = dict(os.environ)
-    env["JAX_ENABLE_X64"] = "1" if jax.config.jax_enable_x64 else "0"
-    env.pop("XLA_FLAGS", None)
-    env.update(extra)
-    return env
-
-
 @pytest.mark.slow
 def test_two_devices_match_one_device(tmp_path):
     script = TWO_DEVICE_SCRIPT.format(tests=str(TESTS), out=str(tmp_path))
     res = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
-        env=_env(XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"),
+        env=subprocess_env(XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"),
     )
     assert res.returncode == 0 and "OK" in res.stdout, res.stderr[-3000:]
     _, params = make_inputs()
@@ -228,7 +186,7 @@ KILL_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     import jax
     import selfid_jax.runner.sweep as sweep
-    from test_sweep import make_inputs, synthetic_fn
+    from helpers_sweep import make_inputs, synthetic_fn
 
     def slow_fn(p):
         jax.debug.callback(lambda: time.sleep(0.4))
@@ -245,7 +203,7 @@ def test_resume_after_kill(tmp_path):
     """SIGKILL mid-sweep leaves only whole chunk files; the re-run finishes the rest."""
     proc = subprocess.Popen(
         [sys.executable, "-c", KILL_SCRIPT.format(tests=str(TESTS), out=str(tmp_path))],
-        env=_env(JAX_PLATFORMS="cpu"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        env=subprocess_env(JAX_PLATFORMS="cpu"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )
     chunk_dir = tmp_path / "chunks"
     deadline = time.monotonic() + 90
@@ -269,57 +227,6 @@ def test_resume_after_kill(tmp_path):
 
 
 # --------------------------------------------------------------------------- CLI
-
-
-class SyntheticConfig(BaseConfig):
-    experiment: str = "synthetic_cli_test"
-    gains: list[float] = pydantic.Field(min_length=1)
-    n_trials: int = pydantic.Field(ge=1)
-
-
-RUNS: list[dict] = []
-
-
-class SyntheticParams(NamedTuple):
-    a: jax.Array  # () gain
-    key: jax.Array  # (2,) key data
-
-
-def synthetic_build(cfg):
-    meta = grid_table({"a": cfg.gains, "trial": range(cfg.n_trials)})
-    return experiment.Part("synthetic", None, SyntheticParams(meta["a"].to_numpy(), row_keys(cfg.seed, len(meta))),
-                           meta)
-
-
-def synthetic_compute(static, p):
-    return jax.tree.map(lambda x: x[0], synthetic_fn({"a": p.a[None], "key": p.key[None]}))
-
-
-def synthetic_tabulate(wide, part, cfg):
-    RUNS.append(wide.attrs["sweep"])
-    return wide
-
-
-def synthetic_summarize(df, cfg):
-    return {"mean_final": df.groupby("a")["final"].mean().to_dict(), "nan": float("nan")}
-
-
-def synthetic_plotter(df, summary, fig_dir):
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(3, 2))
-    ax = fig.subplots()
-    ax.plot(df["a"], df["final"], "o")
-    ax.set_title(f"{len(summary['mean_final'])} gains")
-    return save_figure(fig, fig_dir, "synthetic")
-
-
-# A user's experiment, registered at run time (a package would use the selfid_jax.experiments entry point).
-SYNTHETIC = experiment.register(experiment.Experiment(
-    name="synthetic_cli_test", config=SyntheticConfig, build=synthetic_build, compute=synthetic_compute,
-    summarize=synthetic_summarize, tabulate=synthetic_tabulate, plot=synthetic_plotter,
-    report=lambda summary: f"{len(summary['mean_final'])} gains", description="a user-registered test experiment",
-))
 
 
 def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):

@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from test_mjcf import XML
+from helpers_mjcf import TENDON_ARM_XML
 
 from selfid_jax import cli
 
@@ -16,7 +16,7 @@ pytestmark = pytest.mark.slow  # end-to-end sweep through the CLI
 
 def test_user_mjcf_runs_through_sweep_from_a_config(tmp_path, capsys):
     (tmp_path / "robots").mkdir()
-    (tmp_path / "robots" / "tendon_arm.xml").write_text(XML)
+    (tmp_path / "robots" / "tendon_arm.xml").write_text(TENDON_ARM_XML)
     config = {
         "experiment": "ablation",
         "seed": 0,
@@ -57,7 +57,7 @@ def test_user_mjcf_runs_through_sweep_from_a_config(tmp_path, capsys):
 
 def test_urdf_arm_runs_through_sweep_from_a_config(tmp_path):
     """A URDF with no sites or actuators: POM on its fixed-joint tool link (body + offset), actuators = joints."""
-    from test_robot_files import URDF
+    from helpers_mjcf import URDF
 
     (tmp_path / "arm3.urdf").write_text(URDF)
     config = {

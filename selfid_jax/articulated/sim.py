@@ -256,8 +256,8 @@ def _native_host(static: Static):
         mquat = np.broadcast_to(mquat, lead + mquat.shape[-2:]).reshape(B, K + 1, 4)
         active = np.broadcast_to(active, lead).reshape(B)
         grasp = np.broadcast_to(grasp, lead + grasp.shape[-1:]).reshape(B, 4)
-        obj = [np.broadcast_to(o, lead + o.shape[o.ndim - f:]).reshape((B,) + o.shape[o.ndim - f:])
-               for o, f in zip(obj, _OBJ_NDIM)]
+        obj = tuple(np.broadcast_to(o, lead + o.shape[o.ndim - f:]).reshape((B,) + o.shape[o.ndim - f:])
+                    for o, f in zip(obj, _OBJ_NDIM))
         sens = np.zeros((B, 14))
         for b in range(B):
             scenes.apply_native(m, lay, scenes.ObjectParams(*(o[b] for o in obj)))

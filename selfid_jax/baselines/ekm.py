@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -91,9 +91,22 @@ class OffsetPose:
         return self.inner(params[0], q + params[1])
 
 
+@runtime_checkable
+class _JacobianPose(Protocol):
+    """A pose map that also gives its geometric Jacobian ``(6, n)`` (as ``ChainSitePose``, ``EtsPose``)."""
+
+    def __call__(self, params: Any, q: jax.Array) -> tuple[jax.Array, jax.Array]: ...
+
+    def jacobian(self, params: Any, q: jax.Array) -> jax.Array: ...
+
+    def pose_and_jacobian(self, params: Any, q: jax.Array) -> tuple[tuple[jax.Array, jax.Array], jax.Array]: ...
+
+
 @dataclasses.dataclass(frozen=True)
 class OffsetChainPose(OffsetPose):
     """:class:`OffsetPose` of a pose map with an analytic ``jacobian`` (``d(q + offset)/dq = I``)."""
+
+    inner: _JacobianPose
 
     def jacobian(self, params, q):
         return self.inner.jacobian(params[0], q + params[1])
@@ -133,10 +146,13 @@ def nominal_system(system: System, *, scale: ArrayLike = 1.0, offset: ArrayLike 
     elif not (np.ndim(scale) == 0 and float(scale) == 1.0):  # type: ignore[arg-type]  # ArrayLike admits complex
         raise ValueError("nominal_system: scale: only array or ChainModel params can be scaled, "
                          f"not {type(params).__name__}")
-    wrap = OffsetChainPose if hasattr(system.pose_fn, "jacobian") else OffsetPose
+    pose_fn = system.pose_fn
+    if pose_fn is None:  # only the placeholder of the dataclass default
+        raise TypeError(f"nominal_system: System {system.name!r} has no pose_fn: build one with from_pose_fn or "
+                        "make_system")
+    wrapped = OffsetChainPose(pose_fn) if isinstance(pose_fn, _JacobianPose) else OffsetPose(pose_fn)
     off = jnp.broadcast_to(jnp.asarray(offset, system.q_low.dtype), (system.n_act,))
-    # a System without a pose_fn is only a placeholder of the dataclass default
-    return system.replace(params=(params, off), pose_fn=wrap(system.pose_fn), name=f"{system.name}_nominal")  # type: ignore[arg-type]
+    return system.replace(params=(params, off), pose_fn=wrapped, name=f"{system.name}_nominal")
 
 
 # ------------------------------------------------------------------------------------ the model
@@ -323,24 +339,29 @@ def ekm(
         for name in ("length_q", "length_da", "signal", "noise", "novelty_tol"):
             check_number("ekm", name, settings[name])
 
-    def init_fn(n, m, key, capacity, dtype):
+    def nominal_model() -> EKMModel:
+        """The model of ``nominal``; without one, no state exists (``init`` raises here first)."""
         if mdl is None:
             raise ValueError("ekm: nominal: init needs the nominal System: "
                              "ekm(nominal=ekm.nominal_system(system, ...))")
+        return mdl
+
+    def init_fn(n, m, key, capacity, dtype):
+        ekm_model = nominal_model()
         if q0 is None:
             raise ValueError("ekm: q0: init needs the start configuration q0 (n,): ekm(nominal=..., q0=...)")
-        if (n, m) != (mdl.nominal.n_act, mdl.nominal.task_dim):
+        if (n, m) != (ekm_model.nominal.n_act, ekm_model.nominal.task_dim):
             raise ValueError(f"ekm: init for (n, m) = ({n}, {m}) but the nominal system has "
-                             f"({mdl.nominal.n_act}, {mdl.nominal.task_dim})")
+                             f"({ekm_model.nominal.n_act}, {ekm_model.nominal.task_dim})")
         if np.dtype(dtype) != np.float64:
             raise ValueError(f"ekm: needs float64 (its SOGP does), got {np.dtype(dtype)}: enable jax_enable_x64")
-        return init(mdl, q0, capacity=capacity)
+        return init(ekm_model, q0, capacity=capacity)
 
     def fold_fn(state, dtheta, V):
-        return observe(mdl, state, state.q, dtheta, V)
+        return observe(nominal_model(), state, state.q, dtheta, V)
 
     def read(state, truth):
-        J, _ = linearise(mdl, state, state.q0)
+        J, _ = linearise(nominal_model(), state, state.q0)
         return pseudo_inverse(J)
 
     return assemble("ekm", init=init_fn, fold=fold_fn, read=read,

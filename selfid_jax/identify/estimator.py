@@ -75,7 +75,7 @@ class EstimatorState(NamedTuple):
 
 
 def init(
-    n: int, m: int, *, capacity: int = 64, v_tol: float = 1e-9, forget: float = 1.0, dtype=None
+    n: int, m: int, *, capacity: int = 64, v_tol: ArrayLike = 1e-9, forget: ArrayLike = 1.0, dtype=None
 ) -> EstimatorState:
     """Empty estimator for ``n`` actuators and ``m`` task dimensions.
 

@@ -4,7 +4,9 @@
 (``.py``, model assets, following the link to the experiments), so a run
 resumed after a code change is refused instead of mixing rows from two
 versions. :func:`changes` says, one phrase each, what differs between two
-fingerprints.
+fingerprints; :func:`key_changes` is its key-by-key comparison of two
+mappings, which also names the differing keys of two resolved configs
+(:func:`selfid_jax.runner.rundir.create_run_dir`).
 """
 
 from __future__ import annotations
@@ -14,11 +16,11 @@ import hashlib
 import importlib.metadata
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["PACKAGE_ROOT", "changes", "config_sha256", "fingerprint", "package_source"]
+__all__ = ["PACKAGE_ROOT", "changes", "config_sha256", "fingerprint", "key_changes", "package_source"]
 
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
 _SOURCE_SUFFIXES = (".py", ".xml", ".urdf", ".stl", ".obj", ".msh", ".png", ".yaml", ".json")
@@ -59,19 +61,38 @@ def _short(sha: Any) -> str:
     return str(sha)[:12]
 
 
+def key_changes(
+    old: Mapping[str, Any],
+    new: Mapping[str, Any],
+    *,
+    added: Callable[[Any], str],
+    removed: Callable[[Any], str],
+    changed: Callable[[Any, Any], str],
+) -> list[str]:
+    """``"KEY (what)"`` for each key whose value differs between ``old`` and ``new``, sorted by key.
+
+    ``what`` is ``added(new_value)`` for a key only in ``new``, ``removed(old_value)`` for one only in
+    ``old``, ``changed(old_value, new_value)`` for one in both with unequal values (``!=``).
+    """
+    out = []
+    for key in sorted(set(old) | set(new)):
+        if key not in old:
+            out.append(f"{key} ({added(new[key])})")
+        elif key not in new:
+            out.append(f"{key} ({removed(old[key])})")
+        elif old[key] != new[key]:
+            out.append(f"{key} ({changed(old[key], new[key])})")
+    return out
+
+
 def changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
     """What differs between two fingerprints, one phrase each (empty if they are equal)."""
     out: list[str] = []
     if old.get("config_sha256") != new.get("config_sha256"):
         out.append("the resolved config")
-    oi, ni = old.get("inputs", {}) or {}, new.get("inputs", {}) or {}
-    for name in sorted(set(oi) | set(ni)):
-        if name not in oi:
-            out.append(f"{name} (not read before)")
-        elif name not in ni:
-            out.append(f"{name} (no longer read)")
-        elif oi[name] != ni[name]:
-            out.append(f"{name} (sha256 {_short(oi[name])} -> {_short(ni[name])})")
+    out += key_changes(old.get("inputs", {}) or {}, new.get("inputs", {}) or {},
+                       added=lambda _: "not read before", removed=lambda _: "no longer read",
+                       changed=lambda a, b: f"sha256 {_short(a)} -> {_short(b)}")
     op, np_ = old.get("package", {}) or {}, new.get("package", {}) or {}
     if op.get("source_sha256") != np_.get("source_sha256") or op.get("version") != np_.get("version"):
         out.append(f"the selfid_jax source (version {op.get('version')} -> {np_.get('version')}, "

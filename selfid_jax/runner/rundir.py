@@ -31,7 +31,7 @@ import yaml
 from selfid_jax.runner.config import dump_config, flatten_dict, yaml_load
 from selfid_jax.runner.errors import RunDirError
 from selfid_jax.runner.files import atomic_write_bytes, atomic_write_text, write_json
-from selfid_jax.runner.fingerprint import PACKAGE_ROOT, package_source
+from selfid_jax.runner.fingerprint import PACKAGE_ROOT, key_changes, package_source
 from selfid_jax.runner.layout import (
     CHUNKS_DIR,
     CONFIG_FILE,
@@ -172,16 +172,9 @@ def clear_run_dir(run_dir: str | Path) -> None:
 
 
 def _diff_keys(old: Mapping, new: Mapping) -> list[str]:
-    a, b = flatten_dict(old), flatten_dict(new)
-    out = []
-    for k in sorted(set(a) | set(b)):
-        if k not in a:
-            out.append(f"{k} (new: {b[k]!r})")
-        elif k not in b:
-            out.append(f"{k} (was {a[k]!r}, now absent)")
-        elif a[k] != b[k]:
-            out.append(f"{k} (was {a[k]!r}, now {b[k]!r})")
-    return out
+    """The differing keys of two resolved configs, dotted (``a.b``), each with its old and new value."""
+    return key_changes(flatten_dict(old), flatten_dict(new), added=lambda v: f"new: {v!r}",
+                       removed=lambda v: f"was {v!r}, now absent", changed=lambda a, b: f"was {a!r}, now {b!r}")
 
 
 def _attempt(config_path, overrides) -> dict[str, Any]:
