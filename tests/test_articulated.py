@@ -14,7 +14,6 @@ from helpers_articulated import PADS, rollout_params, ur5e_arm
 from selfid_jax.articulated import scenes, sim, tacman, tactile
 
 
-
 def _random_pose(seed, angle=0.1, shift=0.003):
     rng = np.random.default_rng(seed)
     w = rng.normal(size=3)
