@@ -15,123 +15,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_logs import (  # tests/ is on the path
+    ARM,
+    GAP,
+    NS,
+    P0,
+    PUBLISHED,
+    QUAT,
+    REC,
+    T0,
+    TRACKER_TYPE,
+    A,
+    write_bag,
+)
 from rosbags.highlevel import AnyReader
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
 
 from selfid_jax.robot import offline
 from selfid_jax.robot.bags import BagInfo, read_bag
 from selfid_jax.robot.log import LogError, samples_from_table
-
-NS = 1_000_000_000
-T0 = 1_700_000_000 * NS + 123_456_789  # an epoch stamp: float64 seconds would lose the sub-microsecond part
-ARM = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint")  # the model's order: q = (pan, lift, elbow)
-PUBLISHED = ("elbow_joint", "shoulder_lift_joint", "shoulder_pan_joint")  # the driver's order, first half
-A = np.array([[0.30, -0.10, 0.05], [0.08, 0.25, -0.12], [-0.04, 0.15, 0.20]])  # m/rad, cond(A) ~ 2
-P0 = np.array([0.40, 0.10, 0.30])
-QUAT = np.array([0.9, 0.1, -0.2, 0.3]) / np.linalg.norm([0.9, 0.1, -0.2, 0.3])  # (w, x, y, z), constant
-GAP = range(612, 632)  # joint samples lost: a 0.2 s recording gap
-DUPLICATE = 300  # this joint sample is recorded twice, the second copy garbage
-TRACKER_TYPE = {"pose": "geometry_msgs/msg/PoseStamped", "transform": "geometry_msgs/msg/TransformStamped",
-                "tf": "tf2_msgs/msg/TFMessage"}
-
-
-def _recording(seed=0):
-    """The synthetic recording: joint, gripper and tracker messages as (stamp ns, receive ns, payload)."""
-    rng = np.random.default_rng(seed)
-    k = np.array([i for i in range(1000) if i not in GAP])
-    tj = T0 + k * 10_000_000 + rng.integers(-500_000, 500_000, k.size)  # 100 Hz with +-0.5 ms jitter
-    steps = rng.uniform(-0.03, 0.03, size=(19, 3))
-    step_at = T0 + np.arange(1, 20) * 500_000_000 + 5_000_000  # between two joint samples
-    q0 = np.array([0.1, -1.2, 1.5])
-    qj = q0 + np.array([steps[step_at < t].sum(axis=0) for t in tj])  # (K, 3) in the model's order
-    tt = T0 - 97_000_000 + np.arange(516) * 20_000_000  # 50 Hz, -97 ms .. 10.203 s: past both ends
-    rel = lambda s: (s - T0).astype(np.float64)
-    qt = np.stack([np.interp(rel(tt), rel(tj), qj[:, i]) for i in range(3)], axis=1)  # joints ramp between samples
-    pt = P0 + qt @ A.T
-    joints = []
-    for i, (s, q) in enumerate(zip(tj, qj)):
-        names = PUBLISHED if i < len(tj) // 2 else ARM  # the driver changes its order half-way
-        pos = [q[ARM.index(n)] for n in names]
-        joints.append((int(s), int(s + rng.integers(0, 25_000_000)), names, pos))
-        if k[i] == DUPLICATE:
-            joints.append((int(s), joints[-1][1] + 1_000_000, names, [9.0, 9.0, 9.0]))
-    gripper = [(int(T0 + 55_000_000 + i * 100_000_000), int(T0 + 56_000_000 + i * 100_000_000), ("finger_joint",),
-                [0.04]) for i in range(100)]
-    tracker = [(int(s), int(s + rng.integers(40_000_000, 120_000_000)), p) for s, p in zip(tt, pt)]
-    return dict(tj=tj, qj=qj, tt=tt, joints=joints, gripper=gripper, tracker=tracker)
-
-
-REC = _recording()
-
-
-class _Messages:
-    """Message constructors of one typestore (ROS 1 headers carry a seq)."""
-
-    def __init__(self, store):
-        self.store, self.ros1 = store, store is STORES["ros1"]
-        self.t = store.types
-
-    def header(self, stamp, frame=""):
-        extra = {"seq": 0} if self.ros1 else {}
-        time = self.t["builtin_interfaces/msg/Time"](sec=stamp // NS, nanosec=stamp % NS)
-        return self.t["std_msgs/msg/Header"](stamp=time, frame_id=frame, **extra)
-
-    def joint_state(self, stamp, names, pos):
-        empty = np.zeros(0)
-        return self.t["sensor_msgs/msg/JointState"](header=self.header(stamp), name=list(names),
-                                                     position=np.asarray(pos, np.float64), velocity=empty, effort=empty)
-
-    def transform(self, stamp, p, child, frame="world"):
-        v = self.t["geometry_msgs/msg/Vector3"](x=p[0], y=p[1], z=p[2])
-        r = self.t["geometry_msgs/msg/Quaternion"](w=QUAT[0], x=QUAT[1], y=QUAT[2], z=QUAT[3])
-        return self.t["geometry_msgs/msg/TransformStamped"](header=self.header(stamp, frame), child_frame_id=child,
-                                                             transform=self.t["geometry_msgs/msg/Transform"](
-                                                                 translation=v, rotation=r))
-
-    def tracker(self, kind, stamp, p):
-        if kind == "pose":
-            point = self.t["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2])
-            r = self.t["geometry_msgs/msg/Quaternion"](w=QUAT[0], x=QUAT[1], y=QUAT[2], z=QUAT[3])
-            return self.t["geometry_msgs/msg/PoseStamped"](header=self.header(stamp, "world"),
-                                                           pose=self.t["geometry_msgs/msg/Pose"](position=point,
-                                                                                                 orientation=r))
-        if kind == "transform":
-            return self.transform(stamp, p, "tool_marker")
-        other = self.transform(stamp, -np.asarray(p), "table_marker")  # another body in the same message
-        return self.t["tf2_msgs/msg/TFMessage"](transforms=[other, self.transform(stamp, p, "tool_marker")])
-
-
-STORES = {"ros1": get_typestore(Stores.ROS1_NOETIC), "ros2": get_typestore(Stores.ROS2_HUMBLE)}
-
-
-def write_bag(path, fmt, *, tracker="pose", rec=REC, extra=()):
-    """Write ``rec`` as a bag: ``fmt`` "ros1", "sqlite3" or "mcap"; ``extra``: (topic, type) connections left empty.
-
-    Messages go in in receive-time order, the receive time as the bag's timestamp."""
-    store = STORES["ros1" if fmt == "ros1" else "ros2"]
-    make = _Messages(store)
-    if fmt == "ros1":
-        writer = Writer1(path)
-        serialize = store.serialize_ros1
-    else:
-        plugin = StoragePlugin.SQLITE3 if fmt == "sqlite3" else StoragePlugin.MCAP
-        writer = Writer2(path, version=Writer2.VERSION_LATEST, storage_plugin=plugin)
-        serialize = store.serialize_cdr
-    ttype = TRACKER_TYPE[tracker]
-    items = [(r, "/joint_states", make.joint_state(s, n, q)) for s, r, n, q in [*rec["joints"], *rec["gripper"]]]
-    items += [(r, "/tracker", make.tracker(tracker, s, p)) for s, r, p in rec["tracker"]]
-    items.sort(key=lambda x: x[0])
-    with writer:
-        conn = {"/joint_states": writer.add_connection("/joint_states", "sensor_msgs/msg/JointState", typestore=store),
-                "/tracker": writer.add_connection("/tracker", ttype, typestore=store)}
-        for topic, msgtype in extra:
-            writer.add_connection(topic, msgtype, typestore=store)
-        for recv, topic, msg in items:
-            writer.write(conn[topic], recv, serialize(msg, msg.__msgtype__))
-    return path
 
 
 @pytest.fixture(scope="module")

@@ -351,7 +351,7 @@ def test_held_out_error_is_exact_leave_one_out_and_sees_samples_that_do_not_expl
 
 def test_plot_redraws_a_fit_run_directory(tmp_path, capsys):
     from selfid_jax.cli import main
-    from selfid_jax.commands.fit import draw_convergence
+    from selfid_jax.sessions.fit_run import draw_convergence
 
     out = tmp_path / "fit"
     assert main(["fit", "--example", "--out", str(out)]) == 0

@@ -1,11 +1,20 @@
 """Continuous log streams (:mod:`selfid_jax.robot.streams`): detection, settled intervals, tracker latency, and the
 fit of a reduced 100 Hz stream against the fit of its settled rows."""
 
-import functools
 
-import jax
 import numpy as np
 import pytest
+from helpers_logs import (  # tests/ is on the path
+    _J,
+    EXAMPLE,
+    LATENCY,
+    MOVES,
+    NOISE,
+    POS_COLS,
+    Q_COLS,
+    QUAT_COLS,
+    _stream,
+)
 from scipy.spatial.transform import Rotation
 
 from selfid_jax.robot import streams
@@ -20,69 +29,6 @@ from selfid_jax.robot.streams import (
     shift_tracker,
     stream_stats,
 )
-from selfid_jax.systems.ur5e import UR5E_HOME, ur5e
-
-EXAMPLE = "selfid_jax/robot/data/ur5e_example_log.csv"
-Q_COLS = [f"q_{i}" for i in range(6)]
-POS_COLS = ["p_x", "p_y", "p_z"]
-QUAT_COLS = ["q_w", "q_x", "q_y", "q_z"]
-RATE = 100.0  # Hz
-PERIOD = 0.5  # s between commands
-TAU = 0.02  # s, first-order servo lag
-LATENCY = 0.01  # s, tracker one frame late
-NOISE = 1e-4  # m
-M_A = 0.03  # rad
-MOVES = 40
-
-
-@functools.cache
-def _system():
-    return ur5e(task_dim=3)
-
-
-@functools.cache
-def _poses():
-    system = _system()
-    return jax.jit(jax.vmap(system.pose))
-
-
-def _stream(*, moves=MOVES, period=PERIOD, latency=LATENCY, jitter=0.0, seed=0, quaternion=False):
-    """A UR5e logged at 100 Hz while it makes random moves ``uniform(-M_A, M_A)`` every ``period`` s.
-
-    The joints follow each command through a first-order lag ``TAU`` (exact: the continuous response
-    ``cmd + (q_k - cmd) exp(-(t - t_k) / TAU)``, evaluated at each row's time, so jittered stamps are exact too);
-    the tracker logs at ``t`` the pose of ``t - latency``, with ``NOISE`` Gaussian position noise. Returns the table
-    and the settled rows (the last row before each new command, and the last row)."""
-    rng = np.random.default_rng(seed)
-    q0 = np.asarray(UR5E_HOME, np.float64)
-    cmd = q0 + np.concatenate([np.zeros((1, 6)), np.cumsum(rng.uniform(-M_A, M_A, (moves, 6)), axis=0)])
-    # command k (1-based) at t_cmd[k - 1], half a frame after a row (which row is the last before it is clear)
-    t_cmd = period * np.arange(1, moves + 1) + 0.5 / RATE
-    start = [q0, q0]  # joint state when segment k starts (segment 0: since -inf; segment k at t_cmd[k - 1])
-    for k in range(1, moves):
-        start.append(cmd[k] + (start[k] - cmd[k]) * np.exp(-period / TAU))
-    start = np.asarray(start)
-    t_seg = np.concatenate([[-np.inf], t_cmd])
-
-    def q_at(t):
-        k = np.searchsorted(t_cmd, t, side="right")
-        since = np.where(k == 0, 0.0, t - t_seg[k])
-        return cmd[k] + (start[k] - cmd[k]) * np.exp(-since / TAU)[:, None]
-
-    rows = int(round((t_cmd[-1] + period) * RATE))
-    t = np.arange(rows) / RATE
-    if jitter:
-        t = t + rng.uniform(-jitter, jitter, rows)
-    q = q_at(t)
-    p, R = _poses()(q_at(t - latency))
-    p = np.asarray(p) + NOISE * rng.normal(size=(rows, 3))
-    table = {"t": t, **{c: q[:, i] for i, c in enumerate(Q_COLS)}, **{c: p[:, i] for i, c in enumerate(POS_COLS)}}
-    if quaternion:
-        xyzw = Rotation.from_matrix(np.asarray(R)).as_quat()
-        wxyz = xyzw[:, [3, 0, 1, 2]] * rng.choice([-1.0, 1.0], size=(rows, 1))  # q and -q: one rotation
-        table.update({c: wxyz[:, i] for i, c in enumerate(QUAT_COLS)})
-    settled = np.append(np.searchsorted(t, t_cmd, side="left") - 1, rows - 1)
-    return table, settled
 
 
 def _tq(table):
@@ -93,10 +39,6 @@ def _error(samples, J):
     """``||J Jinv_hat - I||_F`` of the fit of ``samples`` (every sample)."""
     est = np.asarray(fit_samples(samples.dtheta, samples.V).estimate)
     return float(np.linalg.norm(J @ est - np.eye(J.shape[0])))
-
-
-def _J():
-    return np.asarray(_system().jacobian(np.asarray(UR5E_HOME, np.float64)))
 
 
 @pytest.fixture(scope="module")

@@ -24,6 +24,10 @@ time series, a pair spanning more than ``max_gap`` seconds. A log that cannot
 be used at all (unreadable, a missing, misnumbered or duplicated column, text in
 a number column, too few rows) raises :class:`LogError`, one line naming the file,
 column and row.
+
+These are the steps; :func:`selfid_jax.robot.read.read_log` runs them in
+order on any log (with bags, units and continuous streams), as ``sj.fit``
+and ``selfid-jax fit`` do.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import numpy as np
 
 from selfid_jax.systems.validation import AXIS_NAMES, TASK_DIMS, check_task_axes, default_axes
 
-__all__ = ["LogError", "Rejection", "Samples", "load_log", "prepare_table", "read_table", "read_table_units",
+__all__ = ["LogError", "Rejection", "Samples", "prepare_table", "read_table", "read_table_units",
            "samples_from_table",
            "pairs_from_time_series", "parse_task", "DEFAULT_GAP_FACTOR"]
 
@@ -406,10 +410,12 @@ def prepare_table(table: Mapping[str, Any], *, columns=None, joint_names=None, u
     ``columns``: a map ``log name -> fit name`` (or its ``"a=b,c=d"`` / file
     form); ``joint_names``: columns that become ``q_0 ..`` in this order;
     ``units``: a :class:`~selfid_jax.robot.tables.Units`; ``row_units``: a
-    units row's ``column -> unit``. Raises :class:`LogError` naming the file.
+    units row's ``column -> unit``. Raises :class:`LogError` naming the file
+    (and a column name the table holds twice, before a dict could merge them).
     """
     from selfid_jax.robot import tables
 
+    _refuse_duplicates(source, [str(c) for c in table.keys()])
     try:
         out, notes = tables.normalise(table, columns=tables.parse_columns(columns), joint_names=joint_names,
                                       source=source)
@@ -421,11 +427,3 @@ def prepare_table(table: Mapping[str, Any], *, columns=None, joint_names=None, u
         raise LogError(str(err)) from None
     return out, notes, used
 
-
-def load_log(path: str | Path, *, columns=None, joint_names=None, units=None, **options) -> Samples:
-    """:func:`samples_from_table` of a CSV, Parquet or NPZ file (:func:`read_table`) after :func:`prepare_table`;
-    messages name ``path``."""
-    table, row_units = read_table_units(path)
-    table, _, _ = prepare_table(table, columns=columns, joint_names=joint_names, units=units, row_units=row_units,
-                                source=str(path))
-    return samples_from_table(table, source=str(path), **options)

@@ -11,13 +11,18 @@ of logs. Unlike Algorithm 1 it does not stop at convergence: a recorded log
 has no more moves to save, so the final estimate uses every sample, and the
 convergence iteration says how many would have sufficed.
 
-:func:`fit` reads a log (:mod:`selfid_jax.robot.log`) and runs it; exported as ``sj.fit``.
+:func:`fit` reads any log (:func:`selfid_jax.robot.read.read_log`: files, bags,
+tables, continuous streams, units), runs it in float64 and says how far to
+trust the result (:func:`selfid_jax.robot.quality.trust`); exported as
+``sj.fit``, it does what ``selfid-jax fit`` does short of writing files, with
+the same options and defaults.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -30,9 +35,14 @@ from selfid_jax.identify import estimator
 from selfid_jax.identify.refine import METHODS, needs_samples, refine
 from selfid_jax.identify.step import sample_step
 from selfid_jax.math.checks import check_array, float_dtype
-from selfid_jax.robot.log import Samples, load_log, samples_from_table
+from selfid_jax.robot.fit_options import FitOptions, ReadOptions
+from selfid_jax.robot.log import Samples
+from selfid_jax.robot.quality import Trust, held_out, trust
+from selfid_jax.robot.read import ReadReport, read_log
 
 __all__ = ["FitResult", "FitTrace", "fit", "fit_samples"]
+
+_READ, _FIT = ReadOptions(), FitOptions()  # the defaults of fit's keywords (and the command's flags): one source
 
 
 class FitTrace(NamedTuple):
@@ -49,7 +59,8 @@ class FitTrace(NamedTuple):
 
 
 class FitResult(NamedTuple):
-    """Output of :func:`fit`: the trace as numpy plus where its samples came from."""
+    """Output of :func:`fit`: the trace as numpy, where its samples came from, how they were read and how far to
+    trust the estimate."""
 
     estimate: np.ndarray  # (n, m) final refined inverse Jacobian (Eq. 14, every sample)
     initial_guess: np.ndarray  # (n, m) Eq. 13 guess from every sample
@@ -63,10 +74,23 @@ class FitResult(NamedTuple):
     eps_rel: float
     method: str
     state: estimator.EstimatorState  # final estimator state
+    trust: Trust  # held-out error, condition number, actuator effect, refused fraction, and a warning per figure
+    #   outside its bound (selfid_jax.robot.quality.trust)
+    report: ReadReport  # how the log was read: notes, units, the bag's and the stream's figures
 
     @property
     def converged(self) -> bool:
         return self.converged_at > 0
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        """One line per trust figure outside its bound (``trust.warnings``); empty for a fit to trust."""
+        return self.trust.warnings
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """How the log was read, one line each (``report.notes``)."""
+        return self.report.notes
 
     @property
     def converged_time(self) -> float | None:
@@ -141,47 +165,96 @@ def fit_samples(dtheta: ArrayLike, V: ArrayLike, eps: ArrayLike = 0.0, eps_rel: 
 def fit(
     log: str | Path | Mapping[str, Any] | Samples,
     *,
-    task=None,
-    task_dim: int | None = None,
-    eps: float = 0.0,
-    eps_rel: float = 0.05,
-    method: str = "closed_form",
+    task: str | Sequence[str | int] | None = _READ.task,
+    task_dim: int | None = _READ.task_dim,
+    eps: float = _FIT.eps,
+    eps_rel: float = _FIT.eps_rel,
+    method: str = _FIT.method,
     refine_options: Mapping[str, Any] | None = None,
-    start: float | None = None,
-    stop: float | None = None,
-    max_gap: float | str | None = "auto",
+    start: float | None = _READ.start,
+    stop: float | None = _READ.stop,
+    max_gap: float | str | None = _READ.max_gap,
+    columns: str | Path | Mapping[str, str] | None = _READ.columns,
+    joint_names: str | Sequence[str] | None = _READ.joint_names,
+    length: str = _READ.length,
+    time: str = _READ.time,
+    angle: str = _READ.angle,
+    mode: str = _READ.mode,
+    latency: str | float | None = _READ.latency,
+    settle_speed: float | None = _READ.settle_speed,
+    settle_time: float | None = _READ.settle_time,
+    joints: str | None = _READ.joints,
+    tracker: str | None = _READ.tracker,
+    child_frame: str | None = _READ.child_frame,
     v_tol: float = 1e-9,
     dtype=None,
 ) -> FitResult:
     """Self-identify an inverse Jacobian ``(n, m)`` from a recorded log: ``sj.fit("log.csv", task="x,y,z")``.
 
-    ``log``: a CSV/Parquet/NPZ path, a table of columns (dict, DataFrame) or
-    :class:`~selfid_jax.robot.log.Samples`; layouts, screens and the options
-    ``task``, ``task_dim``, ``start``, ``stop``, ``max_gap`` as in
-    :func:`selfid_jax.robot.log.samples_from_table`. ``eps``, ``eps_rel``,
-    ``method``, ``refine_options``, ``v_tol`` as in :func:`fit_samples`.
-    ``dtype``: default JAX's default float (float64 needs ``jax_enable_x64``).
+    ``log``: a CSV/Parquet/NPZ file, a ROS 1/2 bag or MCAP file (``joints``,
+    ``tracker``, ``child_frame``), a table of columns (dict, DataFrame), or
+    :class:`~selfid_jax.robot.log.Samples` already read. It is read as
+    ``selfid-jax fit`` reads it (:func:`selfid_jax.robot.read.read_log`): the
+    reading keywords are :class:`~selfid_jax.robot.fit_options.ReadOptions`' (``task``,
+    ``task_dim``, ``start``, ``stop``, ``max_gap``, ``columns``,
+    ``joint_names``, ``length``, ``time``, ``angle``, ``mode``, ``latency``,
+    ``settle_speed``, ``settle_time``, ``joints``, ``tracker``,
+    ``child_frame``; flag ``--x-y`` is keyword ``x_y``), with the command's
+    defaults, so a continuous stream is reduced to settled moves and its
+    tracker latency taken out here too. ``eps``, ``eps_rel``, ``method`` (the
+    flag ``--refine``; defaults :class:`~selfid_jax.robot.fit_options.FitOptions`),
+    ``refine_options``, ``v_tol`` as in :func:`fit_samples`.
+    ``dtype``: default float64, whatever ``jax_enable_x64`` says (the fit runs
+    with it on: a log is small).
+
+    Returns a :class:`FitResult` with the trust figures (``result.trust``,
+    ``result.warnings``) and how the log was read (``result.report``,
+    ``result.notes``).
 
     Raises:
-      LogError: the log cannot be used (one line naming file, column, row).
-      ValueError: an option out of range, or no sample pair survives the screens.
+      LogError: the log cannot be used (one line naming file, column, row or topic).
+      ValueError: an option out of range (naming the keyword), checked before the log is read, or no sample pair
+        survives the screens.
     """
-    screens = dict(task=task, task_dim=task_dim, start=start, stop=stop, max_gap=max_gap)
+    if method not in METHODS:
+        raise ValueError(f"refine method (method=, --refine): expected one of {METHODS}, got {method!r}")
+    estimator.check_thresholds(eps, eps_rel)
+    options = ReadOptions(task=task, task_dim=task_dim, start=start, stop=stop, max_gap=max_gap, columns=columns,
+                          joint_names=joint_names, length=length, time=time, angle=angle, mode=mode, latency=latency,
+                          settle_speed=settle_speed, settle_time=settle_time, joints=joints, tracker=tracker,
+                          child_frame=child_frame)
     if isinstance(log, Samples):
-        samples = log
-    elif isinstance(log, (str, Path)):
-        samples = load_log(log, **screens)
+        given = [k for k, v in options._asdict().items() if v != _READ._field_defaults[k]]
+        if given:
+            raise ValueError(f"{log.source}: {given[0]}= reads a log; these Samples were read already (pass the log "
+                             "or table instead)")
+        samples, report = log, ReadReport(log.source, (), {}, None, None)
     else:
-        samples = samples_from_table(log, **screens)
+        samples, report = read_log(log, options)
     if samples.dtheta.shape[0] == 0:
         kinds = "; ".join(r.line() for r in samples.rejected) or "no rows in the time window"
         raise ValueError(f"{samples.source}: no usable sample pair ({kinds})")
-    trace = fit_samples(samples.dtheta, samples.V, eps, eps_rel, method=method, refine_options=refine_options,
-                        v_tol=v_tol, dtype=dtype)
-    host = jax.device_get(trace)
+    x64 = jax.dtypes.canonicalize_dtype(jnp.float64) == jnp.float64
+    with contextlib.nullcontext() if x64 else jax.enable_x64(True):
+        trace = fit_samples(samples.dtheta, samples.V, eps, eps_rel, method=method, refine_options=refine_options,
+                            v_tol=v_tol, dtype=jnp.float64 if dtype is None else dtype)
+        host = jax.device_get(trace)
+    accepted = np.asarray(host.accepted)
+    estimate = np.asarray(host.estimate)
     return FitResult(
-        estimate=np.asarray(host.estimate), initial_guess=np.asarray(host.initial_guess),
+        estimate=estimate, initial_guess=np.asarray(host.initial_guess),
         estimates=np.asarray(host.estimates), deltas=np.asarray(host.deltas), thresholds=np.asarray(host.thresholds),
-        accepted=np.asarray(host.accepted), converged_at=int(host.converged_at), samples=samples,
+        accepted=accepted, converged_at=int(host.converged_at), samples=samples,
         eps=float(eps), eps_rel=float(eps_rel), method=method, state=host.state,
+        trust=_trust(samples, accepted, estimate), report=report,
     )
+
+
+def _trust(samples: Samples, accepted: np.ndarray, estimate: np.ndarray) -> Trust:
+    """:func:`selfid_jax.robot.quality.trust` of a fit: the held-out error of the accepted samples (the largest
+    actuator step of a sample as the move scale), and the refused rows and samples against the log's rows."""
+    ok = np.asarray(accepted, bool)
+    D, V = np.asarray(samples.dtheta, np.float64)[ok], np.asarray(samples.V, np.float64)[ok]
+    quality = held_out(D, V, float(np.max(np.abs(D), initial=0.0)))
+    refused = sum(r.count for r in samples.rejected) + int((~ok).sum())
+    return trust(quality, estimate, refused, samples.rows)

@@ -6,8 +6,9 @@ near one configuration. :func:`held_out` fits it by least squares and
 predicts each sample from the others: the error says how much to trust the
 samples (a tracker latency beyond the settle time, an actuator that does not
 act, a tracker that is not on the robot all show here). The live runner
-checks it at convergence (:meth:`selfid_jax.robot.session.Session.check_quality`)
-and ``selfid-jax fit`` reports it. numpy only.
+checks it at convergence (:meth:`selfid_jax.robot.session.Session.check_quality`);
+:func:`trust` turns it and a fit's estimate into the figures ``sj.fit`` and
+``selfid-jax fit`` report (:class:`Trust`). numpy only.
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["MAX_CONDITION", "MAX_HELDOUT_ERROR", "MAX_REFUSED_FRACTION", "MIN_EFFECT_RATIO", "Quality", "condition",
-           "held_out", "trust"]
+__all__ = ["MAX_CONDITION", "MAX_HELDOUT_ERROR", "MAX_REFUSED_FRACTION", "MIN_EFFECT_RATIO", "Quality", "Trust",
+           "condition", "held_out", "trust"]
 
 
 class Quality(NamedTuple):
@@ -65,8 +66,24 @@ def condition(estimate: np.ndarray) -> float:
     return float(s[0] / s[-1]) if s.size and s[-1] > 0 else float("inf")
 
 
-def trust(quality: Quality, estimate: np.ndarray, refused: int, total: int) -> tuple[dict, list[str]]:
-    """The figures that say how far to trust a fit, and a warning per figure outside its bound.
+class Trust(NamedTuple):
+    """How far to trust a fit (:func:`trust`): four figures and a warning per figure outside its bound."""
+
+    heldout_error: float  # Quality.heldout_error of the accepted samples (bound MAX_HELDOUT_ERROR); NaN: too few
+    condition: float  # the estimate's s_max / s_min (bound MAX_CONDITION); inf when rank-deficient
+    actuator_effect: tuple[float, ...]  # (n,) each actuator's task motion for the largest sample step [task units]
+    #   (an actuator below MIN_EFFECT_RATIO of the strongest is noise in the estimate)
+    refused_fraction: float  # rows and samples refused (screens and the estimator) / rows (bound MAX_REFUSED_FRACTION)
+    warnings: tuple[str, ...]  # one line per figure outside its bound
+
+    def figures(self) -> dict[str, float | list[float]]:
+        """The four figures by name (``summary.json``'s keys)."""
+        return {"heldout_error": self.heldout_error, "condition": self.condition,
+                "actuator_effect": list(self.actuator_effect), "refused_fraction": self.refused_fraction}
+
+
+def trust(quality: Quality, estimate: np.ndarray, refused: int, total: int) -> Trust:
+    """The figures that say how far to trust a fit, and a warning per figure outside its bound (:class:`Trust`).
 
     ``quality``: :func:`held_out` of the accepted samples; ``estimate (n,
     m)``; ``refused`` of ``total`` rows and samples were dropped (screens and
@@ -78,8 +95,6 @@ def trust(quality: Quality, estimate: np.ndarray, refused: int, total: int) -> t
     top = float(np.nanmax(effect)) if effect.size and np.any(np.isfinite(effect)) else float("nan")
     ratio = effect / top if top > 0 else np.full(effect.shape, np.nan)
     fraction = refused / total if total else 0.0
-    figures = {"heldout_error": quality.heldout_error, "condition": cond, "actuator_effect": effect.tolist(),
-               "refused_fraction": fraction}
     warnings = []
     if quality.heldout_error > MAX_HELDOUT_ERROR:
         warnings.append(f"held-out error {quality.heldout_error:.3g} > {MAX_HELDOUT_ERROR:g}: the tracked motion is "
@@ -94,4 +109,5 @@ def trust(quality: Quality, estimate: np.ndarray, refused: int, total: int) -> t
     if fraction > MAX_REFUSED_FRACTION:
         warnings.append(f"{100 * fraction:.0f}% of the rows and samples were refused (> "
                         f"{100 * MAX_REFUSED_FRACTION:.0f}%)")
-    return figures, warnings
+    return Trust(float(quality.heldout_error), cond, tuple(float(x) for x in effect), float(fraction),
+                 tuple(warnings))

@@ -1,7 +1,8 @@
 """A lab's log table -> the fit's layout: column names, units, time stamps, and CSV dialects.
 
-:func:`selfid_jax.robot.log.load_log` reads a file through here before it forms
-samples (:func:`selfid_jax.robot.log.samples_from_table`):
+:func:`selfid_jax.robot.read.read_log` reads a log through here
+(:func:`selfid_jax.robot.log.prepare_table`) before it forms samples
+(:func:`selfid_jax.robot.log.samples_from_table`):
 
 * **CSV dialects** (:func:`read_csv`): the delimiter (``,``, ``;``, tab) is
   detected from the header, a decimal comma (``0,25`` with ``;``) too, and a
