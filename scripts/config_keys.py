@@ -38,8 +38,8 @@ OUT = ROOT / "docs" / "config_reference.md"
 GROUP = "selfid_jax.experiments"
 # Commands that read a YAML config of their own (not an experiment): (command, "module:model").
 COMMANDS = (
-    ("online", "selfid_jax.commands.online:OnlineConfig"),
-    ("robot-sim", "selfid_jax.commands.robot_sim:RobotSimConfig"),
+    ("online", "selfid_jax.sessions.online_config:OnlineConfig"),
+    ("robot-sim", "selfid_jax.sessions.online_sim:RobotSimConfig"),
 )
 
 HEADER = """# Config reference

@@ -47,9 +47,25 @@ class _Model:
         return J
 
 
-def fake_franky(bias=None, lag=0, error_at=None, network_at=None):
+class Clock:
+    """A clock the test controls: the driver's ``time.monotonic`` and ``time.sleep`` (monkeypatched into the
+    driver's module) and the stand-in arm's motion all run on it, so a wait is as long as the driver asked for,
+    however loaded the machine is."""
+
+    def __init__(self, t: float = 100.0):
+        self.t = t  # s
+
+    def monotonic(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        self.t += seconds
+
+
+def fake_franky(bias=None, lag=0, error_at=None, network_at=None, clock=None, speed=None):
     """A stand-in for the franky module: an arm whose joints land on each command plus ``bias`` (7,), ``lag``
-    reads after the move returns; ``error_at`` / ``network_at`` raise franky's exceptions at that move."""
+    reads after the move returns, or with ``clock`` (a :class:`Clock`) each joint moving from where it was at
+    ``speed`` [rad/s] until it lands; ``error_at`` / ``network_at`` raise franky's exceptions at that move."""
     mod = types.SimpleNamespace()
 
     class FrankyException(Exception):
@@ -71,6 +87,7 @@ def fake_franky(bias=None, lag=0, error_at=None, network_at=None):
             self.host, self.realtime_config = host, realtime_config
             self.q = np.zeros(7)
             self.settled_q = self.q.copy()
+            self.start_q, self.move_t = self.q.copy(), -np.inf  # where the last move started, and when (clock)
             self.pending = 0
             self.moves, self.commands, self.stopped = 0, [], 0
             self.t = 0.0
@@ -80,9 +97,18 @@ def fake_franky(bias=None, lag=0, error_at=None, network_at=None):
             self.model = _Model()
             self.relative_dynamics_factor = 1.0
 
+        def _on_clock(self):
+            """The joints at ``clock``'s time: at most ``speed`` times the time since the move from where they
+            were then, towards where they land (rad)."""
+            d = self.settled_q - self.start_q
+            travel = speed * (clock.t - self.move_t)
+            return self.start_q + np.sign(d) * np.minimum(np.abs(d), travel)
+
         @property
         def state(self):
-            if self.pending:
+            if clock is not None:
+                self.q = self._on_clock()
+            elif self.pending:
                 self.pending -= 1
                 self.q = self.q + 0.5 * (self.settled_q - self.q)
             else:
@@ -100,6 +126,8 @@ def fake_franky(bias=None, lag=0, error_at=None, network_at=None):
             if network_at == self.moves:
                 raise NetworkException("libfranka: UDP receive: Timeout")
             self.commands.append(np.asarray(command))
+            if clock is not None:
+                self.start_q, self.move_t = self._on_clock(), clock.t
             self.settled_q = np.asarray(command) + (0 if bias is None else np.asarray(bias))
             self.pending = lag
 
@@ -160,13 +188,23 @@ def test_a_frozen_arm_clock_keeps_the_pose_stamp_of_its_last_advance():
     assert later.t > first.t + 0.005 and later.tracker_t == first.tracker_t  # the runner's stale check sees it
 
 
-def test_move_waits_until_settled_and_corrects_a_held_offset():
+def test_move_waits_until_settled_and_corrects_a_held_offset(monkeypatch):
+    """The arm moves at 0.1 rad/s on a clock the test controls (the driver's waits run on it too, so the test does
+    not depend on the machine's load): a move returns only once the joints have landed, and the offset a joint
+    holds is corrected over the following moves."""
+    from selfid_jax.robot.drivers import franka as franka_module
+
+    clock = Clock()
+    monkeypatch.setattr(franka_module, "time", types.SimpleNamespace(monotonic=clock.monotonic, sleep=clock.sleep))
     bias = np.array([0, 0, 0, 0, 0, 0, -1.7e-3])  # what franky-sim's joint 7 holds under any command
-    franky = fake_franky(bias=bias, lag=5)
+    speed = 0.1  # rad/s: a 5 ms settle window sees 0.5 mrad of motion, above settle_tol
+    franky = fake_franky(bias=bias, clock=clock, speed=speed)
     arm = _franka(franky)
     target = np.full(7, 0.01)
+    t0 = clock.t
     arm.move(target)
-    np.testing.assert_allclose(arm.read().q, target + bias, atol=1e-7)  # settled (lag reads later), offset held
+    assert clock.t - t0 >= 0.01 / speed  # it waited for the whole motion (0.1 s), not just the window
+    np.testing.assert_allclose(arm.read().q, target + bias, atol=1e-7)  # settled, offset held
     for _ in range(12):
         target = target + 0.001
         arm.move(target)

@@ -260,17 +260,18 @@ def test_a_tracker_frozen_from_time_zero_is_frozen_for_a_read_before_the_first_t
 def test_robot_sim_loads_a_urdf_at_a_body_and_offset_and_resets_per_client(tmp_path):
     """robot-sim's config takes a sweep's robot keys (a URDF, its tool body and an offset: the pose is MuJoCo's
     point there), refuses half of them naming the keys, and with reset_on_connect each client finds q0."""
-    from test_robot_files import URDF, _body_point_jacobian
+    from helpers_mjcf import URDF
+    from helpers_mjcf import body_point_jacobian as _body_point_jacobian
 
-    from selfid_jax.commands import robot_sim
     from selfid_jax.runner.errors import ConfigError
+    from selfid_jax.sessions import online_sim
 
     (tmp_path / "arm3.urdf").write_text(URDF)
     cfg_file = tmp_path / "sim.yaml"
     cfg_file.write_text("mjcf: arm3.urdf\nbody: tool\noffset: [0, 0, 0.03]\nactuators: joints\nq0: [0.3, -0.4, 0.8]\n"
                         "reset_on_connect: true\nrealism: {period: 0.005}\nport: 0\n")
-    cfg = robot_sim.load(cfg_file)
-    robot = robot_sim.build(cfg, start=True)
+    cfg = online_sim.load_sim_config(cfg_file)
+    robot = online_sim.build(cfg, start=True)
     spec = mujoco.MjSpec.from_file(str(tmp_path / "arm3.urdf"))
     spec.compiler.fusestatic = False
     point, _ = _body_point_jacobian(spec.compile(), np.array([0.3, -0.4, 0.8]), "tool", (0, 0, 0.03))
@@ -296,4 +297,4 @@ def test_robot_sim_loads_a_urdf_at_a_body_and_offset_and_resets_per_client(tmp_p
         bad = tmp_path / "bad.yaml"
         bad.write_text(("mjcf: arm3.urdf\n" if not body.startswith("system") else "") + body)
         with pytest.raises(ConfigError, match=msg):
-            robot_sim.load(bad)
+            online_sim.load_sim_config(bad)

@@ -11,7 +11,8 @@ their loading by name in :mod:`selfid_jax.robot.drivers`); :mod:`selfid_jax.robo
 runs Algorithm 1 live over it inside a safety envelope, appending every event to
 a session log (:mod:`selfid_jax.robot.journal`, the only file it writes) from
 which a stopped session resumes. The run directory's lock, config and summary
-files are :mod:`selfid_jax.sessions`' job. Its modules are imported on first use
+files are :mod:`selfid_jax.sessions`' job (:mod:`~selfid_jax.sessions.fit_run`,
+:mod:`~selfid_jax.sessions.online_run`). Its modules are imported on first use
 (``sj.robot.live``), listed once in ``__init__.pyi``; ``sj.fit`` is
 :func:`selfid_jax.robot.offline.fit`.
 """

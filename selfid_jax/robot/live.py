@@ -62,9 +62,10 @@ interrupted session had, and continues: self-ID from the next draw, or,
 if the log had converged, straight to following (from the logged path
 anchor and the last waypoint reached).
 
-numpy and JAX only: no files other than the log, no pydantic, no runner (the
-``selfid-jax online`` command, :mod:`selfid_jax.commands.online`, owns the run
-directory's lock, the config and the summary files).
+numpy and JAX only: no files other than the log, no pydantic, no runner (an
+online session, :func:`selfid_jax.sessions.online_run.run_session`, which the
+``selfid-jax online`` command calls, owns the run directory's lock, the config
+and the summary files).
 """
 
 

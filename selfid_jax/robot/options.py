@@ -3,7 +3,7 @@
 :class:`OnlineOptions` (self-ID, safety envelope) and :class:`FollowOptions`
 (the path and the follow law's settings) are the one place each online
 default is written: the ``selfid-jax online`` config sections
-(:mod:`selfid_jax.commands.online`) read their defaults from here, and so does
+(:mod:`selfid_jax.sessions.online_config`) read their defaults from here, and so does
 the envelope (:func:`selfid_jax.robot.safety.envelope`). Importing this
 module loads neither numpy nor JAX (the command line parses a config before
 either).

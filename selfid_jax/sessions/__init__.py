@@ -8,3 +8,7 @@ directory's files (:mod:`selfid_jax.runner`), the online config schema
 (pydantic) and the figures (matplotlib), so a Python user gets everything a
 command does by calling the same function.
 """
+
+import lazy_loader as _lazy
+
+__getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)

@@ -2,7 +2,7 @@
 
 * ``figures/convergence.png`` / ``.pdf``: ``||J_t - J_{t-1}||_F`` per accepted
   sample against the Sec. IV-D threshold, the convergence sample marked: the
-  figure ``selfid-jax fit`` draws (:func:`selfid_jax.commands.fit.draw_convergence`).
+  figure ``selfid-jax fit`` draws (:func:`selfid_jax.sessions.fit_run.draw_convergence`).
 * ``figures/path.png`` / ``.pdf`` (when the session started following): the
   tracked point's positions while following against the target waypoints, in
   the plane of the path's two widest position axes, and the path distance
@@ -133,10 +133,10 @@ def write_figures(run_dir: str | Path) -> list[Path]:
     """Draw the run's figures from ``RUN/session.jsonl`` into ``RUN/figures``; returns the files written."""
     import numpy as np
 
-    from selfid_jax.commands.fit import draw_convergence
     from selfid_jax.robot.journal import read_journal
     from selfid_jax.runner.figures import save_figure
     from selfid_jax.runner.layout import FIGURES_DIR
+    from selfid_jax.sessions.fit_run import draw_convergence
 
     run_dir = Path(run_dir)
     log = read_journal(run_dir / LOG_FILE)

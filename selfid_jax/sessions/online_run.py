@@ -1,0 +1,263 @@
+"""An online session from a config into a run directory: connect, self-ID live (and follow), write its files.
+
+:func:`run_session` is ``selfid-jax online`` without the command line: from
+an :class:`~selfid_jax.sessions.online_config.OnlineConfig` (read with
+:func:`~selfid_jax.sessions.online_config.load_online_config`) it checks the
+options and the run directory, takes the run directory's lock, connects
+(:func:`selfid_jax.robot.drivers.connect`), checks the per-actuator values
+against the robot, writes ``online_config.json`` (the resolved config), runs
+:func:`selfid_jax.robot.live.run_online` (the session log ``session.jsonl``
+is appended as it happens) and writes, each whole
+(:mod:`selfid_jax.runner.files`), ``summary.json`` (status, counts, step
+latency), for a converged session only ``inverse_jacobian.npz`` / ``.json``
+(the estimate, as ``selfid-jax fit`` writes it), and the figures
+(:mod:`selfid_jax.sessions.online_figures`, from the log). It returns the
+:class:`~selfid_jax.robot.live.OnlineResult` and the files written; a
+session's own stop (a safety stop, a lost connection) is the result's
+``status``, not an exception. Bad input (config, run directory, a log that
+disagrees) raises :class:`~selfid_jax.runner.errors.ConfigError` before any
+motion.
+
+Under the console script's signal handling (:mod:`selfid_jax.runner.signals`)
+a first SIGTERM or Ctrl-C stops the session after the move in flight and a
+second one ends the process after appending a ``killed`` stop record; without
+it, Ctrl-C (KeyboardInterrupt) stops the session as ``interrupted``.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from selfid_jax.sessions.online_config import OnlineConfig, options
+
+if TYPE_CHECKING:
+    from selfid_jax.robot.live import OnlineResult
+
+__all__ = ["CONFIG_JSON", "JINV_JSON", "JINV_NPZ", "SUMMARY_FILE", "connect_robot", "run_session", "summary",
+           "write_run"]
+
+SUMMARY_FILE = "summary.json"
+CONFIG_JSON = "online_config.json"
+JINV_NPZ = "inverse_jacobian.npz"
+JINV_JSON = "inverse_jacobian.json"
+
+
+def connect_robot(cfg: OnlineConfig, config_dir: str | Path | None = None):
+    """A connected :class:`~selfid_jax.robot.protocol.Robot` from the config's ``robot`` section
+    (:func:`selfid_jax.robot.drivers.connect`); ConfigError naming ``robot.driver`` / ``robot.host`` when the driver
+    cannot be imported, is not a Robot, or the connection fails. ``config_dir``: the config's folder, where a driver
+    module is looked for after the Python path."""
+    from selfid_jax.robot.drivers.load import ConnectError, connect
+    from selfid_jax.runner.errors import ConfigError
+
+    r = cfg.robot
+    try:
+        return connect(host=r.host, port=r.port, timeout_s=r.timeout_s, driver=r.driver, args=r.args,
+                       config_dir=config_dir)
+    except ConnectError as err:
+        raise ConfigError(f"robot.{err.key}: {err}") from None
+
+
+def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path | None = None, resume: bool = False,
+                estimate: str | Path | None = None, progress: Callable[[dict[str, Any]], None] | None = None,
+                stop_requested: Callable[[], bool] | None = None) -> tuple[OnlineResult, dict[str, Path]]:
+    """Run one online session of ``cfg`` in the run directory ``out``; ``(result, files written by name)``.
+
+    ``config_path``: the YAML file ``cfg`` came from: a relative driver module
+    or ``path.file`` is looked for beside it, and errors name it (else
+    ``config``). ``resume``: continue the session logged in ``out``.
+    ``estimate``: an ``inverse_jacobian.npz`` (of ``selfid-jax fit`` or an
+    earlier session) to follow the config's path with, instead of
+    self-identifying (no random move). ``progress``: called with each event of
+    :func:`selfid_jax.robot.live.run_online` (e.g.
+    :class:`~selfid_jax.sessions.online_progress.ProgressLine`).
+    ``stop_requested``: polled before every read and command; True stops the
+    session as ``interrupted``.
+
+    The estimator runs in JAX's default float (float64 once
+    ``jax_enable_x64`` is on, as ``selfid-jax online`` sets it); the session
+    log records it and a resume in the other precision is refused.
+
+    Raises:
+      ConfigError: a bad estimate or path, per-actuator values of the wrong
+        length for the robot, unusable robot limits, options ``run_online``
+        refuses, a log that disagrees; a driver that cannot be imported or a
+        robot that cannot be reached (``robot.driver`` / ``robot.host``).
+      RunDirError: ``out`` holds a sweep, a log without ``resume``, or no log
+        with ``resume``; RunDirBusy: another process holds its lock.
+    """
+    import threading
+
+    from selfid_jax.robot import live
+    from selfid_jax.robot.log import parse_task
+    from selfid_jax.robot.protocol import RobotError, check_limits
+    from selfid_jax.runner import signals
+    from selfid_jax.runner.config import dump_config
+    from selfid_jax.runner.errors import ConfigError, RunDirError
+    from selfid_jax.runner.files import write_json
+    from selfid_jax.runner.lock import hold
+
+    label = "config" if config_path is None else str(config_path)
+    config_dir = None if config_path is None else Path(config_path).resolve().parent
+    out = Path(out)
+    if estimate is not None and cfg.path is None:
+        raise ConfigError(f"{label}: --estimate {estimate}: following with a given estimate needs a path "
+                          "section in the config")
+    if estimate is not None and not Path(estimate).is_file():
+        raise ConfigError(f"--estimate {estimate}: no such file")
+    opts = options(cfg, config_dir, estimate)
+    if opts.path is not None:
+        try:
+            opts.path.offsets(parse_task(opts.task) or ())
+        except ValueError as err:
+            raise ConfigError(f"{label}: {err}") from None
+    if (out / "config.yaml").exists():
+        raise RunDirError(f"{out}: holds a sweep's run directory (config.yaml); choose another --out")
+    log = out / live.LOG_FILE
+    if log.exists() and not resume:
+        raise RunDirError(f"{out}: already holds a session log ({live.LOG_FILE}); continue it with --resume or "
+                          "choose another --out")
+    if resume and not log.exists():
+        raise RunDirError(f"{out}: no session log ({live.LOG_FILE}) to resume; run without --resume")
+
+    stop = threading.Event()
+    asked = stop_requested
+
+    def stopping() -> bool:
+        return stop.is_set() or (asked is not None and bool(asked()))
+
+    with hold(out):
+        signals.phase("connect")
+        robot = connect_robot(cfg, config_dir)
+        try:  # run_online closes the robot however it ends; close (idempotent) here too if it never starts
+            try:
+                n = check_limits(robot.limits()).lower.shape[0]
+            except (RobotError, ValueError) as err:
+                raise ConfigError(f"robot: its limits cannot be used: {err}") from None
+            _check_sizes(cfg, n, label)
+            write_json(out / CONFIG_JSON, dump_config(cfg))
+            signals.phase("online")
+            try:
+                with signals.graceful(f"selfid-jax online: interrupted; the session log {log} is intact "
+                                      "(continue with --resume)", stop.set, interrupt=True,
+                                      last_words=lambda: _log_killed(log)):
+                    result = live.run_online(robot, opts, out, resume=resume, stop_requested=stopping,
+                                             progress=progress)
+            except ValueError as err:  # bad options, a log that disagrees: all before any motion
+                raise ConfigError(f"{label}: {' '.join(str(err).split())}") from None
+        finally:
+            robot.close()
+        signals.phase("write")
+        files = write_run(result, cfg, out)
+    return result, files
+
+
+def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
+    """``summary.json`` of a session: its stop, counts, convergence, tracking error [m], wall times [s] and the
+    estimator step's latency [ms]."""
+    import numpy as np
+
+    from selfid_jax.robot.quality import condition
+    from selfid_jax.systems.validation import AXIS_NAMES
+
+    ms = result.step_ms
+    n, m = result.estimate.shape
+    return {
+        "command": "online",
+        "status": result.status.value,
+        "detail": result.detail,
+        "n": n,
+        "m": m,
+        "task_axes": [AXIS_NAMES[a] for a in result.axes],
+        "converged": result.converged,
+        "converged_at": result.converged_at,
+        "samples": result.samples,
+        "rejected": result.rejected,
+        "moves": result.moves,
+        "follow_steps": result.follow_steps,
+        "follow_rejected": result.follow_rejected,
+        "heldout_error": None if result.quality is None else result.quality.heldout_error,
+        # ||J Ĵ - I||_F against the driver's model Jacobian where self-ID started (a driver with jacobian())
+        "reference_error": result.reference_error,
+        "actuator_effect": None if result.quality is None else result.quality.effect,
+        # the estimate's condition number s_max / s_min (selfid_jax.robot.quality.condition), as selfid-jax fit reports
+        "condition": condition(result.estimate) if result.converged else None,
+        "waypoints": result.waypoints,
+        "waypoints_total": result.waypoints_total,
+        "replayed": result.replayed,
+        "estimate_source": result.estimate_source,  # --estimate: the file followed with (no self-ID); else None
+        "truncated_log_lines": result.truncated,
+        # while following, the tracked point's distance from the path after each move [m] (every session of the log)
+        "track_mean_m": float(np.nanmean(result.track)) if result.track.size else None,
+        "track_max_m": float(np.nanmax(result.track)) if result.track.size else None,
+        "selfid_s": result.selfid_s,  # wall time of self-ID [s]: moves, settling, reads, the estimator
+        "follow_s": result.follow_s,  # wall time following the path [s]
+        "step_ms_p50": float(np.percentile(ms, 50)) if ms.size else None,
+        "step_ms_p99": float(np.percentile(ms, 99)) if ms.size else None,
+        "eps": cfg.selfid.eps,
+        "eps_rel": cfg.selfid.eps_rel,
+        "log": str(result.log),
+    }
+
+
+def _npz(**arrays) -> bytes:
+    """The bytes of an ``.npz`` of ``arrays`` (written whole by the caller)."""
+    import numpy as np
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _check_sizes(cfg: OnlineConfig, n: int, label: str | Path) -> None:
+    """Per-actuator config values against the robot's ``n`` (known once connected; before any motion)."""
+    from selfid_jax.runner.errors import ConfigError
+
+    for key, value in (("selfid.m_a", cfg.selfid.m_a), ("safety.max_step", cfg.safety.max_step),
+                       ("safety.limits_lower", cfg.safety.limits_lower),
+                       ("safety.limits_upper", cfg.safety.limits_upper)):
+        if isinstance(value, list) and len(value) != n:
+            raise ConfigError(f"{label}: key '{key}': {len(value)} values, but the robot has {n} actuators")
+
+
+def _log_killed(log: Path) -> None:
+    """Append the stop record of a process that a second signal ends at once (called from the signal thread)."""
+    from selfid_jax.robot.journal import Journal
+
+    with Journal(log) as journal:
+        journal.append({"e": "stop", "reason": "killed", "detail": "a second signal ended the process at once; the "
+                        "robot's connection closes with it (continue with --resume)"})
+
+
+def write_run(result: OnlineResult, cfg: OnlineConfig, out: str | Path) -> dict[str, Path]:
+    """Write ``summary.json`` and, for a converged session only, ``inverse_jacobian.npz``/``.json`` into ``out`` (each
+    atomically), then the figures from the session log; the files written by name. A session that did not converge
+    has its estimate so far in the summary (``estimate_so_far``), not in a file that could be taken for a result."""
+    import numpy as np
+
+    from selfid_jax.identify import estimator
+    from selfid_jax.runner.files import atomic_write_bytes, write_json
+    from selfid_jax.sessions.online_figures import write_figures
+
+    out = Path(out)
+    info = summary(result, cfg)
+    meta = {k: info[k] for k in ("n", "m", "task_axes", "converged_at", "converged", "samples", "eps", "eps_rel",
+                                 "status")}
+    guess = np.asarray(estimator.initial_guess(result.state))
+    paths = {SUMMARY_FILE: out / SUMMARY_FILE}
+    if result.converged:  # a session that never converged writes no file that could be taken for a result
+        paths.update({name: out / name for name in (JINV_NPZ, JINV_JSON)})
+        atomic_write_bytes(paths[JINV_NPZ], _npz(
+            inverse_jacobian=result.estimate, initial_guess=guess, task_axes=np.array(info["task_axes"]),
+            **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"}))
+        write_json(paths[JINV_JSON], {"inverse_jacobian": result.estimate, "initial_guess": guess, **meta,
+                                      "log": str(result.log)})
+    else:
+        info["estimate_so_far"] = result.estimate if result.samples else None  # not converged: not a result
+    write_json(paths[SUMMARY_FILE], info)
+    for f in write_figures(out):  # from the session log, as `selfid-jax plot RUN` redraws them
+        paths[f"figures/{f.name}"] = f
+    return paths
