@@ -95,3 +95,35 @@ def poses():
 def mjx_batch() -> int:
     """Commands per MJX settle in the hands' tests: every MJX settle of one hand is one compiled program."""
     return 16
+
+
+# ------------------------------------------------------------ the online runner's fake arm (tests/test_online*.py)
+
+@pytest.fixture
+def driver_module(tmp_path, monkeypatch):
+    """The fake arm's driver module ``fake_driver`` (``make(**kw)`` builds a FakeArm and appends it to CREATED),
+    written in tmp_path and importable from there and from tests/ for the test's duration."""
+    from helpers_online import DRIVER
+
+    (tmp_path / "fake_driver.py").write_text(DRIVER)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))
+    sys.modules.pop("fake_driver", None)
+    import fake_driver
+
+    yield fake_driver
+    sys.modules.pop("fake_driver", None)
+
+
+@pytest.fixture(scope="module")
+def converged_run(tmp_path_factory):
+    """One uninterrupted session to convergence (no path): the reference for resume and follow tests."""
+    from helpers_online import FakeArm, opts
+
+    from selfid_jax.robot import live
+
+    run = tmp_path_factory.mktemp("online") / "ref"
+    fake = FakeArm()
+    result = live.run_online(fake, opts(), run)
+    assert result.status == live.Stop.CONVERGED, result.detail
+    return run, fake, result

@@ -157,8 +157,8 @@ def test_config_reference_names_every_field_of_every_experiment_schema():
 
 def test_config_reference_covers_the_robot_commands():
     sections = _sections((DOCS / "config_reference.md").read_text(encoding="utf-8"))
-    from selfid_jax.commands.online import OnlineConfig
-    from selfid_jax.commands.robot_sim import RobotSimConfig
+    from selfid_jax.sessions.online_config import OnlineConfig
+    from selfid_jax.sessions.online_sim import RobotSimConfig
 
     for title, model in (("selfid-jax online", OnlineConfig), ("selfid-jax robot-sim", RobotSimConfig)):
         top = {k for k in sections[title] if not re.search(r"[.\[ ]", k)}

@@ -44,8 +44,6 @@ import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from selfid_jax.sessions.online_config import OnlineConfig  # noqa: F401  (the config's schema, documented here)
-
 if TYPE_CHECKING:
     from selfid_jax.robot.live import OnlineResult
 

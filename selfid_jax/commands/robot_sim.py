@@ -38,8 +38,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from selfid_jax.sessions.online_sim import RobotSimConfig  # noqa: F401  (the config's schema, documented here)
-
 __all__ = ["add_arguments", "command", "run"]
 
 DESCRIPTION = (
