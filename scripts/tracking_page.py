@@ -1,5 +1,5 @@
-"""The tables of ``docs/results/tracking.md``, generated from the runs of the shipped tracking and peg-in-hole
-configs, so the page cannot drift from them.
+"""The tables of ``docs/results/tracking.md``, rendered from the runs of the shipped tracking and peg-in-hole
+configs or from the data file written from them.
 
     python scripts/tracking_page.py [--runs runs] [--json docs/results/data/tracking.json] [--page PAGE]
     python scripts/tracking_page.py --from-json docs/results/data/tracking.json --page docs/results/tracking.md
@@ -8,7 +8,8 @@ with the runs made by ``selfid-jax sweep CONFIG`` for each config in :data:`RUNS
 ``runs/<config name>``). ``--json`` writes the numbers the tables are made of (each run's summary, less its
 per-letter entries, and the size of its protocol); ``--from-json`` renders from such a file instead of the runs;
 ``--page`` rewrites the page's generated blocks (between ``<!-- tracking:NAME -->`` and
-``<!-- /tracking:NAME -->``), which ``tests/test_results_pages.py`` checks against the JSON.
+``<!-- /tracking:NAME -->``), which ``tests/test_results_pages.py`` checks against the JSON: the page cannot drift
+from the JSON, but that the JSON is what the runs gave is not checked (the runs are not in the repository).
 
 Every row is one tracker-noise level and inverse Jacobian of a run: nothing is picked out. The paper's numbers
 (:data:`PAPER`) sit on the noise-free rows, as the paper gives no tracker noise.
@@ -35,8 +36,8 @@ PAPER = {
     ("tracking_ur5e_cube", "estimated"): "Table I: 1.41 / 1.18 / 1.73 mm; Table II: 3.58 / 4.07 +- 1.95 deg; "
                                          "8 iterations",
     ("tracking_ur5e_cube", "analytical"): "Table I: 0.35 / 0.28 / 0.93 mm; Table II: 2.28 / 2.82 +- 1.74 deg",
-    ("tracking_stewart_e", "estimated"): "Sec. V-C: 0.28 +- 0.22 mm waypoint error, 10 iterations; Table I: "
-                                         "0.27 / 0.25 / 0.18 mm",
+    ("tracking_stewart_e", "estimated"): "Sec. V-C: 0.28 +- 0.22 mm waypoint error ('E' of unstated size), 10 "
+                                         "iterations; Table I: 0.27 / 0.25 / 0.18 mm",
     ("tracking_model_o_grablab", "estimated"): "Sec. V-B: 0.41 +- 0.16 mm on 12 mm letters, 5.7 +- 1.0 iterations",
     ("tracking_model_o_rotation_full", "estimated"): "Table II (Green Octagon): X 0.37 / 0.56 +- 0.39 deg, "
                                                      "Y 0.74 / 0.57 +- 0.30 deg; 5.0 +- 0.0 iterations",

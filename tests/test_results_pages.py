@@ -131,7 +131,8 @@ def test_results_pages_drop_the_claims_the_audit_refuted(page, claim):
     assert claim not in (ROOT / "docs" / "results" / page).read_text()
 
 
-def test_stewart_e_configs_cite_the_right_table_and_the_papers_letter_height():
+def test_stewart_e_configs_cite_the_right_table_and_a_12_mm_letter():
+    """The 'E' is 12 mm, the height the paper gives its Model O letters (it gives the 'E' none)."""
     import yaml
 
     for path in (ROOT / "configs" / "studies" / "gap" / "gap_tracking_stewart_e.yaml",
