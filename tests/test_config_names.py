@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from selfid_jax import cli
-from selfid_jax.runner.command_line import _find_config
+from selfid_jax.runner.command_line import find_config
 from selfid_jax.runner.errors import ConfigError
 
 INSTALLED = dict(cli._config_dirs())["installed"]  # the data package selfid_jax.configs
@@ -27,17 +27,17 @@ def test_configs_are_installed_and_names_resolve_local_first(tmp_path, monkeypat
     monkeypatch.chdir(tmp_path)
     dirs = cli._config_dirs()
     # a bare name resolves inside a subfolder, with or without .yaml
-    assert _find_config(Path("valid_region_ur5e"), dirs) == INSTALLED / "valid_region" / "valid_region_ur5e.yaml"
-    assert _find_config(Path("valid_region_ur5e.yaml"), dirs) == INSTALLED / "valid_region" / "valid_region_ur5e.yaml"
-    assert _find_config(Path("gap_peg_in_hole"), dirs) == INSTALLED / "studies" / "gap" / "gap_peg_in_hole.yaml"
+    assert find_config(Path("valid_region_ur5e"), dirs) == INSTALLED / "valid_region" / "valid_region_ur5e.yaml"
+    assert find_config(Path("valid_region_ur5e.yaml"), dirs) == INSTALLED / "valid_region" / "valid_region_ur5e.yaml"
+    assert find_config(Path("gap_peg_in_hole"), dirs) == INSTALLED / "studies" / "gap" / "gap_peg_in_hole.yaml"
     (tmp_path / "configs" / "mine").mkdir(parents=True)
     (tmp_path / "configs" / "mine" / "valid_region_ur5e.yaml").write_text("experiment: valid_region\n")
     local = Path("configs/mine/valid_region_ur5e.yaml")
-    assert _find_config(Path("valid_region_ur5e"), dirs) == local  # ./configs (any subfolder) before the installed
-    assert _find_config(Path("configs/mine/valid_region_ur5e.yaml"), dirs) == local  # a path is a path
+    assert find_config(Path("valid_region_ur5e"), dirs) == local  # ./configs (any subfolder) before the installed
+    assert find_config(Path("configs/mine/valid_region_ur5e.yaml"), dirs) == local  # a path is a path
     with pytest.raises(ConfigError, match=r"no nonesuch.yaml in configs or .* or their subfolders .*selfid-jax list"):
-        _find_config(Path("nonesuch"), dirs)
-    assert _find_config(Path("sub/nonesuch"), dirs) == Path("sub/nonesuch")  # a path is reported as that path
+        find_config(Path("nonesuch"), dirs)
+    assert find_config(Path("sub/nonesuch"), dirs) == Path("sub/nonesuch")  # a path is reported as that path
 
 
 def test_list_names_where_configs_live_and_a_named_config_runs_from_an_empty_directory(tmp_path, monkeypatch,
@@ -68,12 +68,12 @@ def test_a_name_twice_under_one_folder_is_refused_naming_both(tmp_path, monkeypa
     dirs = cli._config_dirs()
     for name in ("twice", "twice.yaml"):
         with pytest.raises(ConfigError) as err:
-            _find_config(Path(name), dirs)
+            find_config(Path(name), dirs)
         assert "configs/a/twice.yaml" in str(err.value) and "configs/b/c/twice.yaml" in str(err.value)
     # the same name in ./configs and in the installed folder is no conflict: ./configs wins
     (tmp_path / "configs" / "b" / "c" / "twice.yaml").rename(tmp_path / "configs" / "a" / "valid_region_ur5e.yaml")
-    assert _find_config(Path("twice"), dirs) == Path("configs/a/twice.yaml")
-    assert _find_config(Path("valid_region_ur5e"), dirs) == Path("configs/a/valid_region_ur5e.yaml")
+    assert find_config(Path("twice"), dirs) == Path("configs/a/twice.yaml")
+    assert find_config(Path("valid_region_ur5e"), dirs) == Path("configs/a/valid_region_ur5e.yaml")
 
 
 def test_every_config_is_in_its_experiments_folder_and_names_are_unique():
@@ -95,3 +95,18 @@ def test_every_config_is_in_its_experiments_folder_and_names_are_unique():
             assert experiment in known, path
         else:
             assert folder == experiment, f"{path}: experiment {experiment!r}, move it to configs/{experiment}/"
+
+
+def test_robot_commands_find_shipped_configs_by_name(tmp_path, monkeypatch, capsys):
+    """``selfid-jax online NAME`` and ``robot-sim NAME`` look a bare name up as ``sweep`` does (here a name that no
+    folder holds: the error says where it looked; a shipped name gets past the lookup to the config's own checks)."""
+    from selfid_jax.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    for command in ("online", "robot-sim"):
+        assert main([command, "no_such_robot_config"]) == 2
+        err = capsys.readouterr().err
+        assert "no_such_robot_config: config file not found" in err and "configs" in err, err
+    assert main(["online", "online_trossen_sim", "--out", str(tmp_path / "run"), "--set", "selfid.m_a=-1"]) == 2
+    err = capsys.readouterr().err
+    assert "not found" not in err and "m_a" in err, err

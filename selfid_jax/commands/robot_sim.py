@@ -49,7 +49,7 @@ DESCRIPTION = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``robot-sim`` subcommand's arguments."""
-    p.add_argument("config", type=Path, help="YAML config (see the description)")
+    p.add_argument("config", type=Path, help="YAML config, or a shipped one by name (robot_sim_ur5e, ...)")
     p.add_argument("--port", type=int, default=None, help="TCP port (overrides the config's; 0: a free port)")
     p.add_argument("--port-file", type=Path, default=None, help="write the port there once listening")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -61,6 +61,9 @@ def run(args: argparse.Namespace) -> int:
     from selfid_jax.runner.errors import ConfigError
     from selfid_jax.sessions.online_sim import load_sim_config, serve
 
+    from selfid_jax.runner.command_line import find_config
+
+    args.config = find_config(args.config, args.config_dirs)  # a path, or a shipped config by name
     cfg = load_sim_config(args.config, args.overrides)
     port = cfg.port if args.port is None else args.port
     if not 0 <= port <= 65535:

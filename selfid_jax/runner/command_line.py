@@ -290,7 +290,7 @@ def _sweep(args: argparse.Namespace) -> int:
                 raise _UsageError(f"--{env[11:].lower().replace('_', '-')} must be positive, got {flag}")
             os.environ[env] = str(flag)
 
-    args.config = _find_config(args.config, args.config_dirs)
+    args.config = find_config(args.config, args.config_dirs)
     cfg = registry.load(args.config, args.overrides)
     exp = registry.get(cfg.experiment)
     run_dir = args.out if args.out is not None else Path("runs") / args.config.stem
@@ -386,7 +386,7 @@ def _config_files(folder: Path, names: Sequence[str] | None = None) -> list[Path
     return sorted(found, key=lambda p: (p.parent.relative_to(folder).parts, p.name))
 
 
-def _find_config(config: Path, dirs: Sequence[tuple[str, Path]]) -> Path:
+def find_config(config: Path, dirs: Sequence[tuple[str, Path]]) -> Path:
     """``config`` if it is a file, else ``NAME`` or ``NAME.yaml`` from the first of ``dirs`` that has it.
 
     Each of ``dirs`` is searched with its subfolders (the shipped configs are grouped by experiment:

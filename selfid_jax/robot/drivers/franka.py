@@ -1,7 +1,7 @@
 """A Franka arm (FR3, Panda) over libfranka, through ``franky-control``: the robot protocol for ``selfid-jax online``.
 
     pip install "selfid-jax[franka]"          # franky-control, which bundles libfranka
-    robot: {driver: "selfid_jax.robot.drivers.franka:Franka", args: {host: 172.16.0.2}}
+    robot: {driver: franka, args: {host: 172.16.0.2}}     # or "selfid_jax.robot.drivers.franka:Franka"
 
 Actuators are the seven joints, in radians. :meth:`Franka.limits` reads the
 joint limits from the arm's own model (the URDF the arm serves) and narrows
@@ -45,22 +45,34 @@ UDP timeout, a refused connection) a :class:`RobotConnectionError` (the
 command, an arm in an error state) a :class:`RobotError` (``robot_error``).
 The driver never calls ``recover_from_errors``: an arm in an error state is
 refused before the first move, and recovering is the user's decision at the
-arm. :meth:`Franka.close` stops any motion and disconnects.
+arm. :meth:`Franka.close` stops any motion and disconnects. The parts every
+vendor's driver shares (argument checks, limits, settling, the arm's clock,
+vendor errors, an external tracker) are :mod:`selfid_jax.robot.drivers.common`'s.
 """
 
 from __future__ import annotations
 
-import contextlib
-import importlib
 import time
 import xml.etree.ElementTree as ET
-from collections import deque
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
-from selfid_jax.robot.protocol import Observation, RobotConnectionError, RobotError, RobotLimits
+from selfid_jax.robot.drivers.common import (
+    ArmClock,
+    Settling,
+    VendorErrors,
+    check_range,
+    check_tracker,
+    close_tracker,
+    corrected_offset,
+    import_vendor,
+    load_tracker,
+    narrow_limits,
+    tracker_observation,
+    wait_settled,
+)
+from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits
 
 __all__ = ["Franka", "urdf_joint_limits"]
 
@@ -131,53 +143,28 @@ class Franka:
                  settle_timeout_s: float = 3.0, poll_s: float = 0.01, realtime: bool = True,
                  tracker: str = "end_effector", tracker_args: dict[str, Any] | None = None,
                  offset_correction: bool = True, franky: Any = None):
-        for name, value, lo, hi in (("dynamics", dynamics, 0.0, 1.0), ("max_step", max_step, 0.0, 0.5),
-                                    ("settle_tol", settle_tol, 0.0, 0.1), ("target_tol", target_tol, 0.0, 0.5),
-                                    ("settle_window_s", settle_window_s, 0.0, 10.0),
-                                    ("settle_timeout_s", settle_timeout_s, 0.0, 600.0), ("poll_s", poll_s, 0.0, 1.0)):
-            if not (isinstance(value, int | float) and lo < float(value) <= hi):
-                raise ValueError(f"Franka: {name} must be in ({lo:g}, {hi:g}], got {value!r}")
-        if not (isinstance(limit_margin, int | float) and 0.0 <= limit_margin < 0.5):
-            raise ValueError(f"Franka: limit_margin must be in [0, 0.5) rad, got {limit_margin!r}")
-        if tracker not in ("end_effector", "flange") and ":" not in tracker:
-            raise ValueError(f"Franka: tracker must be 'end_effector', 'flange' or 'module:Class', got {tracker!r}")
-        if tracker_args and ":" not in tracker:
-            raise ValueError("Franka: tracker_args are for an external tracker ('module:Class')")
+        check_range("Franka", "dynamics", dynamics, 0.0, 1.0)
+        check_range("Franka", "max_step", max_step, 0.0, 0.5)
+        self.settling = Settling(settle_tol, settle_window_s, target_tol, settle_timeout_s, poll_s).check("Franka")
+        check_range("Franka", "limit_margin", limit_margin, 0.0, 0.5, include_lo=True, include_hi=False, unit="rad")
+        check_tracker("Franka", tracker, tracker_args, ("end_effector", "flange"))
         if franky is None:
-            try:
-                franky = importlib.import_module("franky")
-            except ImportError as err:
-                raise RobotError("the Franka driver needs franky-control: pip install \"selfid-jax[franka]\" "
-                                 f"({err})") from err
+            franky = import_vendor("franky", driver="Franka", package="franky-control", extra="franka")
         self.franky, self.host = franky, host
         self.dynamics, self.max_step, self.limit_margin = float(dynamics), float(max_step), float(limit_margin)
-        self.settle_tol, self.settle_window_s, self.target_tol = float(settle_tol), float(settle_window_s), \
-            float(target_tol)
-        self.settle_timeout_s, self.poll_s = float(settle_timeout_s), float(poll_s)
         self.tracker_kind = tracker
-        self.tracker: Any = None
-        if ":" in tracker:
-            module, name = tracker.split(":", 1)
-            self.tracker = getattr(importlib.import_module(module), name)(**(tracker_args or {}))
+        self.tracker: Any = load_tracker(tracker, tracker_args)
         self.offset_correction = bool(offset_correction)
         self.offset = np.zeros(N_JOINTS)  # [rad] measured minus commanded, at the end of the last move
         self.closed = False
-        self._robot_t = -np.inf  # the arm's clock [s] at the last read, and our stamp of the read it advanced at
-        self._pose_t = -np.inf
+        self._clock = ArmClock()  # the arm's clock at the last read, and our stamp of the read it advanced at
+        self._pose_t = -np.inf  # [s] the stamp of the last read's pose
+        self._vendor = VendorErrors("Franka", host, franky.Exception,
+                                    lambda err: isinstance(err, franky.NetworkException))
         realtime_config = franky.RealtimeConfig.Enforce if realtime else franky.RealtimeConfig.Ignore
         with self._vendor("connect"):
             self.robot = franky.Robot(host, realtime_config=realtime_config)
             self.robot.relative_dynamics_factor = self.dynamics
-
-    @contextlib.contextmanager
-    def _vendor(self, call: str) -> Iterator[None]:
-        """Turn franky's exceptions inside the block into the runner's (a lost link, or any other fault)."""
-        try:
-            yield
-        except self.franky.NetworkException as err:
-            raise RobotConnectionError(f"Franka {call} at {self.host}: {err}") from err
-        except self.franky.Exception as err:
-            raise RobotError(f"Franka {call} at {self.host}: {type(err).__name__}: {err}") from err
 
     def _check_open(self) -> None:
         if self.closed:
@@ -192,16 +179,14 @@ class Franka:
             lower, upper, _ = urdf_joint_limits(urdf)
         except (ValueError, ET.ParseError) as err:
             raise RobotError(f"Franka at {self.host}: the arm's model gives no joint limits: {err}") from err
-        return RobotLimits(lower + self.limit_margin, upper - self.limit_margin, np.full(N_JOINTS, self.max_step))
+        return narrow_limits("Franka", lower, upper, self.limit_margin, self.max_step)
 
     def _state(self) -> tuple[float, np.ndarray, Any]:
         """The arm's state now: (our monotonic stamp [s], joints (7,) [rad], franky's RobotState)."""
         with self._vendor("read"):
             state = self.robot.state
         now = time.monotonic()
-        robot_t = float(state.time.to_sec())
-        if robot_t != self._robot_t:
-            self._robot_t, self._pose_t = robot_t, now
+        self._pose_t = self._clock.stamp(float(state.time.to_sec()), now)
         return now, np.array(state.q, np.float64), state
 
     def read(self) -> Observation:
@@ -209,9 +194,7 @@ class Franka:
         self._check_open()
         now, q, state = self._state()
         if self.tracker is not None:
-            t, position, quaternion, valid = self.tracker.read()
-            quat = None if quaternion is None else np.asarray(quaternion, np.float64)  # None: position only
-            return Observation(now, q, np.asarray(position, np.float64), quat, float(t), bool(valid))  # type: ignore[arg-type]
+            return tracker_observation(self.tracker, now, q)
         frame = self.franky.Frame.EndEffector if self.tracker_kind == "end_effector" else self.franky.Frame.Flange
         with self._vendor("model pose"):
             pose = self.robot.model.pose(frame, q, state.F_T_EE, state.EE_T_K)
@@ -244,33 +227,10 @@ class Franka:
                                  "clear them at the arm (this driver does not recover from errors by itself)")
             command = target - self.offset if self.offset_correction else target
             self.robot.move(franky.JointMotion(franky.JointState(command.tolist())))
-        q = self._settle(target)
-        if self.offset_correction:  # half of each landing error: a constant offset goes, friction's sign flips average
-            self.offset = np.clip(self.offset + 0.5 * (q - target), -self.target_tol, self.target_tol)
-
-    def _settle(self, target: np.ndarray) -> np.ndarray:
-        """Read the joints every ``poll_s`` until settled at ``target`` and return them (7,) [rad]; RobotError after
-        ``settle_timeout_s``."""
-        start = time.monotonic()
-        window: deque[tuple[float, np.ndarray]] = deque()
-        while True:
-            now, q, _ = self._state()
-            window.append((now, q))
-            while len(window) > 2 and now - window[1][0] >= self.settle_window_s:
-                window.popleft()  # keep one reading at least settle_window_s old: the spread spans the window
-            full = len(window) >= 2 and now - window[0][0] >= self.settle_window_s
-            qs = np.array([x for _, x in window])
-            spread = qs.max(axis=0) - qs.min(axis=0)
-            off = np.abs(q - target)
-            if full and spread.max() <= self.settle_tol and off.max() <= self.target_tol:
-                return q
-            if now - start > self.settle_timeout_s:
-                i = int(np.argmax(np.maximum(off / self.target_tol, spread / self.settle_tol)))
-                raise RobotError(f"Franka: joint {i + 1} did not settle within {self.settle_timeout_s:g} s: "
-                                 f"{off[i]:.3g} rad from its target (target_tol {self.target_tol:g}), moved "
-                                 f"{spread[i]:.3g} rad in the last {self.settle_window_s:g} s (settle_tol "
-                                 f"{self.settle_tol:g})")
-            time.sleep(self.poll_s)
+        q = wait_settled(lambda: self._state()[:2], target, self.settling, driver="Franka",
+                         monotonic=time.monotonic, sleep=time.sleep)
+        if self.offset_correction:
+            self.offset = corrected_offset(self.offset, q, target, self.settling.target_tol)
 
     def close(self) -> None:
         """Stop any motion, release the external tracker and disconnect (idempotent)."""
@@ -282,5 +242,4 @@ class Franka:
                 self.robot.stop()
         finally:
             self.robot = None
-            if self.tracker is not None and hasattr(self.tracker, "close"):
-                self.tracker.close()
+            close_tracker(self.tracker)
