@@ -60,7 +60,8 @@ DESCRIPTION = (
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``online`` subcommand's arguments."""
-    p.add_argument("config", type=Path, help="YAML config, or a shipped one by name (online_ur5e, online_trossen_sim, ...)")
+    p.add_argument("config", type=Path,
+                   help="YAML config, or a shipped one by name (online_ur5e, online_trossen_sim, ...)")
     p.add_argument("--resume", action="store_true", help="continue the session logged in the run directory")
     p.add_argument("--out", type=Path, default=None, help="run directory (default: the config's out, else "
                    "runs/online_<config stem>)")
@@ -77,9 +78,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Body of ``selfid-jax online``: validate, run the session (:func:`selfid_jax.sessions.online_run.run_session`),
     print the report; the exit code."""
-    from selfid_jax.sessions.online_config import default_out, load_online_config
-
     from selfid_jax.runner.command_line import find_config
+    from selfid_jax.sessions.online_config import default_out, load_online_config
 
     args.config = find_config(args.config, args.config_dirs)  # a path, or a shipped config by name
     cfg = load_online_config(args.config, args.overrides)

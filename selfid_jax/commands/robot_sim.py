@@ -58,10 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """``selfid-jax robot-sim``: load the config, serve the virtual robot until a signal, print its clock's stats."""
+    from selfid_jax.runner.command_line import find_config
     from selfid_jax.runner.errors import ConfigError
     from selfid_jax.sessions.online_sim import load_sim_config, serve
-
-    from selfid_jax.runner.command_line import find_config
 
     args.config = find_config(args.config, args.config_dirs)  # a path, or a shipped config by name
     cfg = load_sim_config(args.config, args.overrides)
