@@ -26,10 +26,11 @@ def _config_dirs() -> tuple[tuple[str, Path], ...]:
 
 
 def commands() -> dict:
-    """The package's own subcommands ``fit``, ``online`` and ``robot-sim`` (:mod:`selfid_jax.commands`)."""
-    from selfid_jax.commands import fit, online, robot_sim
+    """The package's own subcommands ``fit``, ``calibrate``, ``online``, ``robot-sim`` (:mod:`selfid_jax.commands`)."""
+    from selfid_jax.commands import calibrate, fit, online, robot_sim
 
-    return {"fit": fit.command(), "online": online.command(), "robot-sim": robot_sim.command()}
+    return {"fit": fit.command(), "calibrate": calibrate.command(), "online": online.command(),
+            "robot-sim": robot_sim.command()}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

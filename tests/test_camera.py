@@ -1,7 +1,7 @@
 """The camera tracker on frames the simulated camera renders (MuJoCo headless, EGL), against its ground truth.
 
-The arm is written here (3 hinges, a tag on the hand), not one the project ships. Rendering tests skip, with the
-reason, only where no OpenGL context can be created. Bounds (640x480, fovy 45, a 50 mm tag at about 0.7 m, i.e.
+The arm is tests/helpers_camera.py's (3 hinges, a tag on the hand), not one the project ships. Rendering tests skip,
+with the reason, only where no OpenGL context can be created. Bounds (640x480, fovy 45, a 50 mm tag at about 0.7 m, i.e.
 about 42 px, read noise 2 grey levels): position within POSITION_TOL, rotation within ANGLE_TOL where the planar
 ambiguity is resolved; measured (Mesa's EGL, software) at most 0.5 mm and 0.65 deg. The self-ID check's
 ||J J_hat - I||_F was 0.04-0.08 over three seeds (bound SELFID_TOL); the calibrated focal length within 0.04 %.
@@ -15,12 +15,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers_camera import CAMERA, Q0, TAG, open_sim  # tests/ is on the path
 
 from selfid_jax.robot.camera.calibrate import CalibrationError, calibrate
 from selfid_jax.robot.camera.intrinsics import Intrinsics, IntrinsicsError, read_intrinsics, write_intrinsics
 from selfid_jax.robot.camera.measure import measure_tracker
-from selfid_jax.robot.camera.render import CameraSettings, RenderUnavailable, apply_sensor
-from selfid_jax.robot.camera.sim import BoardCamera, SimCamera, board_views
+from selfid_jax.robot.camera.render import RenderUnavailable, apply_sensor
+from selfid_jax.robot.camera.sim import BoardCamera, board_views
 from selfid_jax.robot.camera.tracker import (
     POSE_COLUMNS,
     TagTracker,
@@ -34,54 +35,10 @@ CORNER_OFFSET_TOL = 0.2  # px, mean detected-minus-projected corner over frames 
 FOCAL_TOL = 0.01  # relative, calibrated fx, fy vs the MuJoCo camera's
 SELFID_TOL = 0.15  # ||J J_hat - I||_F, position task
 
-ARM_XML = """
-<mujoco model="camera_test_arm">
-  <compiler angle="radian"/>
-  <worldbody>
-    <geom name="floor" type="plane" size="1 1 0.01" rgba="0.35 0.4 0.45 1"/>
-    <body name="base" pos="0 0 0.05">
-      <joint name="yaw" axis="0 0 1" range="-3 3"/>
-      <geom type="cylinder" size="0.05 0.05" rgba="0.6 0.6 0.6 1"/>
-      <body name="upper" pos="0 0 0.05">
-        <joint name="shoulder" axis="0 1 0" range="-2 2"/>
-        <geom type="capsule" fromto="0 0 0 0 0 0.3" size="0.025" rgba="0.8 0.5 0.2 1"/>
-        <body name="fore" pos="0 0 0.3">
-          <joint name="elbow" axis="0 1 0" range="-2.5 2.5"/>
-          <geom type="capsule" fromto="0 0 0 0.2 0 0" size="0.02" rgba="0.8 0.5 0.2 1"/>
-          <body name="hand" pos="0.25 0 0">
-            <geom type="box" size="0.015 0.045 0.045" rgba="0.5 0.5 0.5 1"/>
-          </body>
-        </body>
-      </body>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-Q0 = np.array([0.0, 0.3, -0.3])  # the hand's face (body +x) towards +x, about 0.69 m from the camera
-TAG = TrackerSettings(family="tag36h11", tag_id=7, edge=0.05)
-
-
-def _rolled(quat, degrees):
-    """``quat`` (wxyz) turned by ``degrees`` about its own z (a tag rolled in its plane)."""
-    half = np.radians(degrees) / 2
-    w, x, y, z = quat
-    c, s = np.cos(half), np.sin(half)
-    return (w * c - z * s, x * c + y * s, y * c - x * s, z * c + w * s)
-
-
-# On the hand's +x face (tag x, y, z = body y, z, x), rolled 20 degrees in its plane: edges along the pixel rows
-# and columns quantise OpenCV's AprilTag corners (selfid_jax.robot.camera.tracker's docstring).
-TAG_POS, TAG_QUAT = (0.016, 0.0, 0.0), _rolled((0.5, 0.5, 0.5, 0.5), 20.0)
-CAMERA = CameraSettings(width=640, height=480, fovy=45.0, position=(1.0, 0.15, 0.5), look_at=(0.34, 0.0, 0.39),
-                        noise=2.0, seed=3)
-
 
 @pytest.fixture(scope="module")
 def sim():
-    try:
-        camera = SimCamera(ARM_XML, "hand", tag=TAG, tag_pos=TAG_POS, tag_quat=TAG_QUAT, camera=CAMERA)
-    except RenderUnavailable as err:
-        pytest.skip(f"no OpenGL backend for headless rendering: {err}")
+    camera = open_sim(CAMERA)
     yield camera
     camera.close()
 

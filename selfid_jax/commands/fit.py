@@ -7,6 +7,8 @@ Usage::
                        [--columns MAP] [--joint-names A,B,..] [--length mm] [--time ns] [--angle deg]
                        [--mode auto|stream|moves] [--latency auto|S|none] [--strict]
     selfid-jax fit BAG --joints /joint_states --tracker /mocap/pose [--child-frame F] ...
+    selfid-jax fit BAG --joints /joint_states --camera /camera/image_raw --tag tag36h11:ID:EDGE_M [--camera-info F]
+    selfid-jax fit JOINTS.csv --video FRAMES --frame-times TIMES.csv --camera-info CAMERA.yaml --tag tag36h11:ID:EDGE_M
     selfid-jax fit --example
 
 Parses the flags, calls :func:`selfid_jax.sessions.fit_run.fit_to_run` (which
@@ -37,7 +39,9 @@ DESCRIPTION = (
     "LOG is a CSV, Parquet or NPZ file of sample pairs (dtheta_0.., V_0..) or of a raw time series (t, q_0.., "
     "p_x, p_y, p_z and, for rotation axes, q_w, q_x, q_y, q_z or r_x, r_y, r_z; other names through --columns and "
     "--joint-names, other units through --length/--time/--angle or a units row), or a ROS 1/ROS 2 bag or MCAP "
-    "file (--joints, --tracker). A time series logged continuously is reduced to one settled row per move. Bad "
+    "file (--joints, --tracker). The tracker may be a camera and an AprilTag (--tag): a bag's image topic "
+    "(--camera) or, beside a joint log, a video or a folder of images (--video, --frame-times, --camera-info). "
+    "A time series logged continuously is reduced to one settled row per move. Bad "
     "rows (non-finite, duplicated or non-monotonic time, gaps) are dropped and counted. Writes estimates.npz, "
     "summary.json (with how far to trust the fit), figures/convergence.png/.pdf and, when it converged, "
     "inverse_jacobian.npz/.json into the run directory; exits 1 when it did not (or, with --strict, when a trust "
@@ -91,6 +95,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the tracker's geometry_msgs/PoseStamped or TransformStamped topic, or /tf with --child-frame")
     b.add_argument("--child-frame", default=_READ.child_frame, metavar="FRAME",
                    help="on a tf topic, the tracked frame (child_frame_id)")
+    c = p.add_argument_group("a camera and an AprilTag as the tracker (pip install \"selfid-jax[camera]\")")
+    c.add_argument("--tag", default=_READ.tag, metavar="FAMILY:ID:EDGE_M",
+                   help="the tracked tag, e.g. tag36h11:7:0.05: its family, id and the edge of its black square in "
+                   "metres (every position, and so the estimate, scales with the edge)")
+    c.add_argument("--camera", default=_READ.camera, metavar="TOPIC",
+                   help="a bag's sensor_msgs/Image or CompressedImage topic (with --joints), instead of --tracker; "
+                   "intrinsics from the camera_info topic beside it, or --camera-info")
+    c.add_argument("--video", type=Path, default=_READ.video, metavar="FRAMES",
+                   help="beside a joint log (t, q_0..): a video file or a folder of images (sorted by file name)")
+    c.add_argument("--frame-times", type=Path, default=_READ.frame_times, metavar="CSV",
+                   help="with --video: a CSV with a t column, one row per frame, on the joint log's clock (its "
+                   "--time unit)")
+    c.add_argument("--camera-info", type=Path, default=_READ.camera_info, metavar="FILE",
+                   help="the camera's intrinsics: OpenCV's or ROS's calibration YAML (selfid-jax calibrate writes "
+                   "one)")
     g = p.add_argument_group("the log's layout and units")
     g.add_argument("--columns", default=_READ.columns, metavar="MAP",
                    help="rename the log's columns to the fit's: 'joint_a=q_0,tx=p_x,...' or a YAML/JSON file of "
@@ -184,5 +203,6 @@ def command():
     """The ``fit`` subcommand for :func:`selfid_jax.runner.command_line.main`."""
     from selfid_jax.runner.command_line import Command
 
-    return Command(help="self-ID from a recorded log (CSV, Parquet, NPZ, ROS bag, MCAP) into a run directory",
+    return Command(help="self-ID from a recorded log (CSV, Parquet, NPZ, ROS bag, MCAP; a camera and an AprilTag) "
+                   "into a run directory",
                    description=DESCRIPTION, add_arguments=add_arguments, run=run, plot=redraw)

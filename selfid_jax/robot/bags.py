@@ -25,6 +25,13 @@ messages' span, or between two joint messages more than ``max_skew`` apart
 (a recording gap), is dropped and counted in :class:`BagInfo`. Rows are
 not screened further here: non-finite values, zero quaternions, repeated
 stamps and time gaps are :func:`selfid_jax.robot.log.samples_from_table`'s.
+
+The pieces are public for the camera tracker (:mod:`selfid_jax.robot.camera.sources`),
+which reads a bag's image topic instead of a pose topic and matches its tag
+poses to the joints the same way: :func:`open_bag`, :func:`topic_type`,
+:func:`messages`, :func:`stamp_ns`, :func:`read_joint_states` and
+:func:`match_to_joints` (the one matcher, also used for a video's frame times
+against a joint log's ``t``).
 """
 
 from __future__ import annotations
@@ -37,7 +44,8 @@ import numpy as np
 
 from selfid_jax.robot.log import LogError
 
-__all__ = ["BagInfo", "read_bag", "JOINT_TYPE", "TRACKER_TYPES", "DEFAULT_SKEW_FACTOR"]
+__all__ = ["BagInfo", "DEFAULT_SKEW_FACTOR", "JOINT_TYPE", "JointStates", "Matched", "TRACKER_TYPES",
+           "match_to_joints", "messages", "open_bag", "read_bag", "read_joint_states", "stamp_ns", "topic_type"]
 
 #: The joint-state message type (rosbags names ROS 1 types the ROS 2 way too).
 JOINT_TYPE = "sensor_msgs/msg/JointState"
@@ -87,7 +95,28 @@ class BagInfo(NamedTuple):
         return out
 
 
-def _stamp(msg: Any) -> int:
+class JointStates(NamedTuple):
+    """The joint messages of a topic that name the joints (:func:`read_joint_states`), in bag order."""
+
+    names: tuple[str, ...]  # joint of each column of positions
+    stamps: np.ndarray  # (K,) int64 header stamps, ns
+    positions: np.ndarray  # (K, n) float64 joint positions (rad, m)
+    other: int  # messages naming none of the joints (another publisher), skipped
+
+
+class Matched(NamedTuple):
+    """What :func:`match_to_joints` matched and dropped."""
+
+    rows: int  # poses matched to joint positions (rows of the table)
+    outside_span: int  # poses dropped: stamped before the first or after the last joint message
+    skewed: int  # poses dropped: between joint messages more than max_skew apart
+    duplicate_joint_stamps: int  # joint messages dropped for repeating an earlier message's stamp
+    max_skew: float  # bracket limit applied (s)
+    joint_period: float  # median period of the joint stamps (s)
+    tracker_period: float  # median period of the poses' stamps (s); NaN with fewer than 2 distinct stamps
+
+
+def stamp_ns(msg: Any) -> int:
     """``msg.header.stamp`` in integer nanoseconds."""
     stamp = msg.header.stamp
     return int(stamp.sec) * _NS + int(stamp.nanosec)
@@ -147,18 +176,39 @@ def read_bag(
       ValueError: ``max_skew`` not a positive number.
     """
     source = str(path)
-    path = Path(path)
     if max_skew is not None and not (np.isfinite(max_skew) and max_skew > 0):
         raise ValueError(f"max_skew must be a positive number of seconds, got {max_skew!r}")
-    if isinstance(joint_names, str):
-        joint_names = [s.strip() for s in joint_names.split(",") if s.strip()]
-    if joint_names is not None:
-        joint_names = list(joint_names)
-        if not joint_names:
-            raise ValueError("joint_names is empty: name at least one joint")
-        if len(set(joint_names)) != len(joint_names):
-            twice = next(j for j in joint_names if joint_names.count(j) > 1)
-            raise ValueError(f"joint_names names {twice} twice")
+    joint_names = _joint_names_list(joint_names)
+    reader = open_bag(path)
+    try:
+        topics = dict(reader.topics)
+        topic_type(source, topics, joints, "joint states", (JOINT_TYPE,))
+        tracker_type = topic_type(source, topics, tracker, "tracker", TRACKER_TYPES)
+        if tracker_type == POSE_STAMPED and child_frame is not None:
+            raise LogError(f"{source}: topic {tracker} is a {POSE_STAMPED}, which has no child frame; "
+                           f"drop child_frame={child_frame!r}")
+        states = read_joint_states(reader, source, joints, joint_names)
+        t_stamps, poses, frame, child = _poses(source, tracker, tracker_type,
+                                               messages(reader, topics[tracker].connections, source, tracker),
+                                               child_frame)
+    finally:
+        reader.close()
+    columns = ("p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z")
+    table, m = match_to_joints(source, joints, tracker, states, t_stamps,
+                               {c: poses[:, k] for k, c in enumerate(columns)}, max_skew=max_skew)
+    info = BagInfo(source=source, joint_names=states.names, tracker_type=tracker_type, frame=frame, child_frame=child,
+                   joint_messages=int(states.stamps.size), duplicate_joint_stamps=m.duplicate_joint_stamps,
+                   other_joint_messages=states.other, tracker_messages=int(t_stamps.size), rows=m.rows,
+                   outside_span=m.outside_span, skewed=m.skewed, max_skew=m.max_skew, joint_period=m.joint_period,
+                   tracker_period=m.tracker_period)
+    return table, info
+
+
+def open_bag(path: str | Path) -> Any:
+    """An opened ``rosbags.highlevel.AnyReader`` of a ROS 1 ``.bag``, a ROS 2 bag folder or a ``.mcap``/``.db3``
+    file (close it); :class:`LogError` naming the file if it is none of these, cannot be read or rosbags is missing."""
+    source = str(path)
+    path = Path(path)
     if not path.exists():
         raise LogError(f"{source}: no such file or folder")
     if path.is_dir() and not (path / "metadata.yaml").is_file():
@@ -172,36 +222,22 @@ def read_bag(
     except ImportError:
         raise LogError(f"{source}: {_INSTALL}") from None
 
-    # A bag without embedded definitions (older ROS 2 sqlite3 bags) is read with these types; the three
-    # message types used are the same in every ROS distribution.
+    # A bag without embedded definitions (older ROS 2 sqlite3 bags) is read with these types; the message types
+    # used are the same in every ROS distribution.
     store = get_typestore(Stores.ROS1_NOETIC if path.suffix == ".bag" else Stores.ROS2_HUMBLE)
     try:
         reader = AnyReader([path], default_typestore=store)
         reader.open()
     except Exception as err:  # noqa: BLE001 - rosbags raises many types for a corrupt or foreign file
         raise LogError(f"{source}: cannot read as a ROS bag: {_detail(err)}") from None
-    try:
-        topics = dict(reader.topics)
-        connections = {name: info.connections for name, info in topics.items()}
-        _topic_type(source, topics, joints, "joint states", (JOINT_TYPE,))
-        tracker_type = _topic_type(source, topics, tracker, "tracker", TRACKER_TYPES)
-        if tracker_type == POSE_STAMPED and child_frame is not None:
-            raise LogError(f"{source}: topic {tracker} is a {POSE_STAMPED}, which has no child frame; "
-                           f"drop child_frame={child_frame!r}")
-        stream = lambda topic: _messages(reader, connections[topic], source, topic)
-        names, j_stamps, positions, other = _joint_states(source, joints, stream(joints), joint_names)
-        t_stamps, poses, frame, child = _poses(source, tracker, tracker_type, stream(tracker), child_frame)
-    finally:
-        reader.close()
-    return _match(source, joints, tracker, names, j_stamps, positions, other, tracker_type, t_stamps, poses, frame,
-                  child, max_skew)
+    return reader
 
 
 def _detail(err: BaseException) -> str:
     return " ".join(str(err).split())[:200] or type(err).__name__
 
 
-def _topic_type(source: str, topics: dict[str, Any], topic: str, role: str, accepted: Sequence[str]) -> str:
+def topic_type(source: str, topics: dict[str, Any], topic: str, role: str, accepted: Sequence[str]) -> str:
     """The message type of ``topic``; :class:`LogError` if it is missing or of a type not ``accepted``."""
     if topic not in topics:
         have = ", ".join(f"{name} ({info.msgtype or 'several types'})" for name, info in sorted(topics.items()))
@@ -214,7 +250,7 @@ def _topic_type(source: str, topics: dict[str, Any], topic: str, role: str, acce
     return types[0]
 
 
-def _messages(reader: Any, connections: Sequence[Any], source: str, topic: str) -> Iterator[Any]:
+def messages(reader: Any, connections: Sequence[Any], source: str, topic: str) -> Iterator[Any]:
     """The deserialised messages of ``connections`` in bag order; :class:`LogError` where rosbags fails."""
     items = reader.messages(connections=connections)
     while True:
@@ -226,6 +262,36 @@ def _messages(reader: Any, connections: Sequence[Any], source: str, topic: str) 
         except Exception as err:  # noqa: BLE001 - rosbags raises many types for a corrupt message or chunk
             raise LogError(f"{source}: topic {topic}: cannot read a message: {_detail(err)}") from None
         yield msg
+
+
+def read_joint_states(reader: Any, source: str, topic: str, joint_names: Sequence[str] | str | None = None
+                      ) -> JointStates:
+    """The ``sensor_msgs/JointState`` messages of ``topic`` in an open bag (:func:`open_bag`) that name the joints
+    (a sequence or a comma-separated string; default: those of the first message, in its order).
+
+    Raises :class:`LogError` naming the file and topic (see :func:`read_bag`),
+    ValueError for ``joint_names`` empty or naming a joint twice."""
+    names_asked = _joint_names_list(joint_names)
+    topics = dict(reader.topics)
+    topic_type(source, topics, topic, "joint states", (JOINT_TYPE,))
+    stream = messages(reader, topics[topic].connections, source, topic)
+    names, stamps, positions, other = _joint_states(source, topic, stream, names_asked)
+    return JointStates(names, stamps, positions, other)
+
+
+def _joint_names_list(joint_names: Sequence[str] | str | None) -> list[str] | None:
+    """``joint_names`` as a list (a comma-separated string split); ValueError if empty or naming a joint twice."""
+    if isinstance(joint_names, str):
+        joint_names = [s.strip() for s in joint_names.split(",") if s.strip()]
+    if joint_names is None:
+        return None
+    names = list(joint_names)
+    if not names:
+        raise ValueError("joint_names is empty: name at least one joint")
+    if len(set(names)) != len(names):
+        twice = next(j for j in names if names.count(j) > 1)
+        raise ValueError(f"joint_names names {twice} twice")
+    return names
 
 
 def _joint_states(source: str, topic: str, messages: Iterator[Any], joint_names: list[str] | None,
@@ -241,7 +307,7 @@ def _joint_states(source: str, topic: str, messages: Iterator[Any], joint_names:
         names = tuple(str(s) for s in msg.name)
         position = np.asarray(msg.position, np.float64)
         if position.shape != (len(names),):
-            raise LogError(f"{source}: topic {topic}: message {k} (stamp {_seconds(_stamp(msg))}) has "
+            raise LogError(f"{source}: topic {topic}: message {k} (stamp {_seconds(stamp_ns(msg))}) has "
                            f"{len(names)} names but {position.size} positions")
         if joint_names is None:
             if not names:
@@ -255,7 +321,7 @@ def _joint_states(source: str, topic: str, messages: Iterator[Any], joint_names:
             elif any(have):
                 missing = joint_names[have.index(False)]
                 raise LogError(f"{source}: topic {topic}: joint {missing} is not in message {k} "
-                               f"(stamp {_seconds(_stamp(msg))}), whose joints are {', '.join(names) or '(none)'}")
+                               f"(stamp {_seconds(stamp_ns(msg))}), whose joints are {', '.join(names) or '(none)'}")
             else:
                 columns[names] = None
         idx = columns[names]
@@ -263,7 +329,7 @@ def _joint_states(source: str, topic: str, messages: Iterator[Any], joint_names:
         if idx is None:
             skipped += 1
             continue
-        stamps.append(_stamp(msg))
+        stamps.append(stamp_ns(msg))
         rows.append(position[idx])
     if k == 0:
         raise LogError(f"{source}: topic {topic} (the joint states) has no messages")
@@ -292,13 +358,13 @@ def _poses(source: str, topic: str, msgtype: str, messages: Iterator[Any], child
     for msg in messages:
         count += 1
         if msgtype == POSE_STAMPED:
-            add(_stamp(msg), msg.header.frame_id, msg.pose.position, msg.pose.orientation)
+            add(stamp_ns(msg), msg.header.frame_id, msg.pose.position, msg.pose.orientation)
             continue
         for tf in msg.transforms if msgtype == TF_MESSAGE else [msg]:
             name = _frame(tf.child_frame_id)
             children[name] = children.get(name, 0) + 1
             if want is None or name == want:
-                add(_stamp(tf), tf.header.frame_id, tf.transform.translation, tf.transform.rotation)
+                add(stamp_ns(tf), tf.header.frame_id, tf.transform.translation, tf.transform.rotation)
     if count == 0:
         raise LogError(f"{source}: topic {topic} (the tracker) has no messages")
     child: str | None = None
@@ -325,10 +391,21 @@ def _distinct_stamps(source: str, topic: str, stamps: np.ndarray, what: str) -> 
                        f"{_seconds(int(stamps[0]))}{unset}; matching by stamp needs at least two distinct ones")
 
 
-def _match(source: str, joints: str, tracker: str, names: tuple[str, ...], j_stamps: np.ndarray,
-           positions: np.ndarray, other: int, tracker_type: str, t_stamps: np.ndarray, poses: np.ndarray,
-           frame: str, child: str | None, max_skew: float | None) -> tuple[dict[str, np.ndarray], BagInfo]:
-    """The table: each pose with the joint positions interpolated at its stamp (integer-nanosecond weights)."""
+def match_to_joints(source: str, joints: str, tracker: str, states: JointStates, stamps: np.ndarray,
+                    columns: dict[str, np.ndarray], *, max_skew: float | None = None, what: str = "pose",
+                    ) -> tuple[dict[str, np.ndarray], Matched]:
+    """Each pose with the joint positions interpolated at its stamp (integer-nanosecond weights): the table.
+
+    ``states``: the joint stamps and positions (:class:`JointStates`, any
+    order; a repeated stamp keeps its first message); ``stamps (T,)`` int64
+    ns and ``columns`` (name -> ``(T,)``) the poses, any order. ``joints`` and
+    ``tracker`` name the two streams in messages (topics, or files). Returns
+    ``t`` (s), ``q_0 ..`` and the ``columns``, rows in stamp order, and a
+    :class:`Matched`; a pose outside the joint stamps' span or between joint
+    stamps more than ``max_skew`` s apart (default :data:`DEFAULT_SKEW_FACTOR`
+    median joint periods) is dropped and counted.
+    """
+    j_stamps, positions = states.stamps, states.positions
     _distinct_stamps(source, joints, j_stamps, "joint messages")
     order = np.argsort(j_stamps, kind="stable")
     j_sorted = j_stamps[order]
@@ -338,11 +415,12 @@ def _match(source: str, joints: str, tracker: str, names: tuple[str, ...], j_sta
     joint_period = _median_period(tj)
     skew = DEFAULT_SKEW_FACTOR * joint_period if max_skew is None else float(max_skew)
 
+    t_stamps = np.asarray(stamps, np.int64)
     if not t_stamps.any():
-        raise LogError(f"{source}: topic {tracker}: every pose has the stamp 0 (header.stamp is unset: the "
+        raise LogError(f"{source}: topic {tracker}: every {what} has the stamp 0 (header.stamp is unset: the "
                        "publisher does not stamp its messages); matching by stamp needs the measurement times")
     order = np.argsort(t_stamps, kind="stable")
-    tt, poses = t_stamps[order], poses[order]
+    tt = t_stamps[order]
     tracker_period = _median_period(tt)
     K = tj.size
     i = np.searchsorted(tj, tt, side="right")  # tj[i - 1] <= tt < tj[i]
@@ -355,17 +433,14 @@ def _match(source: str, joints: str, tracker: str, names: tuple[str, ...], j_sta
     if not keep.any():
         raise LogError(_no_rows(source, joints, tracker, tj, tt, int(outside.sum()), int(skewed.sum()), skew))
     w = np.where(exact, 0.0, (tt - tj[lo]) / np.where(span > 0, span, 1))
-    q = qj[lo] + w[:, None] * (qj[hi] - qj[lo])
-    q, tt, poses = q[keep], tt[keep], poses[keep]
+    q = (qj[lo] + w[:, None] * (qj[hi] - qj[lo]))[keep]
 
-    table = {"t": tt / _NS}
+    table = {"t": tt[keep] / _NS}
     table.update({f"q_{k}": q[:, k].copy() for k in range(q.shape[1])})
-    table.update({c: poses[:, k].copy() for k, c in enumerate(("p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z"))})
-    info = BagInfo(source=source, joint_names=names, tracker_type=tracker_type, frame=frame, child_frame=child,
-                   joint_messages=int(j_stamps.size), duplicate_joint_stamps=duplicates, other_joint_messages=other,
-                   tracker_messages=int(t_stamps.size), rows=int(keep.sum()), outside_span=int(outside.sum()),
-                   skewed=int(skewed.sum()), max_skew=skew, joint_period=joint_period, tracker_period=tracker_period)
-    return table, info
+    table.update({c: np.asarray(v, np.float64)[order][keep] for c, v in columns.items()})
+    return table, Matched(rows=int(keep.sum()), outside_span=int(outside.sum()), skewed=int(skewed.sum()),
+                          duplicate_joint_stamps=duplicates, max_skew=skew, joint_period=joint_period,
+                          tracker_period=tracker_period)
 
 
 def _no_rows(source: str, joints: str, tracker: str, tj: np.ndarray, tt: np.ndarray, outside: int, skewed: int,

@@ -17,12 +17,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-__all__ = ["LATENCY_CHOICES", "MODES", "FitOptions", "ReadOptions"]
+__all__ = ["LATENCY_CHOICES", "MAX_TAG_EDGE_M", "MODES", "FitOptions", "ReadOptions", "parse_tag"]
 
 MODES = ("auto", "stream", "moves")
 """How a raw time series is read (:func:`selfid_jax.robot.streams.reduce_stream`)."""
 LATENCY_CHOICES = ("auto", "none")
 """The tracker latency's named settings besides a number of seconds."""
+MAX_TAG_EDGE_M = 2.0
+"""A ``--tag`` edge longer than this many metres is refused: it was given in mm or cm (the edge scales every tracked
+position, and so the estimate)."""
 
 
 def _flag(name: str) -> str:
@@ -55,6 +58,13 @@ class ReadOptions(NamedTuple):
     joints: str | None = None  # a bag: the sensor_msgs/JointState topic
     tracker: str | None = None  # a bag: the PoseStamped / TransformStamped / TFMessage topic
     child_frame: str | None = None  # a bag: on a tf topic, the tracked frame (child_frame_id)
+    camera: str | None = None  # a bag: the camera's sensor_msgs/Image or CompressedImage topic (instead of tracker)
+    video: str | Path | None = None  # a table log: the camera's frames, a video file or a folder of images (by name)
+    frame_times: str | Path | None = None  # with video: a CSV with a t column, one row per frame (the --time unit)
+    camera_info: str | Path | None = None  # the camera's intrinsics, OpenCV or ROS YAML (a bag: default the
+    #   camera_info topic beside the image topic)
+    tag: str | None = None  # with camera or video: the tracked AprilTag "FAMILY:ID:EDGE_M", e.g. tag36h11:7:0.05
+    #   (EDGE_M: the black square's edge in metres; it scales every position, and so the estimate)
 
     def check(self) -> ReadOptions:
         """These options validated and normalised: ``columns`` a dict, ``joint_names`` a tuple (None if empty),
@@ -110,6 +120,7 @@ class ReadOptions(NamedTuple):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, str) and value.strip()):
                 raise ValueError(f"{_flag(name)}: expected a topic or frame name, got {value!r}")
+        self._check_camera()
         names = self.joint_names
         if isinstance(names, str):
             names = [x.strip() for x in names.split(",") if x.strip()]
@@ -119,6 +130,74 @@ class ReadOptions(NamedTuple):
                 raise ValueError(f"{_flag('joint_names')}: expected names (strings), got {self.joint_names!r}")
         return self._replace(columns=parse_columns(self.columns) or None, joint_names=tuple(names) if names else None,
                              latency=latency, max_gap=max_gap)
+
+    def _check_camera(self) -> None:
+        """The camera options: each needs its companions and excludes the pose tracker (ValueError naming the
+        keyword and flag). Whether the log is a bag (``camera``) or a table (``video``) is the reader's to check."""
+        if self.camera is not None and not (isinstance(self.camera, str) and self.camera.strip()):
+            raise ValueError(f"{_flag('camera')}: expected an image topic name, got {self.camera!r}")
+        for name in ("video", "frame_times", "camera_info"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (str, Path)) and str(value).strip()):
+                raise ValueError(f"{_flag(name)}: expected a file or folder path, got {value!r}")
+        if self.tag is not None:
+            parse_tag(self.tag)
+        frames = [name for name in ("camera", "video") if getattr(self, name) is not None]
+        if len(frames) > 1:
+            raise ValueError(f"{_flag('camera')} reads a bag's image topic, {_flag('video')} a video or folder "
+                             "beside a table log: give one")
+        if frames and (self.tracker is not None or self.child_frame is not None):
+            other = "tracker" if self.tracker is not None else "child_frame"
+            raise ValueError(f"{_flag(frames[0])} is the tracker: drop {_flag(other)} (one tracker per fit)")
+        if frames and self.tag is None:
+            raise ValueError(f"{_flag(frames[0])} needs {_flag('tag')}: the tracked AprilTag as FAMILY:ID:EDGE_M, "
+                             "e.g. tag36h11:7:0.05")
+        if not frames:
+            given = [name for name in ("tag", "frame_times", "camera_info") if getattr(self, name) is not None]
+            if given:
+                raise ValueError(f"{_flag(given[0])} is for camera frames: give {_flag('video')} (a video or a folder "
+                                 f"of images) or, for a bag, {_flag('camera')} (its image topic)")
+        if self.video is not None and self.frame_times is None:
+            raise ValueError(f"{_flag('video')} needs {_flag('frame_times')}: a CSV with a t column, one row per "
+                             "frame, on the joint log's clock")
+        if self.video is not None and self.camera_info is None:
+            raise ValueError(f"{_flag('video')} needs {_flag('camera_info')}: the camera's intrinsics, an OpenCV "
+                             "or ROS YAML file (selfid-jax calibrate writes one)")
+        if self.camera is not None and self.frame_times is not None:
+            raise ValueError(f"{_flag('frame_times')} is for {_flag('video')}; a bag's frames carry their stamps")
+        if frames and self.length != "m":
+            raise ValueError(f"{_flag('length')} {self.length}: the camera's positions are in metres (the unit of "
+                             f"the {_flag('tag')} edge); --length is for a log's tracker columns")
+
+
+def parse_tag(text: str) -> tuple[str, int, float]:
+    """``"FAMILY:ID:EDGE_M"`` (e.g. ``"tag36h11:7:0.05"``) -> ``(family, id, edge in m)``.
+
+    The edge is the tag's black square, in metres (at most :data:`MAX_TAG_EDGE_M`).
+    The family's name and id range are checked against OpenCV's dictionaries
+    where the frames are read (:func:`selfid_jax.robot.camera.tracker.check_tracker_settings`).
+    Raises ValueError naming the keyword ``tag`` and the flag ``--tag``.
+    """
+    form = f"{_flag('tag')}: expected FAMILY:ID:EDGE_M, e.g. tag36h11:7:0.05 (the black square's edge in metres)"
+    if not isinstance(text, str):
+        raise ValueError(f"{form}, got {text!r}")
+    parts = [p.strip() for p in text.split(":")]
+    if len(parts) != 3 or not parts[0]:
+        raise ValueError(f"{form}, got {text!r}")
+    family, id_text, edge_text = parts
+    try:
+        tag_id = int(id_text)
+        edge = float(edge_text)
+    except ValueError:
+        raise ValueError(f"{form}, got {text!r}") from None
+    if tag_id < 0:
+        raise ValueError(f"{_flag('tag')}: the tag id must be >= 0, got {tag_id} in {text!r}")
+    if not (math.isfinite(edge) and edge > 0):
+        raise ValueError(f"{_flag('tag')}: the edge must be a length > 0 in metres, got {edge_text!r} in {text!r}")
+    if edge > MAX_TAG_EDGE_M:
+        raise ValueError(f"{_flag('tag')}: an edge of {edge:g} m is not a tag's; give it in metres (0.05 for "
+                         f"50 mm): every tracked position, and so the estimate, scales with it")
+    return family, tag_id, edge
 
 
 def _is_number(value: Any) -> bool:

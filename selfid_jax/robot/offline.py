@@ -186,22 +186,32 @@ def fit(
     joints: str | None = _READ.joints,
     tracker: str | None = _READ.tracker,
     child_frame: str | None = _READ.child_frame,
+    camera: str | None = _READ.camera,
+    video: str | Path | None = _READ.video,
+    frame_times: str | Path | None = _READ.frame_times,
+    camera_info: str | Path | None = _READ.camera_info,
+    tag: str | None = _READ.tag,
     v_tol: float = 1e-9,
     dtype=None,
 ) -> FitResult:
     """Self-identify an inverse Jacobian ``(n, m)`` from a recorded log: ``sj.fit("log.csv", task="x,y,z")``.
 
     ``log``: a CSV/Parquet/NPZ file, a ROS 1/2 bag or MCAP file (``joints``,
-    ``tracker``, ``child_frame``), a table of columns (dict, DataFrame), or
+    ``tracker`` or ``camera``, ``child_frame``), a table of columns (dict, DataFrame), or
     :class:`~selfid_jax.robot.log.Samples` already read. It is read as
     ``selfid-jax fit`` reads it (:func:`selfid_jax.robot.read.read_log`): the
     reading keywords are :class:`~selfid_jax.robot.fit_options.ReadOptions`' (``task``,
     ``task_dim``, ``start``, ``stop``, ``max_gap``, ``columns``,
     ``joint_names``, ``length``, ``time``, ``angle``, ``mode``, ``latency``,
     ``settle_speed``, ``settle_time``, ``joints``, ``tracker``,
-    ``child_frame``; flag ``--x-y`` is keyword ``x_y``), with the command's
+    ``child_frame``, ``camera``, ``video``, ``frame_times``, ``camera_info``,
+    ``tag``; flag ``--x-y`` is keyword ``x_y``), with the command's
     defaults, so a continuous stream is reduced to settled moves and its
-    tracker latency taken out here too. ``eps``, ``eps_rel``, ``method`` (the
+    tracker latency taken out here too. A camera is the tracker with ``tag``
+    (``"tag36h11:ID:EDGE_M"``): a bag's image topic (``camera``, intrinsics from
+    its ``camera_info`` topic or ``camera_info``), or beside a joint log a video
+    or a folder of images (``video``) with ``frame_times`` and ``camera_info``
+    (:mod:`selfid_jax.robot.camera.sources`). ``eps``, ``eps_rel``, ``method`` (the
     flag ``--refine``; defaults :class:`~selfid_jax.robot.fit_options.FitOptions`),
     ``refine_options``, ``v_tol`` as in :func:`fit_samples`.
     ``dtype``: default float64, whatever ``jax_enable_x64`` says (the fit runs
@@ -222,7 +232,8 @@ def fit(
     options = ReadOptions(task=task, task_dim=task_dim, start=start, stop=stop, max_gap=max_gap, columns=columns,
                           joint_names=joint_names, length=length, time=time, angle=angle, mode=mode, latency=latency,
                           settle_speed=settle_speed, settle_time=settle_time, joints=joints, tracker=tracker,
-                          child_frame=child_frame)
+                          child_frame=child_frame, camera=camera, video=video, frame_times=frame_times,
+                          camera_info=camera_info, tag=tag)
     if isinstance(log, Samples):
         given = [k for k, v in options._asdict().items() if v != _READ._field_defaults[k]]
         if given:

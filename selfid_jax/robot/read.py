@@ -5,10 +5,15 @@ and the ``selfid-jax fit`` command, so both read a log the same way:
 
 1. the table: a CSV, Parquet or NPZ file (:func:`selfid_jax.robot.log.read_table_units`,
    with a CSV's units row), a ROS 1/2 bag or MCAP file (:func:`selfid_jax.robot.bags.read_bag`,
-   ``joints`` and ``tracker`` topics), or a table given from Python (a mapping
-   of column -> 1-D array, a ``pandas.DataFrame``);
+   ``joints`` and ``tracker`` topics; or ``joints`` and a ``camera`` image
+   topic tracked as ``tag``: :func:`selfid_jax.robot.camera.sources.bag_camera_table`),
+   or a table given from Python (a mapping of column -> 1-D array, a ``pandas.DataFrame``);
 2. its layout and units (:func:`selfid_jax.robot.log.prepare_table`: a column
    map, joint names, declared units or a units row, converted to m, s, rad);
+   with ``video`` (a video or a folder of images, ``frame_times``,
+   ``camera_info``, ``tag``), the camera's tag poses become the joint log's
+   tracker columns, matched by time
+   (:func:`selfid_jax.robot.camera.sources.video_camera_table`);
 3. a raw time series logged continuously is reduced to one settled row per
    move, the tracker latency taken out (:func:`selfid_jax.robot.streams.reduce_stream`);
 4. the rows paired into samples, bad rows dropped and counted
@@ -32,6 +37,7 @@ from selfid_jax.robot.fit_options import ReadOptions
 
 if TYPE_CHECKING:
     from selfid_jax.robot.bags import BagInfo
+    from selfid_jax.robot.camera.sources import CameraReport
     from selfid_jax.robot.log import Samples
     from selfid_jax.robot.streams import StreamInfo
 
@@ -63,6 +69,7 @@ class ReadReport(NamedTuple):
     units: dict[str, str]  # column -> the unit it was read in (every one converted to m, s, rad)
     bag: BagInfo | None  # what read_bag matched and dropped; None for a table
     stream: StreamInfo | None  # what reduce_stream did; None where the log is not a raw time series
+    camera: CameraReport | None = None  # what the camera gave (frames, dropouts, tag, intrinsics); None without one
 
 
 def read_log(log: str | Path | Mapping[str, Any], options: ReadOptions | None = None, **kwargs: Any
@@ -70,8 +77,10 @@ def read_log(log: str | Path | Mapping[str, Any], options: ReadOptions | None = 
     """The sample pairs ``dtheta (T, n)``, ``V (T, m)`` of a log and how it was read: ``(samples, report)``.
 
     ``log``: a CSV, Parquet or NPZ file, a ROS 1 ``.bag``, a ROS 2 bag folder,
-    an ``.mcap``/``.db3`` file (``joints`` and ``tracker`` topics needed), or a
-    table of columns (a mapping, a ``pandas.DataFrame``). ``options`` (or
+    an ``.mcap``/``.db3`` file (``joints`` and ``tracker`` topics needed, or
+    ``joints``, ``camera`` and ``tag``), or a table of columns (a mapping, a
+    ``pandas.DataFrame``; with ``video``, ``frame_times``, ``camera_info``
+    and ``tag``, the joint log of a camera's frames). ``options`` (or
     its fields as keywords, which override it): :class:`~selfid_jax.robot.fit_options.ReadOptions`.
     Every value is converted to m, s and rad (``samples``: float64).
 
@@ -84,6 +93,10 @@ def read_log(log: str | Path | Mapping[str, Any], options: ReadOptions | None = 
     if unknown:
         raise TypeError(f"read_log: unknown option {unknown[0]!r}; the options are {', '.join(ReadOptions._fields)}")
     opts = (options or ReadOptions())._replace(**kwargs).check()
+    if opts.tag is not None:  # the family and id against OpenCV's dictionaries, before anything is read
+        from selfid_jax.robot.camera.sources import tag_settings
+
+        tag_settings(opts)
     from selfid_jax.robot.log import LogError, prepare_table, read_table_units, samples_from_table
     from selfid_jax.robot.tables import Units
 
@@ -94,20 +107,31 @@ def read_log(log: str | Path | Mapping[str, Any], options: ReadOptions | None = 
     bag_info: BagInfo | None = None
     row_units: dict[str, str] = {}
     table: Mapping[str, Any]
+    camera: CameraReport | None = None
     if path is not None and is_bag(path):
         from selfid_jax.robot.bags import read_bag
 
-        if not (opts.joints and opts.tracker):
+        if opts.video is not None:
+            raise LogError(f"{source}: --video (video=) goes with a table log (CSV, Parquet, NPZ); in a bag, name "
+                           "the image topic with --camera")
+        if not (opts.joints and (opts.tracker or opts.camera)):
             raise LogError(f"{source}: a bag needs --joints TOPIC (sensor_msgs/JointState) and --tracker TOPIC "
-                           "(joints=, tracker=)")
-        table, bag_info = read_bag(path, joints=opts.joints, tracker=opts.tracker,
-                                   joint_names=None if names is None else list(names), child_frame=opts.child_frame)
+                           "(joints=, tracker=), or --camera TOPIC and --tag (camera=, tag=) for an image topic")
+        if opts.camera:
+            from selfid_jax.robot.camera.sources import bag_camera_table
+
+            table, bag_info, camera = bag_camera_table(path, opts)
+        else:
+            assert opts.tracker is not None
+            table, bag_info = read_bag(path, joints=opts.joints, tracker=opts.tracker,
+                                       joint_names=None if names is None else list(names),
+                                       child_frame=opts.child_frame)
         notes += [f"bag: {line.strip()}" for line in bag_info.lines()]
         names = None  # the bag's columns are q_0.. already, in joint_names order
     else:
-        if opts.joints or opts.tracker or opts.child_frame:
-            raise LogError(f"{source}: --joints, --tracker and --child-frame (joints=, tracker=, child_frame=) are "
-                           "for a ROS bag or MCAP file")
+        if opts.joints or opts.tracker or opts.child_frame or opts.camera:
+            raise LogError(f"{source}: --joints, --tracker, --child-frame and --camera (joints=, tracker=, "
+                           "child_frame=, camera=) are for a ROS bag or MCAP file")
         if isinstance(log, (str, Path)):
             table, row_units = read_table_units(log)
         elif isinstance(log, Mapping) or hasattr(log, "keys"):  # a DataFrame is no Mapping, but has its keys
@@ -122,6 +146,13 @@ def read_log(log: str | Path | Mapping[str, Any], options: ReadOptions | None = 
     converted = {k: v for k, v in units.items() if v not in ("m", "s", "rad")}
     if converted:
         notes.append("converted to m, s, rad: " + ", ".join(f"{k} [{v}]" for k, v in converted.items()))
+    if opts.video is not None:
+        from selfid_jax.robot.camera.sources import video_camera_table
+
+        table, camera, more = video_camera_table(table, opts, source)
+        notes += more
+    if camera is not None:
+        notes += camera.lines()
     table, stream_info = _reduce(table, opts, source)
     if stream_info is not None:
         if stream_info.continuous:
@@ -129,7 +160,7 @@ def read_log(log: str | Path | Mapping[str, Any], options: ReadOptions | None = 
         notes += list(stream_info.notes)
     samples = samples_from_table(table, task=opts.task, task_dim=opts.task_dim, start=opts.start, stop=opts.stop,
                                  max_gap=opts.max_gap, source=source)
-    return samples, ReadReport(source, tuple(notes), dict(units), bag_info, stream_info)
+    return samples, ReadReport(source, tuple(notes), dict(units), bag_info, stream_info, camera)
 
 
 def _reduce(table: Mapping[str, Any], opts: ReadOptions, source: str) -> tuple[Mapping[str, Any], StreamInfo | None]:

@@ -13,7 +13,8 @@ under the run directory's lock:
   iteration, sample counts and units;
 * ``summary.json`` (:func:`summary`): options, counts, rejected rows by
   reason, the trust figures (:func:`selfid_jax.robot.quality.trust`), units,
-  notes on how the log was read;
+  notes on how the log was read, and a camera tracker's frames, dropouts,
+  tag edge and intrinsics;
 * ``figures/convergence.png`` / ``.pdf`` (:func:`draw`), redrawn from the
   files alone by :func:`redraw` (``selfid-jax plot RUN``).
 
@@ -134,7 +135,16 @@ def summary(result: FitResult, *, log: Path | str) -> dict[str, Any]:
         "estimate_units": estimate_units(s.axis_names),
         "converted_from": dict(result.report.units),  # column -> the unit it was read in (converted to UNITS)
         "notes": list(result.report.notes),  # how the log was read (a bag, renamed columns, units, a stream)
+        "camera": _camera(result),  # frames, dropouts by reason, the tag and its edge, the intrinsics; None without
     }
+
+
+def _camera(result: FitResult) -> dict[str, Any] | None:
+    """The camera's report (:class:`selfid_jax.robot.camera.sources.CameraReport`) as JSON: None without a camera."""
+    camera = result.report.camera
+    if camera is None:
+        return None
+    return {**camera._asdict(), "other_ids": {str(k): v for k, v in camera.other_ids.items()}}
 
 
 def draw(result: FitResult):

@@ -7,7 +7,9 @@ writes OpenCV's and ROS's calibration YAML; :mod:`~selfid_jax.robot.camera.calib
 estimates intrinsics from checkerboard views; :mod:`~selfid_jax.robot.camera.sim`
 renders an MJCF arm with a generated tag headless (:mod:`~selfid_jax.robot.camera.render`,
 ``MUJOCO_GL=egl``) with its ground truth; :mod:`~selfid_jax.robot.camera.measure`
-measures the tracker on it. Modules are imported on first use (listed once in
+measures the tracker on it; :mod:`~selfid_jax.robot.camera.sources` reads a video,
+a folder of images or a bag's image topic for ``sj.fit`` / ``selfid-jax fit``.
+Modules are imported on first use (listed once in
 ``__init__.pyi``), so importing this package loads neither OpenCV nor OpenGL.
 """
 

@@ -5,4 +5,5 @@ from . import intrinsics as intrinsics
 from . import measure as measure
 from . import render as render
 from . import sim as sim
+from . import sources as sources
 from . import tracker as tracker

@@ -10,13 +10,16 @@ error and which images were used. Write the result with
 The board is ``(cols, rows, square_m)``: ``cols x rows`` *inner* corners, as
 OpenCV counts them (a board of 10 x 7 squares has 9 x 6 inner corners), and
 the edge of a square in metres (it scales the extrinsics only; the
-intrinsics do not depend on it).
+intrinsics do not depend on it). :func:`parse_board` reads the command line's
+``checkerboard:COLSxROWS:SQUARE_M``; :func:`calibrate_path` calibrates from a
+folder of images or a video (``selfid-jax calibrate``).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import NamedTuple
 
 import cv2
@@ -24,10 +27,16 @@ import numpy as np
 
 from selfid_jax.robot.camera.intrinsics import Intrinsics, check_intrinsics
 
-__all__ = ["Calibration", "CalibrationError", "MIN_VIEWS", "calibrate"]
+__all__ = ["BOARD_KINDS", "Calibration", "CalibrationError", "MAX_IMAGES", "MIN_VIEWS", "calibrate",
+           "calibrate_path", "parse_board"]
 
 #: The fewest views with the board found that :func:`calibrate` accepts by default.
 MIN_VIEWS = 6
+#: :func:`calibrate_path` uses at most this many images by default, evenly spaced (a video holds hundreds of
+#: nearly equal frames; OpenCV's fit takes each view's corners, so more add time, not information).
+MAX_IMAGES = 60
+#: Calibration targets :func:`parse_board` reads.
+BOARD_KINDS = ("checkerboard",)
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
 
 
@@ -102,10 +111,51 @@ def calibrate(images: Sequence[np.ndarray], board: tuple[int, int, float], *, na
         raise CalibrationError(f"calibrate: the {cols}x{rows} board (inner corners) was found in {int(used.sum())} "
                                f"of {len(grays)} images, fewer than {min_views}; not found in: {', '.join(missing)}")
     h, w = size
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(object_points, image_points, (w, h), None, None)
+    try:
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(object_points, image_points, (w, h), None, None)
+    except cv2.error as err:  # degenerate views (all alike, the board edge-on): OpenCV's assertion, as one line
+        detail = " ".join(str(err).split())[-200:]
+        raise CalibrationError(f"calibrate: OpenCV's calibrateCamera failed on the {int(used.sum())} views with the "
+                               f"board (vary their distance and tilt): {detail}") from None
     per_view = np.full(len(grays), np.nan)
     for k, i in enumerate(np.flatnonzero(used).tolist()):
         projected, _ = cv2.projectPoints(object_points[k], rvecs[k], tvecs[k], K, dist)
         residual = projected.reshape(-1, 2) - image_points[k].reshape(-1, 2)  # (N, 1, 2) in OpenCV 4, (N, 2) in 5
         per_view[i] = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
     return Calibration(check_intrinsics(K, dist, w, h, source="calibrate"), float(rms), used, per_view, names)
+
+
+def parse_board(text: str) -> tuple[int, int, float]:
+    """``"checkerboard:COLSxROWS:SQUARE_M"`` (e.g. ``"checkerboard:9x6:0.025"``: inner corners, as OpenCV counts
+    them, and the square's edge in m) -> ``(cols, rows, square_m)``; :class:`CalibrationError` naming ``--board``."""
+    form = ("--board: expected checkerboard:COLSxROWS:SQUARE_M (inner corners as OpenCV counts them, the square's "
+            f"edge in metres), e.g. checkerboard:9x6:0.025, got {text!r}")
+    parts = [p.strip() for p in str(text).split(":")]
+    if len(parts) != 3 or parts[0] not in BOARD_KINDS:
+        raise CalibrationError(form)
+    size = parts[1].lower().split("x")
+    try:
+        cols, rows = (int(v) for v in size) if len(size) == 2 else (0, 0)
+        square = float(parts[2])
+    except ValueError:
+        raise CalibrationError(form) from None
+    if cols < 2 or rows < 2 or not (math.isfinite(square) and square > 0):
+        raise CalibrationError(form)
+    return cols, rows, square
+
+
+def calibrate_path(path: str | Path, board: tuple[int, int, float], *, max_images: int | None = MAX_IMAGES,
+                   min_views: int = MIN_VIEWS) -> Calibration:
+    """:func:`calibrate` from a folder of images (sorted by file name) or a video's frames
+    (:func:`selfid_jax.robot.camera.sources.read_images`), at most ``max_images`` of them, evenly spaced (None: all).
+
+    The names in :attr:`Calibration.names` are the file names (``VIDEO frame k`` for a video). Raises
+    :class:`CalibrationError` (as :func:`calibrate`) or :class:`~selfid_jax.robot.log.LogError` for a missing,
+    unreadable or empty source.
+    """
+    from selfid_jax.robot.camera.sources import read_images
+
+    if max_images is not None and max_images < min_views:
+        raise CalibrationError(f"max_images (--max-images): {max_images} is fewer than the {min_views} views needed")
+    images, names = read_images(path, max_images=max_images)
+    return calibrate(images, board, names=names, min_views=min_views)

@@ -18,6 +18,8 @@ Two formats, told apart by their text:
 The distortion is OpenCV's: ``k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tx, ty]]]]``
 (4, 5, 8, 12 or 14 numbers). A file that cannot be used raises
 :class:`IntrinsicsError`, one line naming the file and the key.
+:func:`camera_info_intrinsics` reads the same fields from a bag's
+``sensor_msgs/CameraInfo`` message.
 """
 
 from __future__ import annotations
@@ -29,8 +31,8 @@ import cv2
 import numpy as np
 import yaml
 
-__all__ = ["DISTORTION_SIZES", "FORMATS", "Intrinsics", "IntrinsicsError", "check_intrinsics", "read_intrinsics",
-           "write_intrinsics"]
+__all__ = ["DISTORTION_SIZES", "FORMATS", "Intrinsics", "IntrinsicsError", "camera_info_intrinsics", "check_intrinsics",
+           "read_intrinsics", "write_intrinsics"]
 
 #: The lengths of OpenCV's distortion vector.
 DISTORTION_SIZES = (4, 5, 8, 12, 14)
@@ -207,13 +209,39 @@ def _read_ros(path: Path, text: str) -> Intrinsics:
     K = _ros_matrix(path, doc, "camera_matrix", (3, 3))
     dist = _ros_matrix(path, doc, "distortion_coefficients", None).reshape(-1)
     model = str(doc.get("distortion_model", "") or "")
-    if model not in _ROS_MODELS:
-        raise IntrinsicsError(f"{path}: distortion_model {model!r} is not a pinhole model OpenCV's solvePnP "
-                              f"uses; expected one of {sorted(m for m in _ROS_MODELS if m)}")
-    if model and dist.size not in _ROS_MODELS[model]:
-        raise IntrinsicsError(f"{path}: distortion_model {model} has {_ROS_MODELS[model]} coefficients, "
-                              f"distortion_coefficients has {dist.size}")
+    _check_ros_model(model, dist, str(path), "distortion_coefficients")
     for key in ("image_width", "image_height"):
         if key not in doc:
             raise IntrinsicsError(f"{path}: key {key} is missing (a ROS camera_info file has {', '.join(_KEYS)})")
     return check_intrinsics(K, dist, doc["image_width"], doc["image_height"], source=str(path))
+
+
+def _check_ros_model(model: str, dist: np.ndarray, source: str, key: str) -> None:
+    if model not in _ROS_MODELS:
+        raise IntrinsicsError(f"{source}: distortion_model {model!r} is not a pinhole model OpenCV's solvePnP "
+                              f"uses; expected one of {sorted(m for m in _ROS_MODELS if m)}")
+    if model and dist.size not in _ROS_MODELS[model]:
+        raise IntrinsicsError(f"{source}: distortion_model {model} has {_ROS_MODELS[model]} coefficients, "
+                              f"{key} has {dist.size}")
+
+
+def camera_info_intrinsics(k: Any, d: Any, distortion_model: str, width: Any, height: Any, *,
+                           source: str) -> Intrinsics:
+    """:class:`Intrinsics` from the fields of a ``sensor_msgs/CameraInfo`` message (``k`` (9,) row-major, ``d``,
+    ``distortion_model``, ``width``, ``height``), as a bag records it; ``source`` (the bag and topic) prefixes
+    every error.
+
+    An all-zero ``k`` (a driver publishing an uncalibrated camera) and a
+    non-pinhole ``distortion_model`` are refused; an empty ``d`` is no distortion.
+    """
+    K = np.asarray(k, dtype=np.float64).reshape(-1)
+    if K.size != 9:
+        raise IntrinsicsError(f"{source}: k has {K.size} numbers, a camera matrix 9")
+    if not K.any():
+        raise IntrinsicsError(f"{source}: k is all zero: the camera driver publishes no calibration; calibrate the "
+                              "camera (selfid-jax calibrate) and give the file")
+    dist = np.asarray(d, dtype=np.float64).reshape(-1)
+    if dist.size == 0:
+        dist = np.zeros(5)
+    _check_ros_model(str(distortion_model or ""), dist, source, "d")
+    return check_intrinsics(K.reshape(3, 3), dist, int(width), int(height), source=source)

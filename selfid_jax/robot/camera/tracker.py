@@ -155,7 +155,9 @@ class TagTracker:
 
     ``intrinsics``: the camera's :class:`~selfid_jax.robot.camera.intrinsics.Intrinsics`
     (frames must have its size). A tracker holds the previous frame's digest
-    (the stale test) and the counts; use one per camera stream.
+    (the stale test) and the counts (:attr:`frames`, :attr:`dropouts` by
+    reason, :attr:`other_ids`: frames showing each other id of the family);
+    use one per camera stream.
     """
 
     def __init__(self, intrinsics: Intrinsics, settings: TrackerSettings = TrackerSettings()) -> None:
@@ -171,12 +173,14 @@ class TagTracker:
         self._previous: bytes | None = None
         self.frames = 0  # frames seen
         self.dropouts: Counter[str] = Counter()  # dropouts by reason code
+        self.other_ids: Counter[int] = Counter()  # ids of the family detected that are not tag_id -> frames
 
     def reset(self) -> None:
         """Forget the previous frame and zero the counts."""
         self._previous = None
         self.frames = 0
         self.dropouts.clear()
+        self.other_ids.clear()
 
     def track(self, frame: np.ndarray, t: float) -> TagPose:
         """One frame ``(H, W)`` grey or ``(H, W, 3)`` colour uint8, captured at ``t`` (s) -> :class:`TagPose`.
@@ -203,6 +207,7 @@ class TagTracker:
         gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
         corners, ids, _ = self._detector.detectMarkers(gray)
         ids = np.zeros(0, dtype=int) if ids is None else np.asarray(ids).reshape(-1)
+        self.other_ids.update({int(i) for i in ids if i != self.settings.tag_id})  # a wrong --tag id says so
         found = [np.asarray(c, dtype=np.float64).reshape(4, 2) - self._shift for c, i in zip(corners, ids)
                  if i == self.settings.tag_id]
         if not found:
