@@ -72,7 +72,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"robot-sim: serving {robot.system.name} on {server.host}:{server.port} (period {robot.period} s, "
               f"latency {robot.latency})", flush=True)
 
-    s = serve(cfg, port=port, port_file=args.port_file, listening=listening)
+    def camera_serving(url: str) -> None:
+        print(f"robot-sim: camera stream at {url}", flush=True)
+
+    s = serve(cfg, port=port, port_file=args.port_file, listening=listening, camera_serving=camera_serving)
     print(f"robot-sim: stopped after {s.elapsed:.1f} s: {s.ticks} ticks, wake-up lateness p50 {1e3 * s.late_p50:.2f} "
           f"ms, p99 {1e3 * s.late_p99:.2f} ms, {s.caught_up} ticks caught up", flush=True)
     return 0

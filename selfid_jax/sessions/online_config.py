@@ -15,6 +15,8 @@ The YAML a lab writes for ``selfid-jax online CONFIG`` (and for
     path: {kind: star, size: 0.02, plane: xy, gain: 0.5, tol: 0.002, max_task_step: 0.005, steps: 500}
     # path: {kind: waypoints, waypoints: [[0.01, 0, 0], [0.01, 0.01, 0]]}  # offsets, m (rad for rx, ry, rz)
     # path: {kind: csv, file: square.csv}     # header the task axes (x,y,z), one waypoint offset per row
+    tracker: {camera: 0, tag: "tag36h11:0:0.05", camera_info: camera.yaml, latency_s: 0.05}
+    # a camera and an AprilTag as the tracker: the camera's pose of the tag replaces the driver's tracker fields
     out: runs/online_ur5e       # default runs/online_<config stem>; --out wins
 
 Unknown keys, wrong types and out-of-range values are refused with the
@@ -22,7 +24,13 @@ dotted key, before connecting (:func:`load_online_config`). Every default is
 written once, in :class:`selfid_jax.robot.options.OnlineOptions` /
 :class:`~selfid_jax.robot.options.FollowOptions`, and :func:`options` turns
 a config into those (the same names, one level flatter); the robot section's
-forms are checked by :func:`selfid_jax.robot.drivers.check_robot_args`.
+forms are checked by :func:`selfid_jax.robot.drivers.check_robot_args`. The
+``tracker`` section (optional) is read by
+:func:`selfid_jax.sessions.online_run.run_session`, which opens the camera
+(:class:`selfid_jax.robot.camera.live.LiveCamera`) before connecting and
+puts it in front of the driver (:class:`~selfid_jax.robot.camera.live.CameraTracked`);
+its detector settings left null are :class:`selfid_jax.robot.camera.tracker.TrackerSettings`'
+defaults (the camera extra, OpenCV, is imported only where the section is given).
 """
 
 from __future__ import annotations
@@ -37,8 +45,8 @@ from selfid_jax.robot.drivers.load import check_robot_args
 from selfid_jax.robot.options import FollowOptions, OnlineOptions
 from selfid_jax.runner.config import STRICT
 
-__all__ = ["OnlineConfig", "PathSection", "RobotSection", "SafetySection", "SelfIDSection", "default_out",
-           "load_online_config", "options"]
+__all__ = ["OnlineConfig", "PathSection", "RobotSection", "SafetySection", "SelfIDSection", "TrackerSection",
+           "default_out", "load_online_config", "options"]
 
 Positive = Annotated[float, Field(gt=0)]
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -52,7 +60,8 @@ class RobotSection(BaseModel):
     host: str | None = Field(None, description="robot server's host (selfid-jax robot-sim or a bridge)")
     port: int | None = Field(None, ge=1, le=65535)
     timeout_s: float = Field(5.0, gt=0, description="s, the TCP client's timeout per request")
-    driver: str | None = Field(None, description="'package.module:Class' of a driver implementing Robot")
+    driver: str | None = Field(None, description="a shipped driver by name (franka, trossen) or 'package.module:Class' "
+                                                 "of a driver implementing Robot")
     args: dict[str, Any] = Field(default_factory=dict, description="keyword arguments of the driver class")
 
     @model_validator(mode="after")
@@ -158,6 +167,61 @@ class PathSection(BaseModel):
                                 "per move")
 
 
+class TrackerSection(BaseModel):
+    """A live camera and an AprilTag as the tracker (:mod:`selfid_jax.robot.camera.live`): the camera's pose of the
+    tag, in the camera frame, replaces the driver's tracker fields; the driver still gives q, limits and moves."""
+
+    model_config = STRICT
+
+    camera: Annotated[int, Field(ge=0)] | str = Field(description="what cv2.VideoCapture opens: a device index (0: "
+                                                      "the first webcam) or a URL (an IP camera's stream; robot-sim's "
+                                                      "camera at http://HOST:PORT/stream.mjpg)")
+    tag: str = Field(description="'FAMILY:ID:EDGE_M', e.g. 'tag36h11:0:0.05': the tag's family, id and the edge of "
+                     "its black square [m]")
+    camera_info: str = Field(description="the camera's intrinsics at the resolution it sends: OpenCV's calibration "
+                             "YAML or ROS's camera_info YAML; a relative path is looked up beside the config, then "
+                             "in the current directory")
+    latency_s: float = Field(0.0, ge=0, le=10, description="s from exposure to the frame's arrival, subtracted from "
+                             "the arrival time (time.monotonic at grab) to stamp each frame")
+    open_timeout_s: float = Field(5.0, gt=0, le=600, description="s for the camera to open and send its first frame; "
+                                  "else the session stops before connecting to the robot")
+    wait_s: float = Field(0.5, ge=0, le=10, description="s a reading after a move waits for a frame exposed after "
+                          "the move (else the reading has no pose)")
+    max_reprojection: float | None = Field(None, gt=0, description="px, RMS reprojection error above which a "
+                                           "detection is a dropout (null: the tracker's default)")
+    max_ambiguity: float | None = Field(None, gt=0, le=1, description="best / second IPPE error above which the "
+                                        "rotation is unreliable: a dropout for a task with rotation axes (null: the "
+                                        "tracker's default)")
+    border_margin: float | None = Field(None, ge=0, description="px, a corner closer to the image border is a "
+                                        "dropout (null: the tracker's default)")
+    min_contrast: float | None = Field(None, ge=0, description="grey levels; a frame without the tag and less "
+                                       "contrast is low_contrast (null: the tracker's default)")
+    corner_refine: Literal["apriltag", "subpix", "none"] | None = Field(None, description="OpenCV's corner "
+                                                                         "refinement (null: the tracker's default)")
+
+    @field_validator("tag")
+    @classmethod
+    def _tag(cls, v: str) -> str:
+        try:
+            from selfid_jax.robot.camera.live import parse_tag
+            from selfid_jax.robot.camera.tracker import tag_dictionary
+        except ImportError as err:
+            raise ValueError(f"a camera tracker needs the camera extra (OpenCV): pip install 'selfid_jax[camera]' "
+                             f"({err})") from None
+        family, tag_id, _ = parse_tag(v)
+        count = tag_dictionary(family).bytesList.shape[0]
+        if not 0 <= tag_id < count:
+            raise ValueError(f"family {family} has ids 0..{count - 1}, got {tag_id} (in {v!r})")
+        return v
+
+    @field_validator("camera")
+    @classmethod
+    def _camera(cls, v: int | str) -> int | str:
+        if isinstance(v, str) and not v.strip():
+            raise ValueError("give a device index (0: the first webcam) or a URL")
+        return v
+
+
 class OnlineConfig(BaseModel):
     """The ``selfid-jax online`` config."""
 
@@ -167,6 +231,8 @@ class OnlineConfig(BaseModel):
     selfid: SelfIDSection = Field(default_factory=SelfIDSection)
     safety: SafetySection = Field(default_factory=SafetySection)
     path: PathSection | None = None
+    tracker: TrackerSection | None = Field(None, description="a live camera and an AprilTag as the tracker (null: "
+                                           "the driver's own tracker)")
     out: str | None = None
 
 

@@ -3,13 +3,17 @@
 :func:`run_session` is ``selfid-jax online`` without the command line: from
 an :class:`~selfid_jax.sessions.online_config.OnlineConfig` (read with
 :func:`~selfid_jax.sessions.online_config.load_online_config`) it checks the
-options and the run directory, takes the run directory's lock, connects
-(:func:`selfid_jax.robot.drivers.connect`), checks the per-actuator values
+options and the run directory, takes the run directory's lock, opens the
+camera of a ``tracker`` section (:func:`open_camera`: before the robot is
+reached, and nothing moves before its first frame), connects
+(:func:`selfid_jax.robot.drivers.connect`; with a camera, the driver behind
+:class:`~selfid_jax.robot.camera.live.CameraTracked`), checks the per-actuator values
 against the robot, writes ``online_config.json`` (the resolved config), runs
 :func:`selfid_jax.robot.live.run_online` (the session log ``session.jsonl``
 is appended as it happens) and writes, each whole
 (:mod:`selfid_jax.runner.files`), ``summary.json`` (status, counts, step
-latency), for a converged session only ``inverse_jacobian.npz`` / ``.json``
+latency; with a camera, its frames and dropouts by reason), for a converged
+session only ``inverse_jacobian.npz`` / ``.json``
 (the estimate, as ``selfid-jax fit`` writes it), and the figures
 (:mod:`selfid_jax.sessions.online_figures`, from the log). It returns the
 :class:`~selfid_jax.robot.live.OnlineResult` and the files written; a
@@ -36,8 +40,8 @@ from selfid_jax.sessions.online_config import OnlineConfig, options
 if TYPE_CHECKING:
     from selfid_jax.robot.live import OnlineResult
 
-__all__ = ["CONFIG_JSON", "JINV_JSON", "JINV_NPZ", "SUMMARY_FILE", "connect_robot", "run_session", "summary",
-           "write_run"]
+__all__ = ["CONFIG_JSON", "JINV_JSON", "JINV_NPZ", "SUMMARY_FILE", "connect_robot", "open_camera", "run_session",
+           "summary", "write_run"]
 
 SUMMARY_FILE = "summary.json"
 CONFIG_JSON = "online_config.json"
@@ -59,6 +63,67 @@ def connect_robot(cfg: OnlineConfig, config_dir: str | Path | None = None):
                        config_dir=config_dir)
     except ConnectError as err:
         raise ConfigError(f"robot.{err.key}: {err}") from None
+
+
+def _config_file(name: str, config_dir: Path | None) -> Path:
+    """A file the config names: beside the config where it is there, else as given (the current directory)."""
+    path = Path(name)
+    if config_dir is not None and not path.is_absolute() and (config_dir / path).is_file():
+        return config_dir / path
+    return path
+
+
+def open_camera(cfg: OnlineConfig, config_dir: str | Path | None = None):
+    """The config's ``tracker`` camera, open with its first frame, and the tag's tracker:
+    ``(LiveCamera, TagTracker)`` (:mod:`selfid_jax.robot.camera.live`); None without a tracker section.
+
+    The intrinsics (``tracker.camera_info``) are read first; the camera must
+    open and send a frame of their size within ``tracker.open_timeout_s``.
+    Raises ConfigError naming ``tracker.camera_info`` (a missing or unusable
+    file) or ``tracker.camera`` (what OpenCV could not open, or no frame),
+    before any robot is reached.
+    """
+    from selfid_jax.runner.errors import ConfigError
+
+    tr = cfg.tracker
+    if tr is None:
+        return None
+    try:
+        from selfid_jax.robot.camera.intrinsics import IntrinsicsError, read_intrinsics
+        from selfid_jax.robot.camera.live import CameraError, LiveCamera, parse_tag
+        from selfid_jax.robot.camera.tracker import TagTracker, TrackerSettings
+    except ImportError as err:
+        raise ConfigError(f"tracker: a camera tracker needs the camera extra (OpenCV): pip install "
+                          f"'selfid_jax[camera]' ({err})") from None
+    info = _config_file(tr.camera_info, None if config_dir is None else Path(config_dir))
+    if not info.is_file():
+        where = "beside the config or in the current directory" if config_dir is not None else "here"
+        raise ConfigError(f"tracker.camera_info: {tr.camera_info}: no such file (looked {where})")
+    try:
+        intrinsics = read_intrinsics(info)
+    except IntrinsicsError as err:
+        raise ConfigError(f"tracker.camera_info: {err}") from None
+    family, tag_id, edge = parse_tag(tr.tag)
+    chosen = {k: getattr(tr, k) for k in ("max_reprojection", "max_ambiguity", "border_margin", "min_contrast",
+                                          "corner_refine") if getattr(tr, k) is not None}
+    rotation = any(a >= 3 for a in _axes(cfg.selfid.task))
+    try:
+        tracker = TagTracker(intrinsics, TrackerSettings(family=family, tag_id=tag_id, edge=edge, rotation=rotation,
+                                                         **chosen))
+    except ValueError as err:
+        raise ConfigError(f"tracker: {err}") from None
+    try:
+        camera = LiveCamera(tr.camera, latency_s=tr.latency_s, open_timeout_s=tr.open_timeout_s,
+                            size=(intrinsics.width, intrinsics.height))
+    except CameraError as err:
+        raise ConfigError(f"tracker.camera: {err} (intrinsics {info})") from None
+    return camera, tracker
+
+
+def _axes(task: str) -> tuple[int, ...]:
+    from selfid_jax.robot.log import parse_task
+
+    return parse_task(task) or ()
 
 
 def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path | None = None, resume: bool = False,
@@ -85,7 +150,8 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
       ConfigError: a bad estimate or path, per-actuator values of the wrong
         length for the robot, unusable robot limits, options ``run_online``
         refuses, a log that disagrees; a driver that cannot be imported or a
-        robot that cannot be reached (``robot.driver`` / ``robot.host``).
+        robot that cannot be reached (``robot.driver`` / ``robot.host``); a camera that cannot be opened or
+        sends no frame of its intrinsics' size (``tracker.camera``), unusable intrinsics (``tracker.camera_info``).
       RunDirError: ``out`` holds a sweep, a log without ``resume``, or no log
         with ``resume``; RunDirBusy: another process holds its lock.
     """
@@ -131,7 +197,18 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
 
     with hold(out):
         signals.phase("connect")
-        robot = connect_robot(cfg, config_dir)
+        camera = open_camera(cfg, config_dir)  # before the robot: a camera that does not open moves nothing
+        tracked = None
+        try:
+            robot = connect_robot(cfg, config_dir)
+        except BaseException:
+            if camera is not None:
+                camera[0].close()
+            raise
+        if camera is not None and cfg.tracker is not None:
+            from selfid_jax.robot.camera.live import CameraTracked
+
+            robot = tracked = CameraTracked(robot, *camera, wait_s=cfg.tracker.wait_s)
         try:  # run_online closes the robot however it ends; close (idempotent) here too if it never starts
             try:
                 n = check_limits(robot.limits()).lower.shape[0]
@@ -151,13 +228,14 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
         finally:
             robot.close()
         signals.phase("write")
-        files = write_run(result, cfg, out)
+        files = write_run(result, cfg, out, tracker=None if tracked is None else tracked.counts())
     return result, files
 
 
-def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
+def summary(result: OnlineResult, cfg: OnlineConfig, tracker: dict[str, Any] | None = None) -> dict[str, Any]:
     """``summary.json`` of a session: its stop, counts, convergence, tracking error [m], wall times [s] and the
-    estimator step's latency [ms]."""
+    estimator step's latency [ms]; ``tracker``: a camera tracker's counts
+    (:meth:`~selfid_jax.robot.camera.live.CameraTracked.counts`), under ``"camera"``."""
     import numpy as np
 
     from selfid_jax.robot.quality import condition
@@ -165,7 +243,7 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
 
     ms = result.step_ms
     n, m = result.estimate.shape
-    return {
+    info = {
         "command": "online",
         "status": result.status.value,
         "detail": result.detail,
@@ -201,6 +279,9 @@ def summary(result: OnlineResult, cfg: OnlineConfig) -> dict[str, Any]:
         "eps_rel": cfg.selfid.eps_rel,
         "log": str(result.log),
     }
+    if tracker is not None:  # frames received, tracked and valid; dropouts by reason (stale: a frozen camera)
+        info["camera"] = tracker
+    return info
 
 
 def _npz(**arrays) -> bytes:
@@ -232,10 +313,12 @@ def _log_killed(log: Path) -> None:
                         "robot's connection closes with it (continue with --resume)"})
 
 
-def write_run(result: OnlineResult, cfg: OnlineConfig, out: str | Path) -> dict[str, Path]:
+def write_run(result: OnlineResult, cfg: OnlineConfig, out: str | Path, *,
+              tracker: dict[str, Any] | None = None) -> dict[str, Path]:
     """Write ``summary.json`` and, for a converged session only, ``inverse_jacobian.npz``/``.json`` into ``out`` (each
     atomically), then the figures from the session log; the files written by name. A session that did not converge
-    has its estimate so far in the summary (``estimate_so_far``), not in a file that could be taken for a result."""
+    has its estimate so far in the summary (``estimate_so_far``), not in a file that could be taken for a result.
+    ``tracker``: a camera tracker's counts for the summary (:func:`summary`)."""
     import numpy as np
 
     from selfid_jax.identify import estimator
@@ -243,7 +326,7 @@ def write_run(result: OnlineResult, cfg: OnlineConfig, out: str | Path) -> dict[
     from selfid_jax.sessions.online_figures import write_figures
 
     out = Path(out)
-    info = summary(result, cfg)
+    info = summary(result, cfg, tracker)
     meta = {k: info[k] for k in ("n", "m", "task_axes", "converged_at", "converged", "samples", "eps", "eps_rel",
                                  "status")}
     guess = np.asarray(estimator.initial_guess(result.state))

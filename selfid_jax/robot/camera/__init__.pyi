@@ -2,8 +2,10 @@
 
 from . import calibrate as calibrate
 from . import intrinsics as intrinsics
+from . import live as live
 from . import measure as measure
 from . import render as render
 from . import sim as sim
 from . import sources as sources
+from . import stream as stream
 from . import tracker as tracker
