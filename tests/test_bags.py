@@ -268,3 +268,30 @@ def test_selfid_jax_fit_reads_every_format_like_the_csv_of_the_same_data(bags, t
     assert "bag: " in capsys.readouterr().out
     assert main(["fit", str(bags["ros1"]), "--out", str(tmp_path / "x")]) == 2
     assert "a bag needs --joints TOPIC" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("step_s, kind", [(-2.0, "pose"), (2.0, "pose"), (-2.0, "tf")])
+def test_a_tracker_clock_that_steps_is_reported_and_dropped_not_resorted(tmp_path, step_s, kind):
+    """Issue 54: the tracker's clock steps back (or jumps ahead) 2 s inside a bag. Sorted by stamp, its later poses
+    were matched to the joints of 2 s earlier (later) without a word (A Jhat off by 0.70); now they are dropped and
+    counted, as a CSV's backwards rows are, and the rest gives the bag's answer."""
+    at = 300  # tracker messages from this one on carry the stepped clock (216 of 516: the majority keeps pace)
+    tracker = [(s + int(step_s * NS) if i >= at else s, r, p) for i, (s, r, p) in enumerate(REC["tracker"])]
+    fmt, name = ("ros1", "stepped.bag") if kind == "pose" else ("mcap", "stepped")  # ROS 2 types for /tf
+    bag = write_bag(tmp_path / name, fmt, tracker=kind, rec={**REC, "tracker": tracker})
+    frame = {"child_frame": "tool_marker"} if kind == "tf" else {}
+    table, info = _read(bag, joint_names=ARM, **frame)
+    assert info.clock_steps == len(tracker) - at and info.joint_clock_steps == 0
+    assert "step off the bag's clock by more than 0.5 s" in "\n".join(info.lines())
+    assert f"/tracker stamp {(REC['tracker'][at][0] + int(step_s * NS)) // NS}." in info.clock_step_first
+    assert np.all(table["t"] < REC["tt"][at] / NS)  # only the poses before the step
+    result = offline.fit(bag, joints="/joint_states", tracker="/tracker", joint_names=ARM, **frame)
+    assert np.linalg.norm(A @ result.estimate - np.eye(3)) < 1e-6
+
+
+def test_a_joint_clock_that_steps_is_reported_and_dropped(tmp_path):
+    joints = [(s - 2 * NS if i >= 700 else s, r, n, q) for i, (s, r, n, q) in enumerate(REC["joints"])]
+    bag = write_bag(tmp_path / "stepped.bag", "ros1", rec={**REC, "joints": joints})
+    _, info = _read(bag, joint_names=ARM)
+    assert info.joint_clock_steps == len(joints) - 700 and info.clock_steps == 0
+    assert "joint messages whose stamps step off the bag's clock" in "\n".join(info.lines())

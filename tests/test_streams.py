@@ -255,3 +255,35 @@ def test_selfid_jax_fit_reads_a_lagged_stream_with_no_hand_editing(stream, tmp_p
     print(f"\nselfid-jax fit: stream {errors['stream']:.4f}, settled rows {errors['settled']:.4f}")
     assert errors["stream"] <= 1.5 * errors["settled"]
     assert "a continuous stream" in capsys.readouterr().out
+
+
+def test_a_latency_beyond_the_old_search_is_found_not_aliased():
+    """Issue 54: a 400 ms tracker lag, beyond the old +-0.25 s search, was taken for its alias -100 ms (a move every
+    0.5 s) and fitted at ||J Jhat - I|| ~2 with exit 0; the search now covers a quarter of the log."""
+    import selfid_jax as sj
+
+    J = _J()
+    base = sj.fit(_stream(seed=1)[0])
+    late = sj.fit(_stream(seed=1, latency=0.4)[0])
+    assert abs(late.report.stream.latency_s - 0.4) < 3e-3
+    err = lambda r: float(np.linalg.norm(J @ r.estimate - np.eye(3)))
+    assert err(late) < 1.5 * err(base)
+
+
+def test_a_latency_at_the_edge_of_the_search_is_refused(stream, monkeypatch):
+    from selfid_jax.robot import streams
+
+    monkeypatch.setattr(streams, "LATENCY_SEARCH_FRACTION", 0.0)  # a search narrower than the lag (10 ms)
+    with pytest.raises(ValueError, match=r"tracker latency is beyond what the log can show .* --latency S"):
+        reduce_stream(stream[0], Q_COLS, POS_COLS, max_lag_s=0.005)
+
+
+def test_no_rests_advice_never_points_at_mode_moves():
+    """Issue 54: the no-rests message advised --mode moves, which pairs the motion's rows (||J Jhat - I|| 0.78)."""
+    table, _ = _stream(moves=100, period=0.03)
+    with pytest.raises(ValueError) as err:
+        reduce_stream(table, Q_COLS, POS_COLS)
+    assert "record the moves with a rest after each" in str(err.value)
+    assert "(--mode moves)" not in str(err.value) and "--mode moves would pair" in str(err.value)
+    with pytest.raises(ValueError, match="read it with --mode auto"):  # a per-move log forced through as a stream
+        reduce_stream(read_table(EXAMPLE), Q_COLS, POS_COLS + QUAT_COLS, mode="stream")

@@ -123,7 +123,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"unit of t: s, ms, us or ns (default {_READ.time}); converted to s, and --start/--stop/"
                    "--max-gap are in s")
     g.add_argument("--angle", default=_READ.angle, metavar="UNIT",
-                   help=f"unit of the actuator positions and rotation vectors: rad or deg (default {_READ.angle}); "
+                   help=f"unit of the actuator positions and rotation vectors: rad or deg (default {_READ.angle}: rad, "
+                   "a joint beyond two turns refused as looking like degrees; state rad for a multi-turn joint); "
                    "converted to rad")
     g.add_argument("--mode", default=_READ.mode, metavar="|".join(MODES),
                    help="a time series logged continuously (a stream) is reduced to one settled row per move; auto "

@@ -44,8 +44,9 @@ import numpy as np
 
 from selfid_jax.robot.log import LogError
 
-__all__ = ["BagInfo", "DEFAULT_SKEW_FACTOR", "JOINT_TYPE", "JointStates", "Matched", "TRACKER_TYPES",
-           "match_to_joints", "messages", "open_bag", "read_bag", "read_joint_states", "stamp_ns", "topic_type"]
+__all__ = ["BagInfo", "DEFAULT_SKEW_FACTOR", "JOINT_TYPE", "STAMP_STEP_S", "TRACKER_TYPES", "JointStates", "Matched",
+           "clock_steps", "match_to_joints", "messages", "open_bag", "read_bag", "read_joint_states",
+           "received_messages", "stamp_ns", "topic_type"]
 
 #: The joint-state message type (rosbags names ROS 1 types the ROS 2 way too).
 JOINT_TYPE = "sensor_msgs/msg/JointState"
@@ -56,6 +57,12 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TRACKER_TYPES = (POSE_STAMPED, TRANSFORM_STAMPED, TF_MESSAGE)
 #: ``max_skew=None``: bracketing joint messages at most this many median joint periods apart.
 DEFAULT_SKEW_FACTOR = 3.0
+STAMP_STEP_S = 0.5
+"""A message whose header stamp is off the bag's receive time by more than this many seconds beyond its topic's
+median offset is dropped and counted (:func:`clock_steps`): its publisher's clock stepped back or jumped (an NTP
+correction, a restarted driver) and its stamp no longer says when it was measured. A transport delays a message by
+milliseconds to ~0.1 s (the tests' bags: 0-25 ms joints, 40-120 ms tracker), a clock that drifts 50 ppm moves 0.2 s
+an hour; a step moves every later stamp by seconds. Sorting such stamps would pair poses with the wrong joints."""
 
 _INSTALL = 'reading ROS bags needs the rosbags package: pip install "selfid-jax[ros]"'
 _NS = 1_000_000_000
@@ -79,6 +86,9 @@ class BagInfo(NamedTuple):
     max_skew: float  # bracket limit applied (s)
     joint_period: float  # median period of the joint messages' stamps (s)
     tracker_period: float  # median period of the poses' stamps (s); NaN with fewer than 2 distinct stamps
+    clock_steps: int = 0  # poses dropped: stamp off the bag's receive time (a clock that stepped; clock_steps)
+    joint_clock_steps: int = 0  # joint messages dropped for the same
+    clock_step_first: str = ""  # the first one dropped (topic and stamp), "" if none
 
     def lines(self) -> list[str]:
         """A few lines for a terminal: the streams, their rates and what was dropped."""
@@ -90,6 +100,10 @@ class BagInfo(NamedTuple):
         dropped = [(self.outside_span, "outside the joint messages' span"),
                    (self.skewed, f"between joint messages more than {self.max_skew:.4g} s apart"),
                    (self.duplicate_joint_stamps, "joint messages repeating a stamp"),
+                   (self.clock_steps, f"poses whose stamps step off the bag's clock by more than {STAMP_STEP_S:g} s "
+                    f"(the tracker's clock stepped back or jumped; first: {self.clock_step_first})"),
+                   (self.joint_clock_steps, f"joint messages whose stamps step off the bag's clock by more than "
+                    f"{STAMP_STEP_S:g} s (the joints' clock stepped back or jumped; first: {self.clock_step_first})"),
                    (self.other_joint_messages, "joint messages naming none of the joints")]
         out += [f"  dropped: {k} {why}" for k, why in dropped if k]
         return out
@@ -102,6 +116,7 @@ class JointStates(NamedTuple):
     stamps: np.ndarray  # (K,) int64 header stamps, ns
     positions: np.ndarray  # (K, n) float64 joint positions (rad, m)
     other: int  # messages naming none of the joints (another publisher), skipped
+    received: np.ndarray | None = None  # (K,) int64 the bag's receive times, ns (None: not from a bag)
 
 
 class Matched(NamedTuple):
@@ -188,20 +203,56 @@ def read_bag(
             raise LogError(f"{source}: topic {tracker} is a {POSE_STAMPED}, which has no child frame; "
                            f"drop child_frame={child_frame!r}")
         states = read_joint_states(reader, source, joints, joint_names)
-        t_stamps, poses, frame, child = _poses(source, tracker, tracker_type,
-                                               messages(reader, topics[tracker].connections, source, tracker),
-                                               child_frame)
+        t_stamps, poses, frame, child, received = _poses(
+            source, tracker, tracker_type, received_messages(reader, topics[tracker].connections, source, tracker),
+            child_frame)
     finally:
         reader.close()
     columns = ("p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z")
+    first = []
+    joint_steps = 0
+    if states.received is not None:
+        ok = clock_steps(states.stamps, states.received)
+        joint_steps = int((~ok).sum())
+        if joint_steps:
+            first.append(f"{joints} stamp {_seconds(int(states.stamps[np.argmin(ok)]))}")
+            states = states._replace(stamps=states.stamps[ok], positions=states.positions[ok],
+                                     received=states.received[ok])
+    ok = clock_steps(t_stamps, received)
+    pose_steps = int((~ok).sum())
+    if pose_steps:
+        first.append(f"{tracker} stamp {_seconds(int(t_stamps[np.argmin(ok)]))}")
+        t_stamps, poses = t_stamps[ok], poses[ok]
     table, m = match_to_joints(source, joints, tracker, states, t_stamps,
                                {c: poses[:, k] for k, c in enumerate(columns)}, max_skew=max_skew)
     info = BagInfo(source=source, joint_names=states.names, tracker_type=tracker_type, frame=frame, child_frame=child,
                    joint_messages=int(states.stamps.size), duplicate_joint_stamps=m.duplicate_joint_stamps,
                    other_joint_messages=states.other, tracker_messages=int(t_stamps.size), rows=m.rows,
                    outside_span=m.outside_span, skewed=m.skewed, max_skew=m.max_skew, joint_period=m.joint_period,
-                   tracker_period=m.tracker_period)
+                   tracker_period=m.tracker_period, clock_steps=pose_steps, joint_clock_steps=joint_steps,
+                   clock_step_first="; ".join(first))
     return table, info
+
+
+def clock_steps(stamps: np.ndarray, received: np.ndarray) -> np.ndarray:
+    """Mask ``(K,)`` of the messages whose header ``stamps`` (int ns) keep pace with the bag's ``received`` times
+    (int ns): the offset ``stamp - received`` within :data:`STAMP_STEP_S` of its median. False where the
+    publisher's clock stepped back or jumped. All True where the receive times cannot tell (a bag written with
+    one receive time for all, or receive times spanning less than half the stamps': a converted log)."""
+    stamps, received = np.asarray(stamps, np.int64), np.asarray(received, np.int64)
+    keep = np.ones(stamps.size, bool)
+    if stamps.size < 3 or np.ptp(received) < 0.5 * np.ptp(stamps):
+        return keep
+    offset = stamps - received
+    median = int(np.median(offset))
+    return np.abs(offset - median) <= STAMP_STEP_S * _NS
+
+
+def _tap(items: Iterator[tuple[int, Any]], sink: list[int]) -> Iterator[Any]:
+    """The messages of ``(received, msg)`` pairs, their receive times appended to ``sink``."""
+    for received, msg in items:
+        sink.append(received)
+        yield msg
 
 
 def open_bag(path: str | Path) -> Any:
@@ -252,16 +303,23 @@ def topic_type(source: str, topics: dict[str, Any], topic: str, role: str, accep
 
 def messages(reader: Any, connections: Sequence[Any], source: str, topic: str) -> Iterator[Any]:
     """The deserialised messages of ``connections`` in bag order; :class:`LogError` where rosbags fails."""
+    for _, msg in received_messages(reader, connections, source, topic):
+        yield msg
+
+
+def received_messages(reader: Any, connections: Sequence[Any], source: str, topic: str
+                      ) -> Iterator[tuple[int, Any]]:
+    """``(receive time ns, message)`` of ``connections`` in bag order (:func:`messages` with the bag's times)."""
     items = reader.messages(connections=connections)
     while True:
         try:
-            connection, _, raw = next(items)
+            connection, received, raw = next(items)
             msg = reader.deserialize(raw, connection.msgtype)
         except StopIteration:
             return
         except Exception as err:  # noqa: BLE001 - rosbags raises many types for a corrupt message or chunk
             raise LogError(f"{source}: topic {topic}: cannot read a message: {_detail(err)}") from None
-        yield msg
+        yield int(received), msg
 
 
 def read_joint_states(reader: Any, source: str, topic: str, joint_names: Sequence[str] | str | None = None
@@ -274,9 +332,10 @@ def read_joint_states(reader: Any, source: str, topic: str, joint_names: Sequenc
     names_asked = _joint_names_list(joint_names)
     topics = dict(reader.topics)
     topic_type(source, topics, topic, "joint states", (JOINT_TYPE,))
-    stream = messages(reader, topics[topic].connections, source, topic)
-    names, stamps, positions, other = _joint_states(source, topic, stream, names_asked)
-    return JointStates(names, stamps, positions, other)
+    received: list[int] = []
+    stream = _tap(received_messages(reader, topics[topic].connections, source, topic), received)
+    names, stamps, positions, other, kept = _joint_states(source, topic, stream, names_asked)
+    return JointStates(names, stamps, positions, other, np.asarray(received, np.int64)[kept])
 
 
 def _joint_names_list(joint_names: Sequence[str] | str | None) -> list[str] | None:
@@ -295,12 +354,14 @@ def _joint_names_list(joint_names: Sequence[str] | str | None) -> list[str] | No
 
 
 def _joint_states(source: str, topic: str, messages: Iterator[Any], joint_names: list[str] | None,
-                  ) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, int]:
-    """``(names, stamps (K,) int ns, positions (K, n), skipped)`` of the joint messages, in bag order."""
+                  ) -> tuple[tuple[str, ...], np.ndarray, np.ndarray, int, list[int]]:
+    """``(names, stamps (K,) int ns, positions (K, n), skipped, kept)`` of the joint messages, in bag order
+    (``kept``: the 0-based index among the messages of each row)."""
     columns: dict[tuple[str, ...], np.ndarray | None] = {}  # a message's name list -> its entries of the joints
     stamps: list[int] = []
     rows: list[np.ndarray] = []
     skipped = 0
+    kept: list[int] = []
     names_seen: set[str] = set()
     k = 0
     for k, msg in enumerate(messages, start=1):
@@ -329,6 +390,7 @@ def _joint_states(source: str, topic: str, messages: Iterator[Any], joint_names:
         if idx is None:
             skipped += 1
             continue
+        kept.append(k - 1)
         stamps.append(stamp_ns(msg))
         rows.append(position[idx])
     if k == 0:
@@ -337,34 +399,37 @@ def _joint_states(source: str, topic: str, messages: Iterator[Any], joint_names:
     if not rows:
         raise LogError(f"{source}: topic {topic}: no message names the joints {', '.join(joint_names)}; "
                        f"the messages name {', '.join(sorted(names_seen)) or '(none)'}")
-    return tuple(joint_names), np.array(stamps, np.int64), np.stack(rows), skipped
+    return tuple(joint_names), np.array(stamps, np.int64), np.stack(rows), skipped, kept
 
 
-def _poses(source: str, topic: str, msgtype: str, messages: Iterator[Any], child_frame: str | None,
-           ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
-    """``(stamps (T,) int ns, poses (T, 7) [p_x, p_y, p_z, q_w, q_x, q_y, q_z], frame, child)`` in bag order."""
+def _poses(source: str, topic: str, msgtype: str, messages: Iterator[tuple[int, Any]], child_frame: str | None,
+           ) -> tuple[np.ndarray, np.ndarray, str, str | None, np.ndarray]:
+    """``(stamps (T,) int ns, poses (T, 7) [p_x, p_y, p_z, q_w, q_x, q_y, q_z], frame, child, received (T,) int ns)``
+    in bag order, of ``(receive time, message)`` pairs (a TFMessage's poses take its receive time)."""
     want = None if child_frame is None else _frame(child_frame)
     stamps: list[int] = []
     poses: list[tuple[float, ...]] = []
     frames: set[str] = set()
     children: dict[str, int] = {}  # every child frame seen -> how many transforms
+    received: list[int] = []  # the bag's receive time of each pose (its message's)
 
-    def add(stamp: int, frame: str, p: Any, q: Any) -> None:
+    def add(now: int, stamp: int, frame: str, p: Any, q: Any) -> None:
+        received.append(now)
         stamps.append(stamp)
         poses.append((p.x, p.y, p.z, q.w, q.x, q.y, q.z))
         frames.add(_frame(frame))
 
     count = 0
-    for msg in messages:
+    for now, msg in messages:
         count += 1
         if msgtype == POSE_STAMPED:
-            add(stamp_ns(msg), msg.header.frame_id, msg.pose.position, msg.pose.orientation)
+            add(now, stamp_ns(msg), msg.header.frame_id, msg.pose.position, msg.pose.orientation)
             continue
         for tf in msg.transforms if msgtype == TF_MESSAGE else [msg]:
             name = _frame(tf.child_frame_id)
             children[name] = children.get(name, 0) + 1
             if want is None or name == want:
-                add(stamp_ns(tf), tf.header.frame_id, tf.transform.translation, tf.transform.rotation)
+                add(now, stamp_ns(tf), tf.header.frame_id, tf.transform.translation, tf.transform.rotation)
     if count == 0:
         raise LogError(f"{source}: topic {topic} (the tracker) has no messages")
     child: str | None = None
@@ -380,7 +445,8 @@ def _poses(source: str, topic: str, msgtype: str, messages: Iterator[Any], child
     if len(frames) > 1:
         raise LogError(f"{source}: topic {topic}: the poses{f' of {child}' if child else ''} are in several frames "
                        f"({', '.join(sorted(frames))}); a log needs one")
-    return np.array(stamps, np.int64), np.array(poses, np.float64).reshape(-1, 7), frames.pop(), child
+    return (np.array(stamps, np.int64), np.array(poses, np.float64).reshape(-1, 7), frames.pop(), child,
+            np.array(received, np.int64))
 
 
 def _distinct_stamps(source: str, topic: str, stamps: np.ndarray, what: str) -> None:

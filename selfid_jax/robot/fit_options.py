@@ -50,7 +50,8 @@ class ReadOptions(NamedTuple):
     joint_names: str | Sequence[str] | None = None  # these columns (in a bag: JointState names) are q_0.. in order
     length: str = "m"  # unit of the tracked positions: m, cm, mm
     time: str = "s"  # unit of t: s, ms, us, ns
-    angle: str = "rad"  # unit of the actuator positions and rotation vectors: rad, deg
+    angle: str = "auto"  # unit of the actuator positions and rotation vectors: rad, deg; "auto" (not stated): rad,
+    #   a joint beyond two turns refused as looking like degrees (a multi-turn joint needs "rad" stated)
     mode: str = "auto"  # a raw time series: "auto" (detect a stream), "stream" (reduce it), "moves" (as it is)
     latency: str | float | None = "auto"  # a stream's tracker latency (s): "auto" (estimated), a number, None
     settle_speed: float | None = None  # a stream: joint speed below which the arm rests (actuator units / s)

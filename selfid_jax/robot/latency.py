@@ -142,11 +142,7 @@ def latency_estimate(t: Any, q: Any, p: Any, *, max_lag_s: float = LATENCY_MAX_S
     N = a.shape[0]
     K = max(1, min(int(round(max_lag_s / dt)), N // 4))
     lags = np.arange(-K, K + 1)
-    c = np.empty(lags.shape[0])
-    for i, k in enumerate(lags):  # c(k) = corr(a[i], b[i + k]): the tracker at i + k shows the joints at i
-        x, y = (a[: N - k], b[k:]) if k >= 0 else (a[-k:], b[: N + k])
-        den = np.sqrt(np.dot(x, x) * np.dot(y, y))
-        c[i] = np.dot(x, y) / den if den > 0 else 0.0
+    c = _correlation(a, b, K)
     i = int(np.argmax(c))
     if i in (0, lags.shape[0] - 1):
         raise ValueError(f"latency: the speed correlation peaks at the edge of the search ({lags[i] * dt:+.3g} s, "
@@ -156,6 +152,24 @@ def latency_estimate(t: Any, q: Any, p: Any, *, max_lag_s: float = LATENCY_MAX_S
     frac = 0.5 * (c[i - 1] - c[i + 1]) / den if den < 0 else 0.0
     frac = float(np.clip(frac, -0.5, 0.5))
     return LatencyEstimate(float((lags[i] + frac) * dt), float(c[i]), dt)
+
+
+def _correlation(a: np.ndarray, b: np.ndarray, K: int) -> np.ndarray:
+    """``c (2K + 1,)``: ``c[K + k] = corr(a[i], b[i + k])`` normalised over the overlap, lags ``-K..K`` (``K < N``),
+    by FFT (a search over a quarter of an hour-long 100 Hz log is 90,000 lags)."""
+    N = a.shape[0]
+    n = 1 << int(np.ceil(np.log2(2 * N)))
+    r = np.fft.irfft(np.conj(np.fft.rfft(a, n)) * np.fft.rfft(b, n), n)  # r[k mod n] = sum_i a[i] b[i + k]
+    lags = np.arange(-K, K + 1)
+    raw = r[lags % n]
+    ca, cb = np.concatenate([[0.0], np.cumsum(a * a)]), np.concatenate([[0.0], np.cumsum(b * b)])
+    pos = lags >= 0
+    k = np.abs(lags)
+    # overlap: k >= 0: a[:N - k], b[k:]; k < 0: a[k:], b[:N - k] (k = |lag|)
+    ea = np.where(pos, ca[N - k], ca[N] - ca[k])
+    eb = np.where(pos, cb[N] - cb[k], cb[N - k])
+    den = np.sqrt(ea * eb)
+    return np.where(den > 0, raw / np.where(den > 0, den, 1.0), 0.0)
 
 
 def estimate_latency(t: Any, q: Any, p: Any, *, max_lag_s: float = LATENCY_MAX_S) -> float:

@@ -419,8 +419,11 @@ def prepare_table(table: Mapping[str, Any], *, columns=None, joint_names=None, u
     try:
         out, notes = tables.normalise(table, columns=tables.parse_columns(columns), joint_names=joint_names,
                                       source=source)
-        out, used = tables.apply_units(out, units or tables.Units(), row_units, source=source)
-        tables.check_plausible(out, used, source=source)
+        units = (units or tables.Units()).check()
+        out, used = tables.apply_units(out, units, row_units, source=source)
+        stated = {c for c in used if c in (row_units or {}) or (tables.ANGLE_AUTO != units.angle
+                                                                and used[c] in tables.ANGLE)}
+        tables.check_plausible(out, used, source=source, stated=frozenset(stated))
     except LogError:
         raise
     except ValueError as err:

@@ -37,7 +37,7 @@ from selfid_jax.identify.step import sample_step
 from selfid_jax.math.checks import check_array, float_dtype
 from selfid_jax.robot.fit_options import FitOptions, ReadOptions
 from selfid_jax.robot.log import Samples
-from selfid_jax.robot.quality import Trust, held_out, trust
+from selfid_jax.robot.quality import Trust, held_out, trust, unit_warnings
 from selfid_jax.robot.read import ReadReport, read_log
 
 __all__ = ["FitResult", "FitTrace", "fit", "fit_samples"]
@@ -257,15 +257,17 @@ def fit(
         estimates=np.asarray(host.estimates), deltas=np.asarray(host.deltas), thresholds=np.asarray(host.thresholds),
         accepted=accepted, converged_at=int(host.converged_at), samples=samples,
         eps=float(eps), eps_rel=float(eps_rel), method=method, state=host.state,
-        trust=_trust(samples, accepted, estimate), report=report,
+        trust=_trust(samples, accepted, estimate, report.units), report=report,
     )
 
 
-def _trust(samples: Samples, accepted: np.ndarray, estimate: np.ndarray) -> Trust:
+def _trust(samples: Samples, accepted: np.ndarray, estimate: np.ndarray, units: dict[str, str]) -> Trust:
     """:func:`selfid_jax.robot.quality.trust` of a fit: the held-out error of the accepted samples (the largest
-    actuator step of a sample as the move scale), and the refused rows and samples against the log's rows."""
+    actuator step of a sample as the move scale), the refused rows and samples against the log's rows, and the
+    motion per move against the units read in (``units``: column -> unit;
+    :func:`~selfid_jax.robot.quality.unit_warnings`)."""
     ok = np.asarray(accepted, bool)
     D, V = np.asarray(samples.dtheta, np.float64)[ok], np.asarray(samples.V, np.float64)[ok]
     quality = held_out(D, V, float(np.max(np.abs(D), initial=0.0)))
     refused = sum(r.count for r in samples.rejected) + int((~ok).sum())
-    return trust(quality, estimate, refused, samples.rows)
+    return trust(quality, estimate, refused, samples.rows, unit_warnings(D, V, samples.axes, units))

@@ -17,8 +17,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["MAX_CONDITION", "MAX_HELDOUT_ERROR", "MAX_REFUSED_FRACTION", "MIN_EFFECT_RATIO", "Quality", "Trust",
-           "condition", "held_out", "trust"]
+__all__ = ["MAX_CONDITION", "MAX_HELDOUT_ERROR", "MAX_LEVER_M_PER_RAD", "MAX_MOVE_RAD", "MAX_REFUSED_FRACTION",
+           "MIN_EFFECT_RATIO", "MIN_LEVER_M_PER_RAD", "Quality", "Trust", "condition", "held_out", "trust",
+           "unit_warnings"]
 
 
 class Quality(NamedTuple):
@@ -60,6 +61,69 @@ MAX_REFUSED_FRACTION = 0.25
 """The largest fraction of refused rows and samples; above it the log is mostly unusable."""
 
 
+MIN_LEVER_M_PER_RAD = 1e-3
+"""The least tracked motion per radian of actuator motion (median |V_xyz| / median |dtheta| of the moves, m/rad) a
+robot's log can show: the tracked point sits on the moving arm, centimetres to metres from the joint axes (a UR5e's
+tool ~0.1-1 m, a WidowX's ~0.05-0.5 m); every axis passing within 1 mm of it is no arm. A log in metres read as mm
+shows 1000x less (~0.3 mm/rad for a UR5e). A warning, not a refusal: an actuator logged at a geared motor's side
+moves the point less per radian. Not caught: a factor the range holds (m read as cm: ~3.5 mm/rad for a UR5e)."""
+MAX_LEVER_M_PER_RAD = 5.0
+"""The most tracked motion per radian: the longest industrial arms reach ~3.5 m, so no tracked point lies 5 m from
+every joint axis. Radians read as degrees show 57x more (~15 m/rad for a UR5e), mm read as m 1000x more."""
+MAX_MOVE_RAD = 0.5
+"""The largest median joint move (|dtheta|, rad) of a self-ID log: its moves are small (0.03 rad by default) so that
+one linear map explains them; a median move of 29 degrees or more is no self-ID move in radians (degrees read as
+radians show 57x: 0.03 rad logged in degrees is 1.7)."""
+
+
+def unit_warnings(D: np.ndarray, V: np.ndarray, axes: tuple[int, ...] | None, units: dict[str, str] | None = None
+                  ) -> tuple[str, ...]:
+    """A line per implausible motion of samples ``dtheta = D (k, n)`` (rad), ``V (k, m)`` (m on position axes): a
+    length or angle unit declared wrong. ``axes``: the task components of ``V`` (x, y, z = 0, 1, 2; None: unnamed,
+    the tracked motion not checked); ``units``: column -> unit read in (``p_x``, ``q_0``), named in the advice.
+
+    Checks: the median joint move against :data:`MAX_MOVE_RAD`, and the median tracked position motion per move
+    over the median joint move against :data:`MIN_LEVER_M_PER_RAD` .. :data:`MAX_LEVER_M_PER_RAD`.
+    """
+    D, V = np.asarray(D, np.float64), np.asarray(V, np.float64)
+    units = units or {}
+    length, angle = units.get("p_x", "m"), units.get("q_0", units.get("dtheta_0", "rad"))
+    if D.shape[0] == 0:
+        return ()
+    move = float(np.median(np.linalg.norm(D, axis=1)))
+    out = []
+    if move > MAX_MOVE_RAD:
+        hint = ("is the angle unit deg, not rad? (--angle deg, or a units row)" if angle == "rad" else
+                "are the joints moved this far per sample?")
+        out.append(f"joint moves of {move:.3g} rad per sample (median; a self-ID move is below {MAX_MOVE_RAD:g}): "
+                   f"{hint}")
+    pos = [j for j, a in enumerate(axes or ()) if a < 3]
+    if not (pos and move > 0):
+        return tuple(out)
+    motion = float(np.median(np.linalg.norm(V[:, pos], axis=1)))
+    lever = motion / move
+    said = f"tracked motion {_length(motion)} per {move:.3g} rad move ({_length(lever)}/rad"
+    if lever < MIN_LEVER_M_PER_RAD:
+        hint = {"mm": "is the length unit m (or cm), not mm?", "cm": "is the length unit m, not cm?"}.get(
+            length, "is the tracker on the robot, and are the positions in metres?")
+        out.append(f"{said}, below {_length(MIN_LEVER_M_PER_RAD)}/rad): {hint} (--length, or a units row)")
+    elif lever > MAX_LEVER_M_PER_RAD:
+        hint = ("is the angle unit rad, not deg?" if angle == "deg" else
+                "is the length unit mm (or cm), not m?" if length == "m" else
+                "are the length and angle units right?")
+        out.append(f"{said}, above {MAX_LEVER_M_PER_RAD:g} m/rad): {hint} (--length, --angle, or a units row)")
+    return tuple(out)
+
+
+def _length(x: float) -> str:
+    """A length for a message: ``12 µm``, ``3.4 mm``, ``0.25 m``."""
+    if x < 1e-3:
+        return f"{1e6 * x:.3g} µm"
+    if x < 0.1:
+        return f"{1e3 * x:.3g} mm"
+    return f"{x:.3g} m"
+
+
 def condition(estimate: np.ndarray) -> float:
     """The estimate's condition number ``s_max / s_min`` of ``(n, m)`` (inf when rank-deficient)."""
     s = np.linalg.svd(np.asarray(estimate, np.float64), compute_uv=False)
@@ -82,20 +146,21 @@ class Trust(NamedTuple):
                 "actuator_effect": list(self.actuator_effect), "refused_fraction": self.refused_fraction}
 
 
-def trust(quality: Quality, estimate: np.ndarray, refused: int, total: int) -> Trust:
+def trust(quality: Quality, estimate: np.ndarray, refused: int, total: int, units: tuple[str, ...] = ()) -> Trust:
     """The figures that say how far to trust a fit, and a warning per figure outside its bound (:class:`Trust`).
 
     ``quality``: :func:`held_out` of the accepted samples; ``estimate (n,
     m)``; ``refused`` of ``total`` rows and samples were dropped (screens and
     the estimator). Bounds: :data:`MAX_HELDOUT_ERROR`, :data:`MAX_CONDITION`,
-    :data:`MIN_EFFECT_RATIO`, :data:`MAX_REFUSED_FRACTION`.
+    :data:`MIN_EFFECT_RATIO`, :data:`MAX_REFUSED_FRACTION`. ``units``: the lines of :func:`unit_warnings`
+    (a unit that looks swapped), first among the warnings.
     """
     cond = condition(estimate)
     effect = np.asarray(quality.effect, np.float64)
     top = float(np.nanmax(effect)) if effect.size and np.any(np.isfinite(effect)) else float("nan")
     ratio = effect / top if top > 0 else np.full(effect.shape, np.nan)
     fraction = refused / total if total else 0.0
-    warnings = []
+    warnings = list(units)
     if quality.heldout_error > MAX_HELDOUT_ERROR:
         warnings.append(f"held-out error {quality.heldout_error:.3g} > {MAX_HELDOUT_ERROR:g}: the tracked motion is "
                         "not explained by the actuators' (a tracker latency, a continuous log paired row by row, "

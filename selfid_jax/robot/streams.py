@@ -52,6 +52,8 @@ from selfid_jax.robot.latency import (  # the latency's public names, re-exporte
 )
 
 __all__ = ["CONTINUOUS_COHERENCE", "CONTINUOUS_STILL_FRACTION", "GAP_FACTOR", "LATENCY_MAX_S", "LATENCY_MIN_CORR",
+           "LATENCY_SEARCH_FRACTION",
+           "NO_RESTS_ADVICE",
            "MIN_COHERENCE_PAIRS", "MIN_SETTLE_RUN_FRACTION", "MIN_SETTLE_STEPS", "MIN_STREAM_ROWS", "REF_SKIP",
            "REF_TOP_FRACTION", "SETTLE_SPEED_RATIO", "STILL_STEP_RATIO", "LatencyEstimate", "Segmentation",
            "StreamInfo", "StreamStats", "estimate_latency", "is_continuous", "latency_estimate", "reduce_stream",
@@ -85,6 +87,11 @@ moves (mean cosine about 0, standard error ``<= 1 / sqrt(pairs)``: 0.0 in the sh
 MIN_COHERENCE_PAIRS = 20
 """Fewer pairs of consecutive non-still steps than this: the coherence is not used (reported as 0)."""
 MIN_STREAM_ROWS = 8
+LATENCY_SEARCH_FRACTION = 0.25
+"""``latency="auto"`` searches lags up to this fraction of the log's span (at least ``max_lag_s``): the speeds still
+overlap over three quarters of the log there. A narrower search is fooled by a regular schedule of moves: with a
+move every 0.5 s a 400 ms lag correlates at -100 ms nearly as well (0.92 against 0.95), and a lag beyond the search
+was taken for its alias inside it. A peak at the edge is refused (the latency must be given)."""
 """Fewer usable rows than this: never called a stream (too few to tell)."""
 
 # ------------------------------------------------------------------ segmentation defaults
@@ -105,6 +112,15 @@ MIN_SETTLE_RUN_FRACTION = 0.25
 real rests dominate the runs of a stream, short dips are dropped. For the test stream (0.5 s per move, 100 Hz):
 ``max(0.04, 0.25 x ~0.43) ~ 0.11 s``."""
 
+
+
+NO_RESTS_ADVICE = ("A stream is read from the arm's rests between moves: record the moves with a rest after each "
+                   "(the arm still for a few tenths of a second, as the online runner's moves are), or give a larger "
+                   "settle speed (--settle-speed) or a shorter settle time (--settle-time) if it does rest. "
+                   "--mode moves would pair the rows of the motion as settled moves: a wrong estimate")
+"""What a stream without two rests can do (the messages of :func:`settled_intervals` and :func:`reduce_stream`): never
+``--mode moves``, which pairs a continuous stream's rows as if each were a settled move (on the test stream without
+rests: ||J Jhat - I||_F 0.78)."""
 
 
 class StreamStats(NamedTuple):
@@ -287,9 +303,8 @@ def settled_intervals(t: Any, q: Any, *, v_tol: float | None = None, min_settle_
         raise ValueError(
             f"no settled interval found: the joint speed (max over joints of |dq/dt|) never stays below "
             f"v_tol={v_tol:.3g}/s for min_settle_s={min_settle_s:.3g} s (lowest speed {float(speed[ok].min()):.3g}/s, "
-            f"typical move speed {v_ref:.3g}/s, longest rest {longest}); does the arm rest between moves? Give a "
-            f"larger settle speed (--settle-speed) or a shorter settle time (--settle-time), or treat the log as "
-            f"one row per move (--mode moves)")
+            f"typical move speed {v_ref:.3g}/s, longest rest {longest}); does the arm rest between moves? "
+            f"{NO_RESTS_ADVICE}")
     return Segmentation(run_a[long].astype(np.int64), run_b[long].astype(np.int64), float(v_tol),
                         float(min_settle_s), v_ref)
 
@@ -333,7 +348,8 @@ def reduce_stream(
     1. Rows with a non-finite ``t``/``q``/pose entry, a zero quaternion or a
        time not after the previous kept row's are dropped (``rows_dropped``).
     2. ``latency``: ``"auto"`` estimates the tracker latency
-       (:func:`latency_estimate`, over ``+-max_lag_s``, on the position columns
+       (:func:`latency_estimate`, over ``+-max(max_lag_s, LATENCY_SEARCH_FRACTION x the log's span)``, on the
+       position columns
        or, without any, all pose columns) and shifts the pose columns by it
        (:func:`shift_tracker`) when the correlation peak reaches
        :data:`LATENCY_MIN_CORR`; a number shifts by that many seconds; None
@@ -356,8 +372,8 @@ def reduce_stream(
 
     Raises:
       ValueError: an unknown mode or option, a missing or non-numeric column,
-        or (reducing) a stream without two settled intervals; one line that
-        says which figure to change.
+        (reducing) a stream without two settled intervals, or an estimated
+        latency at the edge of the search; one line that says which figure to change.
     """
     if mode not in _MODES:
         raise ValueError(f"stream mode must be one of {', '.join(_MODES)}, got {mode!r}")
@@ -411,9 +427,16 @@ def reduce_stream(
     if latency == "auto":
         rot = set(quat_c) | set(rotvec_c)
         pos = [j for j, c in enumerate(pose_cols) if c not in rot] or list(range(len(pose_cols)))
+        # the search covers what the log can show: lags up to a quarter of it (three quarters overlap), not only
+        # max_lag_s; a periodic schedule of moves makes a lag beyond a narrower search look like one inside it
+        search = max(float(max_lag_s), LATENCY_SEARCH_FRACTION * float(t_k[-1] - t_k[0]))
         try:
-            est = latency_estimate(t_k, q_k, pose_k[:, pos], max_lag_s=max_lag_s)
+            est = latency_estimate(t_k, q_k, pose_k[:, pos], max_lag_s=search)
         except ValueError as err:
+            if "edge of the search" in str(err):
+                raise ValueError(f"the tracker latency is beyond what the log can show (the speed correlation peaks "
+                                 f"at the edge of a +-{search:.3g} s search, a quarter of the log): give it, "
+                                 f"--latency S (latency=S, seconds), or --latency none; {err}") from None
             notes.append(f"tracker latency not estimated ({err}); no shift applied")
         else:
             if est.correlation >= LATENCY_MIN_CORR:
@@ -428,13 +451,18 @@ def reduce_stream(
                                 quat_cols=quat_c, rotvec_cols=rotvec_c)
         pose_k = np.stack([shifted[c] for c in pose_cols], axis=1)
 
-    seg = settled_intervals(t_k, q_k, v_tol=v_tol, min_settle_s=min_settle_s)
+    try:
+        seg = settled_intervals(t_k, q_k, v_tol=v_tol, min_settle_s=min_settle_s)
+    except ValueError as err:
+        if mode == "stream" and not stats.continuous:  # forced: the log may be one settled row per move after all
+            raise ValueError(f"{err} (--mode stream was asked, but the log does not look like a stream: if it holds "
+                             "one settled row per move, read it with --mode auto)") from None
+        raise
     K = int(seg.start.shape[0])
     if K < 2:
         raise ValueError(f"only one settled interval found (t = {t_k[seg.start[0]]:.3f} to {t_k[seg.stop[0]]:.3f} s, "
                          f"joint speed below v_tol={seg.v_tol:.3g}/s for >= {seg.min_settle_s:.3g} s); a sample needs "
-                         f"two: give a smaller settle speed (--settle-speed) or settle time (--settle-time), or treat "
-                         f"the log as one row per move (--mode moves)")
+                         f"two. {NO_RESTS_ADVICE}")
     if latency_s is not None:
         short = (t_k[seg.stop] - t_k[seg.start]) / 2 < abs(latency_s)
         if short.any() and latency == "auto":

@@ -20,8 +20,10 @@
   positions and rotation vectors) in ``rad`` or ``deg``; each converted to
   m, s, rad before the fit. :func:`check_plausible` refuses magnitudes that
   the declared unit makes implausible (a tracked point 850 m from the origin,
-  a time step of 1e7 s, a joint at 90 rad) with a message naming the likely
-  unit.
+  a time step of 1e7 s, a joint at 90 rad where no angle unit was stated: a
+  multi-turn joint is read under a stated ``rad``) with a message naming the
+  likely unit. The motion per move is checked against the units after the fit
+  (:func:`selfid_jax.robot.quality.unit_warnings`).
 """
 
 from __future__ import annotations
@@ -33,8 +35,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["ANGLE", "LENGTH", "TIME", "Units", "apply_units", "check_plausible", "normalise", "parse_columns",
-           "read_csv"]
+__all__ = ["ANGLE", "ANGLE_AUTO", "LENGTH", "TIME", "Units", "apply_units", "check_plausible", "normalise",
+           "parse_columns", "read_csv"]
 
 LENGTH = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 """Length units the fit reads, in metres."""
@@ -42,6 +44,9 @@ TIME = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 """Time units, in seconds."""
 ANGLE = {"rad": 1.0, "deg": np.pi / 180.0}
 """Angle units (actuator positions of revolute joints, rotation vectors), in radians."""
+ANGLE_AUTO = "auto"
+"""The angle unit when none is stated: radians, and a joint beyond :data:`MAX_ANGLE_RAD` is refused as degrees
+(stated ``rad``, multi-turn joints are read as they are)."""
 UNIT_NAMES = {**LENGTH, **TIME, **ANGLE, "1": 1.0, "-": 1.0, "": 1.0}
 
 # the plausibility bounds of check_plausible, in the converted units
@@ -58,10 +63,11 @@ class Units(NamedTuple):
 
     length: str = "m"  # tracker positions (p_*) and, in the sample-pair layout, the V position components
     time: str = "s"  # the t column
-    angle: str = "rad"  # actuator positions q_* / dtheta_* and rotation vectors r_*
+    angle: str = ANGLE_AUTO  # actuator positions q_* / dtheta_* and rotation vectors r_*: rad or deg as stated;
+    #   "auto" (not stated): rad, positions beyond two turns refused as looking like degrees
 
     def check(self) -> Units:
-        for name, table in (("length", LENGTH), ("time", TIME), ("angle", ANGLE)):
+        for name, table in (("length", LENGTH), ("time", TIME), ("angle", {ANGLE_AUTO: 1.0, **ANGLE})):
             if getattr(self, name) not in table:
                 raise ValueError(f"--{name}: unknown unit {getattr(self, name)!r}; one of {', '.join(table)}")
         return self
@@ -232,13 +238,15 @@ def apply_units(table: Mapping[str, Any], units: Units, row_units: Mapping[str, 
         if kind is None:
             continue
         unit = getattr(units, kind)
+        if unit == ANGLE_AUTO:
+            unit = "rad"
         if row_units and name in row_units:
             given = row_units[name]
             table_of = {"length": LENGTH, "time": TIME, "angle": ANGLE}[kind]
             if given not in table_of:
                 raise ValueError(f"{source}: the units row gives column {name} the unit {given!r}; a {kind} column "
                                  f"takes one of {', '.join(table_of)}")
-            if unit != Units._field_defaults[kind] and unit != given:
+            if getattr(units, kind) not in (Units._field_defaults[kind], given):
                 raise ValueError(f"{source}: column {name} is in {given} by the units row but --{kind} {unit}")
             unit = given
         used[name] = unit
@@ -255,8 +263,12 @@ def _floats(values: Any) -> np.ndarray:
     return np.array([np.nan if (v is None or str(v).strip() in ("", "nan")) else float(v) for v in arr], np.float64)
 
 
-def check_plausible(table: Mapping[str, Any], used: Mapping[str, str], *, source: str = "<table>") -> None:
-    """ValueError naming the likely unit when converted magnitudes are implausible (see the module docstring)."""
+def check_plausible(table: Mapping[str, Any], used: Mapping[str, str], *, source: str = "<table>",
+                    stated: frozenset[str] = frozenset()) -> None:
+    """ValueError naming the likely unit when converted magnitudes are implausible (see the module docstring).
+
+    ``stated``: the columns whose unit was stated (a declared ``--angle`` or a units row); a joint stated in rad may
+    turn many times (a multi-turn joint), one whose unit was not stated is refused beyond :data:`MAX_ANGLE_RAD`."""
 
     def finite(name):
         try:
@@ -287,7 +299,9 @@ def check_plausible(table: Mapping[str, Any], used: Mapping[str, str], *, source
     qs = [c for c in table if re.fullmatch(r"q_\d+", c)]
     if qs:
         big = max(float(np.abs(finite(c)).max(initial=0.0)) for c in qs)
-        if big > MAX_ANGLE_RAD and all(used.get(c, "rad") == "rad" for c in qs):
-            raise ValueError(f"{source}: an actuator position reaches {big:.4g} rad (limit {MAX_ANGLE_RAD:.4g}, two "
-                             "turns): the joints look like degrees; declare it (--angle deg, or a units row). "
-                             "Prismatic actuators in m are fine below that")
+        if big > MAX_ANGLE_RAD and all(used.get(c, "rad") == "rad" and c not in stated for c in qs):
+            raise ValueError(f"{source}: an actuator position reaches {big:.4g} rad (more than two turns, "
+                             f"{MAX_ANGLE_RAD:.4g} rad) and no angle unit was stated: the joints look like degrees, "
+                             "or a joint turns many times; state it: --angle deg (or a units row) if the joints are in "
+                             "degrees, --angle rad if a joint turns more than twice (a multi-turn joint); a wrong one "
+                             "scales the estimate by 57")
