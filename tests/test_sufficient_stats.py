@@ -125,7 +125,7 @@ class PsdPinvJitVmapTest(chex.TestCase):
 @pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
 def test_float32_agreement_with_float64_least_squares():
     """Well-conditioned data (cond(A) = 3): float32 statistics within 1e-4 of float64 least squares
-    (the issue's goal), and closer than the buffered float32 closed form, where J0 cancels."""
+    (the issue's goal), as is the buffered float32 closed form (the same Gram form since it stopped taking an SVD)."""
     n, m, K = 6, 3, 50
     rng = np.random.default_rng(0)
     errs_stats, errs_buf = [], []
@@ -141,7 +141,9 @@ def test_float32_agreement_with_float64_least_squares():
         errs_stats.append(rel(sj.refine(state, J0, method="closed_form"), ref))
         errs_buf.append(rel(RF.closed_form(*E.samples(state)[:2], J0), ref))
     assert max(errs_stats) < 1e-4
-    assert max(errs_stats) < max(errs_buf)
+    # the buffered closed form is now the same Gram-form computation (refine.closed_form -> statistics_closed_form
+    # on V^T V and theta^T V): equal to float32 round-off, where it was an SVD of the buffer in which J0 cancelled
+    assert max(errs_buf) < 1e-4 and abs(max(errs_stats) - max(errs_buf)) < 1e-5
 
 
 def _arm4():
