@@ -26,7 +26,7 @@ Gripper, two grasp models (``SceneSettings.grasp``):
 * ``"spring"``: the gripper is the mocap body ``target`` itself (the arm's
   tracking taken as exact) and the grasp is an explicit spring-damper wrench
   between it and the handle, applied to the handle every physics step by
-  :mod:`.sim` (stiffness ``k`` [N/m], ``kr`` [N m/rad] and dampings per
+  :mod:`selfid_jax.articulated.sim` (stiffness ``k`` [N/m], ``kr`` [N m/rad] and dampings per
   rollout): the stiffness is exactly the configured one, from soft to
   near-rigid (at ``k = 1e6`` N/m the physics timestep must be <= about
   0.7 ms; the experiment checks it).

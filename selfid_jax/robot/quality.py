@@ -62,16 +62,17 @@ MAX_REFUSED_FRACTION = 0.25
 
 
 MIN_LEVER_M_PER_RAD = 1e-3
-"""The least tracked motion per radian of actuator motion (median |V_xyz| / median |dtheta| of the moves, m/rad) a
-robot's log can show: the tracked point sits on the moving arm, centimetres to metres from the joint axes (a UR5e's
-tool ~0.1-1 m, a WidowX's ~0.05-0.5 m); every axis passing within 1 mm of it is no arm. A log in metres read as mm
-shows 1000x less (~0.3 mm/rad for a UR5e). A warning, not a refusal: an actuator logged at a geared motor's side
-moves the point less per radian. Not caught: a factor the range holds (m read as cm: ~3.5 mm/rad for a UR5e)."""
+"""The least tracked motion per radian of actuator motion a robot's log can show (m/rad: the median ``|V_xyz|`` over
+the median ``|dtheta|`` of the moves): the tracked point sits on the moving arm, centimetres to metres from the
+joint axes (a UR5e's tool ~0.1-1 m, a WidowX's ~0.05-0.5 m); every axis passing within 1 mm of it is no arm. A log
+in metres read as mm shows 1000x less (~0.3 mm/rad for a UR5e). A warning, not a refusal: an actuator logged at a
+geared motor's side moves the point less per radian. Not caught: a factor the range holds (m read as cm: ~3.5 mm/rad
+for a UR5e)."""
 MAX_LEVER_M_PER_RAD = 5.0
 """The most tracked motion per radian: the longest industrial arms reach ~3.5 m, so no tracked point lies 5 m from
 every joint axis. Radians read as degrees show 57x more (~15 m/rad for a UR5e), mm read as m 1000x more."""
 MAX_MOVE_RAD = 0.5
-"""The largest median joint move (|dtheta|, rad) of a self-ID log: its moves are small (0.03 rad by default) so that
+"""The largest median joint move (``|dtheta|``, rad) of a self-ID log: its moves are small (0.03 rad by default) so that
 one linear map explains them; a median move of 29 degrees or more is no self-ID move in radians (degrees read as
 radians show 57x: 0.03 rad logged in degrees is 1.7)."""
 
