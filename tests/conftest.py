@@ -11,7 +11,13 @@ from pathlib import Path
 import jax
 import pytest
 
-import selfid_jax  # noqa: F401  (sets the CPU XLA flags before JAX initialises)
+import selfid_jax  # sets the CPU XLA flags before JAX initialises
+
+try:  # the top-level experiments/ is selfid_jax.experiments only in an install (editable, for the tests)
+    import selfid_jax.experiments  # noqa: F401
+except ModuleNotFoundError as err:
+    raise pytest.UsageError(f"{err}: the tests import the installed package; install this checkout editable first: "
+                            "pip install -e '.[test,docs]' (the README's second command)") from None
 from selfid_jax._xla import QUICK_COMPILE_FLAGS, merged_xla_flags
 
 # The tests compile with LLVM's optimisation level 0: XLA's graph passes (fusion, simplification) are those of
