@@ -13,7 +13,6 @@ skip, with the reason, only where no OpenGL context can be created.
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 
@@ -35,6 +34,7 @@ from helpers_camera import (  # tests/ is on the path
     write_video,
 )
 from helpers_docs import DOCS, check_block_prints_what_it_says, python_blocks, stated_outputs
+from helpers_logs import run_fit_command  # tests/ is on the path
 
 import selfid_jax as sj
 from selfid_jax.cli import main
@@ -79,14 +79,7 @@ def no_figures(monkeypatch):
     monkeypatch.setattr(figures, "save_figure", lambda fig, folder, name: [])
 
 
-def _command(tmp_path, log, *flags):
-    """``selfid-jax fit LOG FLAGS`` in-process: ``(exit code, summary.json, estimate)``."""
-    out = tmp_path / "run"
-    code = main(["fit", str(log), "--out", str(out), *flags])
-    info = json.loads((out / "summary.json").read_text())
-    est = np.load(out / "inverse_jacobian.npz")["inverse_jacobian"] if info["converged"] else \
-        np.asarray(info["estimate_so_far"])
-    return code, info, est
+_command = run_fit_command
 
 
 def _agree(result, info, est):

@@ -15,7 +15,7 @@ import json
 
 import numpy as np
 import pytest
-from helpers_logs import _J, ARM, MOVES, A, _stream, write_bag  # tests/ is on the path
+from helpers_logs import _J, ARM, MOVES, A, _stream, run_fit_command, write_bag  # tests/ is on the path
 
 import selfid_jax as sj
 from selfid_jax.cli import main
@@ -37,15 +37,7 @@ def no_figures(monkeypatch):
     monkeypatch.setattr(figures, "save_figure", lambda fig, folder, name: [])
 
 
-def _command(tmp_path, log, *flags):
-    """``selfid-jax fit LOG FLAGS`` in-process: ``(exit code, summary.json, estimate)`` (the estimate so far if it
-    did not converge)."""
-    out = tmp_path / "run"
-    code = main(["fit", str(log), "--out", str(out), *flags])
-    info = json.loads((out / "summary.json").read_text())
-    est = np.load(out / "inverse_jacobian.npz")["inverse_jacobian"] if info["converged"] else \
-        np.asarray(info["estimate_so_far"])
-    return code, info, est
+_command = run_fit_command
 
 
 def _agree(result, info, est):
