@@ -110,6 +110,18 @@ class Tracked(NamedTuple):
     columns: dict[str, np.ndarray]  # p_x, p_y, p_z (m, camera frame) and, for a rotation task, q_w, q_x, q_y, q_z
     report: CameraReport
 
+def open_video(path: Path, flag: str = "") -> cv2.VideoCapture:
+    """An opened ``cv2.VideoCapture`` of the video file ``path``; LogError naming the file (and ``flag``, e.g.
+    ``" (--video)"``) when there is no such file or OpenCV cannot decode it."""
+    if not path.is_file():
+        raise LogError(f"{path}{flag}: no such file or folder")
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        capture.release()
+        raise LogError(f"{path}{flag}: OpenCV cannot open it as a video (or a folder of images)")
+    return capture
+
+
 
 def tag_settings(options: ReadOptions) -> TrackerSettings:
     """The tracker settings of a fit's ``tag`` (``FAMILY:ID:EDGE_M``) and task (a rotation axis: ``rotation``);
@@ -191,12 +203,7 @@ def video_source(video: str | Path, frame_times: str | Path, *, time: str = "s")
             raise LogError(f"{video}: {len(files)} images but {frame_times} has {times.size} frame times (one row "
                            "per image, in file-name order)")
         return FrameSource(str(video), "images", len(files), _folder_frames(files, times))
-    if not video.is_file():
-        raise LogError(f"{video} (--video): no such file or folder")
-    capture = cv2.VideoCapture(str(video))
-    if not capture.isOpened():
-        capture.release()
-        raise LogError(f"{video} (--video): OpenCV cannot open it as a video (or a folder of images)")
+    capture = open_video(video, " (--video)")
     return FrameSource(str(video), "video", times.size, _video_frames(capture, video, Path(frame_times), times))
 
 
@@ -247,12 +254,7 @@ def read_images(path: str | Path, *, max_images: int | None = None) -> tuple[lis
         every = image_files(path)
         files = [every[i] for i in _spaced(len(every), max_images)]
         return [frame for frame, _ in _folder_frames(files, np.zeros(len(files)))], [p.name for p in files]
-    if not path.is_file():
-        raise LogError(f"{path}: no such file or folder")
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        capture.release()
-        raise LogError(f"{path}: OpenCV cannot open it as a video (or a folder of images)")
+    capture = open_video(path)
     count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))  # the container's count: 0 or approximate for some codecs
     wanted = set(_spaced(count, max_images)) if count > 0 else None
     images, names = [], []
