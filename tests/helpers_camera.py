@@ -23,6 +23,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import pytest
+from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
@@ -167,14 +168,17 @@ def write_video(path: Path, frames, fps: float = 2.0, fourcc: str = "MJPG") -> P
 
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
+ROS1_STORE = get_typestore(Stores.ROS1_NOETIC)
 
 
-def _header(stamp, frame=""):
-    t = STORE.types["builtin_interfaces/msg/Time"](sec=int(stamp) // NS, nanosec=int(stamp) % NS)
-    return STORE.types["std_msgs/msg/Header"](stamp=t, frame_id=frame)
+def _header(stamp, frame="", store=STORE):
+    t = store.types["builtin_interfaces/msg/Time"](sec=int(stamp) // NS, nanosec=int(stamp) % NS)
+    if store is ROS1_STORE:  # ROS 1's Header has a sequence number
+        return store.types["std_msgs/msg/Header"](seq=0, stamp=t, frame_id=frame)
+    return store.types["std_msgs/msg/Header"](stamp=t, frame_id=frame)
 
 
-def image_message(stamp, frame, encoding="mono8"):
+def image_message(stamp, frame, encoding="mono8", store=STORE):
     """A ``sensor_msgs/Image`` of an RGB ``frame`` in ``encoding`` (mono8, rgb8, bgr8, rgba8, bgra8), rows padded
     by 4 bytes (``step`` > width x channels, as some drivers align them)."""
     if encoding == "mono8":
@@ -186,61 +190,69 @@ def image_message(stamp, frame, encoding="mono8"):
     rows = data.reshape(h, -1)
     padded = np.zeros((h, rows.shape[1] + 4), np.uint8)
     padded[:, :rows.shape[1]] = rows
-    return STORE.types["sensor_msgs/msg/Image"](header=_header(stamp, "camera_optical"), height=h, width=w,
+    return store.types["sensor_msgs/msg/Image"](header=_header(stamp, "camera_optical", store), height=h, width=w,
                                                 encoding=encoding, is_bigendian=0, step=padded.shape[1],
                                                 data=padded.reshape(-1))
 
 
-def compressed_message(stamp, frame):
+def compressed_message(stamp, frame, store=STORE):
     """A ``sensor_msgs/CompressedImage`` (PNG) of an RGB ``frame``."""
     ok, data = cv2.imencode(".png", cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     assert ok
-    return STORE.types["sensor_msgs/msg/CompressedImage"](header=_header(stamp, "camera_optical"), format="png",
-                                                          data=np.asarray(data, np.uint8).reshape(-1))
+    return store.types["sensor_msgs/msg/CompressedImage"](header=_header(stamp, "camera_optical", store),
+                                                          format="png", data=np.asarray(data, np.uint8).reshape(-1))
 
 
-def camera_info_message(stamp, intrinsics):
-    """A ``sensor_msgs/CameraInfo`` of ``intrinsics`` (plumb_bob)."""
+def camera_info_message(stamp, intrinsics, store=STORE):
+    """A ``sensor_msgs/CameraInfo`` of ``intrinsics`` (plumb_bob); ROS 1 names its matrices D, K, R, P."""
     K, dist, w, h = intrinsics
     P = np.zeros((3, 4))
     P[:, :3] = K
-    t = STORE.types
+    t = store.types
     roi = t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    return t["sensor_msgs/msg/CameraInfo"](header=_header(stamp, "camera_optical"), height=h, width=w,
-                                           distortion_model="plumb_bob", d=np.asarray(dist, np.float64),
-                                           k=np.asarray(K, np.float64).reshape(-1), r=np.eye(3).reshape(-1),
-                                           p=P.reshape(-1), binning_x=0, binning_y=0, roi=roi)
+    mats = dict(d=np.asarray(dist, np.float64), k=np.asarray(K, np.float64).reshape(-1), r=np.eye(3).reshape(-1),
+                p=P.reshape(-1))
+    if store is ROS1_STORE:
+        mats = {name.upper(): value for name, value in mats.items()}
+    return t["sensor_msgs/msg/CameraInfo"](header=_header(stamp, "camera_optical", store), height=h, width=w,
+                                           distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi, **mats)
 
 
-def joint_message(stamp, q):
+def joint_message(stamp, q, store=STORE):
     empty = np.zeros(0)
-    return STORE.types["sensor_msgs/msg/JointState"](header=_header(stamp), name=list(JOINTS),
+    return store.types["sensor_msgs/msg/JointState"](header=_header(stamp, "", store), name=list(JOINTS),
                                                      position=np.asarray(q, np.float64), velocity=empty, effort=empty)
 
 
 def write_bag(path: Path, rec: Recording, *, encoding="mono8", camera_info=True, image_topic="/camera/image_raw",
               frames=None, storage="mcap") -> Path:
-    """``rec`` as a ROS 2 bag: /joint_states, ``image_topic`` (sensor_msgs/Image in ``encoding``, or
-    CompressedImage for ``encoding="png"``) and, with ``camera_info``, /camera/camera_info (one message per frame).
-    Stamps are ``T0`` + the recording's times; each frame is received 30 ms after its capture. ``frames`` replaces
-    the recording's frames (a frozen or darkened camera)."""
+    """``rec`` as a bag: /joint_states, ``image_topic`` (sensor_msgs/Image in ``encoding``, or CompressedImage for
+    ``encoding="png"``) and, with ``camera_info``, /camera/camera_info (one message per frame). ``storage``: "mcap"
+    or "sqlite3" (ROS 2), or "ros1" (a ROS 1 ``.bag``: give ``path`` that suffix). Stamps are ``T0`` + the
+    recording's times; each frame is received 30 ms after its capture. ``frames`` replaces the recording's frames (a
+    frozen or darkened camera)."""
     frames = rec.frames if frames is None else frames
-    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    items = [(T0 + int(round(t * NS)), "/joint_states", joint_message(T0 + int(round(t * NS)), q))
+    store = ROS1_STORE if storage == "ros1" else STORE
+    items = [(T0 + int(round(t * NS)), "/joint_states", joint_message(T0 + int(round(t * NS)), q, store))
              for t, q in zip(rec.joint_t, rec.joint_q)]
     for t, frame in zip(rec.frame_t, frames):
         stamp = T0 + int(round(t * NS))
-        image = compressed_message(stamp, frame) if encoding == "png" else image_message(stamp, frame, encoding)
+        image = (compressed_message(stamp, frame, store) if encoding == "png"
+                 else image_message(stamp, frame, encoding, store))
         items.append((stamp + 30_000_000, image_topic, image))
         if camera_info:
-            items.append((stamp + 30_000_000, "/camera/camera_info", camera_info_message(stamp, rec.intrinsics)))
+            items.append((stamp + 30_000_000, "/camera/camera_info", camera_info_message(stamp, rec.intrinsics, store)))
     items.sort(key=lambda item: item[0])
-    writer = Writer2(path, version=Writer2.VERSION_LATEST, storage_plugin=plugin)
+    if storage == "ros1":
+        writer, serialize = Writer1(path), store.serialize_ros1
+    else:
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        writer, serialize = Writer2(path, version=Writer2.VERSION_LATEST, storage_plugin=plugin), store.serialize_cdr
     with writer:
         types = {"/joint_states": "sensor_msgs/msg/JointState", "/camera/camera_info": "sensor_msgs/msg/CameraInfo",
                  image_topic: "sensor_msgs/msg/CompressedImage" if encoding == "png" else "sensor_msgs/msg/Image"}
-        conn = {topic: writer.add_connection(topic, msgtype, typestore=STORE) for topic, msgtype in types.items()
+        conn = {topic: writer.add_connection(topic, msgtype, typestore=store) for topic, msgtype in types.items()
                 if camera_info or topic != "/camera/camera_info"}
         for recv, topic, msg in items:
-            writer.write(conn[topic], recv, STORE.serialize_cdr(msg, msg.__msgtype__))
+            writer.write(conn[topic], recv, serialize(msg, msg.__msgtype__))
     return path

@@ -114,6 +114,22 @@ def test_bag_form_command_and_sj_fit(rec, files, tmp_path, no_figures, capsys):
     assert "intrinsics: " in printed and "topic /camera/camera_info (fx 289.7" in printed
 
 
+@pytest.mark.slow
+def test_a_ros1_bag_with_images_and_compressed_images(rec, tmp_path):
+    """The bag form from a ROS 1 ``.bag`` (CameraInfo's matrices named D, K, R, P there): the same tag poses, so the
+    same estimate as a ROS 2 bag of the same recording, for raw (mono8) and PNG-compressed images."""
+    for encoding, topic in (("mono8", "/camera/image_raw"), ("png", "/camera/image_raw/compressed")):
+        ros1, ros2 = (sj.fit(write_bag(tmp_path / f"{encoding}{suffix}", rec, encoding=encoding, image_topic=topic,
+                                       storage=storage), joints="/joint_states", camera=topic, tag=TAG_SPEC)
+                      for suffix, storage in ((".bag", "ros1"), ("", "sqlite3")))
+        camera = ros1.report.camera
+        assert (camera.frames, camera.poses, camera.dropouts) == (31, 31, {})
+        assert camera.intrinsics.endswith("topic /camera/camera_info")
+        assert np.allclose([camera.fx, camera.cx, camera.cy], rec.intrinsics.K[[0, 0, 1], [0, 2, 2]])
+        assert _error(rec, ros1.estimate) <= FIT_TOL
+        np.testing.assert_array_equal(ros1.estimate, ros2.estimate)
+
+
 def test_video_form_folder_command_and_sj_fit(rec, files, tmp_path, no_figures, capsys):
     """A joint CSV (50 Hz, ROS-like joint names), a folder of PNGs, their frame times and an OpenCV YAML; a wrong
     tag edge scales the estimate by true / given, as the report says."""
