@@ -3,6 +3,9 @@
 # $OUT (default benchmarks/gpu_out/):
 #   machine.txt      the GPU, its driver, jax and mujoco versions
 #   cpu2.json/.txt   the self-ID step against the bandwidth bound on 2 of this machine's CPU cores (the CPU row)
+#   bandwidth.json/.txt  the self-ID step on the default device (the GPU) at 1,000,000 estimators: its traffic per
+#                    estimator and sample (the state's minimum and XLA's count) and its fraction of the bound (a
+#                    streaming copy of the state's size), both steps (closed form, rank-one block)
 #   lowering.txt     tests/test_cuda_lowering.py, now on the real CUDA backend (host callbacks lowered too)
 #   sweeps.txt       valid_region_ur5e and ablation_ur5e run by the CLI on the default device (no flag) and on the
 #                    CPU, compared by scripts/compare_runs.py
@@ -39,8 +42,12 @@ step machine
   "$PY" -c "import selfid_jax; print('selfid_jax', selfid_jax.__file__)"; } 2>&1 | tee "$OUT/machine.txt"
 
 step "the 2-core CPU row (bandwidth bound, 10,000 estimators)"
-SELFID_JAX_NO_XLA_FLAGS=0 JAX_PLATFORMS=cpu timeout "$(left 60)" taskset -c 0,1 "$PY" benchmarks/bandwidth.py --batch 10000 \
+SELFID_JAX_NO_XLA_FLAGS=0 JAX_PLATFORMS=cpu timeout "$(left 120)" taskset -c 0,1 "$PY" benchmarks/bandwidth.py --batch 10000 \
     --json "$OUT/cpu2.json" 2>&1 | tee "$OUT/cpu2.txt"
+
+step "the step's traffic and fraction of the bound on the default device (1,000,000 estimators)"
+timeout "$(left 120)" "$PY" benchmarks/bandwidth.py --batch 1000000 --copy-mib 2048 --reps 3 --rounds 2 \
+    --json "$OUT/bandwidth.json" 2>&1 | tee "$OUT/bandwidth.txt"
 
 step "lowering check on the CUDA backend"
 timeout "$(left 60)" "$PY" -P -m pytest -q -p no:cacheprovider -o addopts="" tests/test_cuda_lowering.py 2>&1 | tail -15 \

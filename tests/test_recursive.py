@@ -184,9 +184,9 @@ def test_gradient_matches_finite_differences():
     np.testing.assert_allclose(gv[1], g, rtol=1e-9)
 
 
-@pytest.mark.shipped_xla  # float32 round-off, so the issue's bound is checked on the shipped build
-def test_float32_over_10000_samples_within_1e_4_of_float64_least_squares():
-    B, T = 4, 10_000
+def float32_error(T: int, B: int = 4) -> float:
+    """Max relative error of ``R.run`` in float32 over ``T`` samples of ``B`` estimators (n = 6, m = 3) against
+    float64 numpy least squares."""
     rng = np.random.default_rng(6)
     A = rng.normal(size=(B, 3, 6))
     d = rng.uniform(-0.03, 0.03, (T, B, 6))
@@ -194,12 +194,22 @@ def test_float32_over_10000_samples_within_1e_4_of_float64_least_squares():
 
     def one(d, V):
         s = E.init(6, 3, capacity=0, dtype=jnp.float32)
-        return R.run(s, R.init(3, jnp.float32), d, V, 1e-3, warmup=8)[0].estimate
+        return R.run(s, R.init(3, jnp.float32), d, V, 1e-3, warmup=8, history=False)[0].estimate
 
     J = np.asarray(jax.jit(jax.vmap(one, in_axes=(1, 1)))(jnp.asarray(d, jnp.float32), jnp.asarray(V, jnp.float32)))
-    for b in range(B):
-        ref = np.linalg.lstsq(V[:, b], d[:, b], rcond=None)[0].T
-        assert np.linalg.norm(J[b] - ref) / np.linalg.norm(ref) < 1e-4
+    refs = [np.linalg.lstsq(V[:, b], d[:, b], rcond=None)[0].T for b in range(B)]
+    return max(float(np.linalg.norm(J[b] - ref) / np.linalg.norm(ref)) for b, ref in enumerate(refs))
+
+
+def test_float32_within_1e_4_of_float64_least_squares():
+    # the fast tier's float32 check (the suite's optimisation level); the issue's 10,000 samples are the slow test below
+    assert float32_error(500) < 1e-4
+
+
+@pytest.mark.slow  # 10,000 samples in a subprocess at the shipped optimisation level: about 40 s
+@pytest.mark.shipped_xla  # float32 round-off, so the issue's bound is checked on the shipped build
+def test_float32_over_10000_samples_within_1e_4_of_float64_least_squares():
+    assert float32_error(10_000) < 1e-4
 
 
 def test_cond_any_is_lax_cond_per_member():
@@ -273,28 +283,46 @@ def test_run_without_history_ends_in_the_same_state():
 class TestVariants(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
     def test_step_equals_exact_step(self):
-        d, V = data(9, seed=9)
+        # 6 samples: the batch form for the first M = 3 (S_vv reaches full rank), rank-one steps for the rest
+        # (eagerly each step traces its branches, so the sequence is kept short)
+        T = 6
+        d, V = data(T, seed=9)
         step = self.variant(lambda s, r, x, v: R.step(s, r, x, v, 1e-3))
+        exact = jax.jit(lambda s, r, x, v: R.exact_step(s, r, x, v, 1e-3))
         s, r = E.init(N, M, capacity=0), R.init(M)
         se, re_ = s, r
-        for t in range(9):
+        for t in range(T):
+            took_rank_one = bool(r.full)
             s, r = step(s, r, d[t], V[t])
-            se, re_ = R.exact_step(se, re_, d[t], V[t], 1e-3)
+            se, re_ = exact(se, re_, d[t], V[t])
             np.testing.assert_allclose(s.estimate, se.estimate, rtol=1e-9, atol=1e-12)
-        assert bool(r.full) and int(s.count) == 9
+            assert took_rank_one == (t >= M)
+        assert bool(r.full) and int(s.count) == T
 
 
 def test_self_identify_defaults_to_the_rank_one_form_for_long_runs_only():
     from selfid_jax.identify import algorithm as A
 
     obs = sj.stateless(lambda key, dt: jnp.array([[1.0, 0.2, 0.0], [0.0, 1.5, -0.3], [0.4, 0.0, 0.8]]) @ dt)
-    run = lambda iters, rec: jax.jit(lambda k: sj.self_identify(obs, k, 0.05, 1e-6, n_act=3, task_dim=3, iters=iters,
-                                                                 recursive=rec))
-    n_scans = lambda iters, rec: str(jax.make_jaxpr(lambda k: sj.self_identify(
-        obs, k, 0.05, 1e-6, n_act=3, task_dim=3, iters=iters, recursive=rec))(jax.random.key(0))).count("scan[")
-    assert n_scans(A.RECURSIVE_MIN_ITERS - 1, None) == n_scans(12, False) == 1  # the experiments' sizes: batch form
-    assert n_scans(A.RECURSIVE_MIN_ITERS, None) >= 3  # warm-up, rank-one steps, re-run (in the rule and its jvp)
+    jaxpr = lambda iters, rec: str(jax.make_jaxpr(lambda k: sj.self_identify(
+        obs, k, 0.05, 1e-6, n_act=3, task_dim=3, iters=iters, recursive=rec))(jax.random.key(0)))
+    assert jaxpr(A.RECURSIVE_MIN_ITERS - 1, None).count("scan[") == jaxpr(12, False).count("scan[") == 1  # batch form
+    long = jaxpr(A.RECURSIVE_MIN_ITERS, None)
+    assert long.count("scan[") >= 3  # warm-up, rank-one steps, re-run (in the rule and its jvp)
+    # the default is the rank-one form itself, program for program (which equals the batch path:
+    # test_self_identify_closed_form_equals_the_batch_path)
+    assert long == jaxpr(A.RECURSIVE_MIN_ITERS, True)
+    assert jaxpr(A.RECURSIVE_MIN_ITERS - 1, None) == jaxpr(A.RECURSIVE_MIN_ITERS - 1, False)
+
+
+@pytest.mark.slow  # two self-ID programs of 64 iterations compiled (the rank-one form's three steps): about 20 s
+def test_self_identify_rank_one_default_stops_at_convergence_like_the_batch_form():
+    from selfid_jax.identify import algorithm as A
+
+    obs = sj.stateless(lambda key, dt: jnp.array([[1.0, 0.2, 0.0], [0.0, 1.5, -0.3], [0.4, 0.0, 0.8]]) @ dt)
+    run = lambda rec: jax.jit(lambda k: sj.self_identify(obs, k, 0.05, 1e-6, n_act=3, task_dim=3,
+                                                         iters=A.RECURSIVE_MIN_ITERS, recursive=rec))
     key = jax.random.key(3)
-    a, b = run(A.RECURSIVE_MIN_ITERS, None)(key), run(A.RECURSIVE_MIN_ITERS, False)(key)
+    a, b = run(None)(key), run(False)(key)
     assert rel(a.estimates, np.asarray(b.estimates)) < 1e-9
     assert int(a.converged_at) == int(b.converged_at)
