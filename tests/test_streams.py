@@ -159,14 +159,16 @@ def test_long_rests_and_encoder_noise():
     np.testing.assert_allclose(q_red, np.stack([table[c][settled] for c in Q_COLS], axis=1), atol=5e-5)
 
 
-def test_a_stream_that_never_rests_is_refused():
+def test_a_stream_that_never_rests_is_read_by_windows():
     table, _ = _stream(moves=100, period=0.03)  # a new command every 3 rows: the servo never settles
     assert is_continuous(*_tq(table))  # its steps follow one smooth motion (coherence), although it never rests
-    for mode in ("auto", "stream"):
-        with pytest.raises(ValueError, match=r"no settled interval found: .*v_tol=.*--settle-speed"):  # (f)
-            reduce_stream(table, Q_COLS, POS_COLS, mode=mode)
-    with pytest.raises(ValueError, match="only one settled interval"):
-        reduce_stream(table, Q_COLS, POS_COLS, min_settle_s=0.02)  # only the rest before the first command
+    with pytest.raises(streams.NoRestsError, match=r"no settled interval found: .*v_tol=.*--settle-speed"):  # (f)
+        settled_intervals(*_tq(table))
+    for mode, settle in (("auto", None), ("stream", None), ("auto", 0.02)):  # 0.02 s: only the rest before the first
+        reduced, info = reduce_stream(table, Q_COLS, POS_COLS, mode=mode, min_settle_s=settle)
+        assert info.continuous and info.reading == "windows" and info.v_tol is None
+        assert "fewer than two rests" in info.notes[0] and ("--settle-time 0.02 s" in info.notes[0]) == bool(settle)
+        assert info.segments == reduced["t"].shape[0] - 1 > 30 and "without rests" in info.line()
 
 
 def test_jittered_stamps(stream):
@@ -270,6 +272,21 @@ def test_a_latency_beyond_the_old_search_is_found_not_aliased():
     assert err(late) < 1.5 * err(base)
 
 
+def test_rests_past_the_latency_shift_are_not_paired_with_a_held_pose():
+    """A 2 s tracker lag: the shifted pose is undefined over the log's last 2 s (held at its end value), so the 4
+    rests there give no row, not samples whose tracked motion is 0."""
+    from helpers_logs import _poses
+
+    table, settled = _stream(seed=1, latency=2.0)
+    reduced, info = reduce_stream(table, Q_COLS, POS_COLS)
+    assert abs(info.latency_s - 2.0) < 3e-3 and "4 rests beyond the rows the tracker latency" in info.notes[0]
+    assert info.rows_out == info.segments == MOVES + 1 - 4 == info.intervals.shape[0]
+    np.testing.assert_allclose(reduced["t"], table["t"][settled[:-4]])
+    q = np.stack([reduced[c] for c in Q_COLS], axis=1)
+    p = np.stack([reduced[c] for c in POS_COLS], axis=1)
+    assert np.abs(p - np.asarray(_poses()(q)[0])).max() < 5 * NOISE  # every row's pose is its q's, averaged
+
+
 def test_a_latency_at_the_edge_of_the_search_is_refused(stream, monkeypatch):
     from selfid_jax.robot import streams
 
@@ -279,11 +296,13 @@ def test_a_latency_at_the_edge_of_the_search_is_refused(stream, monkeypatch):
 
 
 def test_no_rests_advice_never_points_at_mode_moves():
-    """Issue 54: the no-rests message advised --mode moves, which pairs the motion's rows (||J Jhat - I|| 0.78)."""
+    """Issue 54: the no-rests message advised --mode moves, which pairs the motion's rows (||J Jhat - I|| 0.78); a
+    stream without rests is now read by windows, and one too short for them names windows and rests, never moves."""
     table, _ = _stream(moves=100, period=0.03)
-    with pytest.raises(ValueError) as err:
-        reduce_stream(table, Q_COLS, POS_COLS)
-    assert "record the moves with a rest after each" in str(err.value)
+    short = {k: v[:8] for k, v in table.items()}  # 8 rows: less than two windows of 4 rows
+    with pytest.raises(streams.NoRestsError) as err:
+        reduce_stream(short, Q_COLS, POS_COLS, mode="windows")
+    assert "record the moves with a rest after each" in str(err.value) and "--mode windows" in str(err.value)
     assert "(--mode moves)" not in str(err.value) and "--mode moves would pair" in str(err.value)
     with pytest.raises(ValueError, match="read it with --mode auto"):  # a per-move log forced through as a stream
         reduce_stream(read_table(EXAMPLE), Q_COLS, POS_COLS + QUAT_COLS, mode="stream")

@@ -19,7 +19,7 @@ from typing import Any, NamedTuple
 
 __all__ = ["LATENCY_CHOICES", "MAX_TAG_EDGE_M", "MODES", "FitOptions", "ReadOptions", "parse_tag"]
 
-MODES = ("auto", "stream", "moves")
+MODES = ("auto", "stream", "windows", "moves")
 """How a raw time series is read (:func:`selfid_jax.robot.streams.reduce_stream`)."""
 LATENCY_CHOICES = ("auto", "none")
 """The tracker latency's named settings besides a number of seconds."""
@@ -52,7 +52,8 @@ class ReadOptions(NamedTuple):
     time: str = "s"  # unit of t: s, ms, us, ns
     angle: str = "auto"  # unit of the actuator positions and rotation vectors: rad, deg; "auto" (not stated): rad,
     #   a joint beyond two turns refused as looking like degrees (a multi-turn joint needs "rad" stated)
-    mode: str = "auto"  # a raw time series: "auto" (detect a stream), "stream" (reduce it), "moves" (as it is)
+    mode: str = "auto"  # a raw time series: "auto" (detect a stream; read by its rests, or by windows of its motion
+    #   where it has none), "stream" (reduce it so), "windows" (reduce it by windows), "moves" (as it is)
     latency: str | float | None = "auto"  # a stream's tracker latency (s): "auto" (estimated), a number, None
     settle_speed: float | None = None  # a stream: joint speed below which the arm rests (actuator units / s)
     settle_time: float | None = None  # a stream: shortest rest that counts as settled (s)

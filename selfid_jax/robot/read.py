@@ -15,7 +15,8 @@ and the ``selfid-jax fit`` command, so both read a log the same way:
    tracker columns, matched by time
    (:func:`selfid_jax.robot.camera.sources.video_camera_table`);
 3. a raw time series logged continuously is reduced to one settled row per
-   move, the tracker latency taken out (:func:`selfid_jax.robot.streams.reduce_stream`);
+   move (or, where the arm never rests, one row per edge of short windows of
+   its motion), the tracker latency taken out (:func:`selfid_jax.robot.streams.reduce_stream`);
 4. the rows paired into samples, bad rows dropped and counted
    (:func:`selfid_jax.robot.log.samples_from_table`: task axes, time window, gap limit).
 
@@ -164,8 +165,8 @@ def read_log(log: str | Path | Mapping[str, Any], options: ReadOptions | None = 
 
 
 def _reduce(table: Mapping[str, Any], opts: ReadOptions, source: str) -> tuple[Mapping[str, Any], StreamInfo | None]:
-    """A raw time series reduced to one settled row per move where it is a stream (``opts.mode``); other layouts
-    unchanged, with None."""
+    """A raw time series reduced to one settled row per move (or per window edge, without rests) where it is a
+    stream (``opts.mode``); other layouts unchanged, with None."""
     from selfid_jax.robot import streams
     from selfid_jax.robot.log import LogError
 

@@ -16,9 +16,15 @@ encoders and tracker, and the fit is wrong. This module, numpy only:
   importable from here too): :func:`latency_estimate` / :func:`estimate_latency`
   cross-correlate the joint speed with the tracker speed; :func:`shift_tracker`
   moves the tracker columns back by a latency.
+* :func:`motion_windows`: a stream without rests (the arm moving
+  continuously) cut into short windows of one time length, chosen from the
+  motion so that a window moves the joints about as far as a self-ID move
+  (:data:`WINDOW_MOVE`); each window's joint and tracker displacement is one
+  sample, about a nearly constant Jacobian.
 * :func:`reduce_stream`: the entry point. A per-move log comes back unchanged;
-  a stream comes back as one representative row per settled interval, so that
-  consecutive rows pair into one sample per move, with a :class:`StreamInfo`.
+  a stream comes back as one representative row per settled interval (or, with
+  no rests, one row per window edge), so that consecutive rows pair into one
+  sample per move (per window), with a :class:`StreamInfo`.
 
 Columns are named by the caller (``t_col``, ``q_cols``, ``pose_cols``), so any
 layout works. Quaternion columns (``q_w, q_x, q_y, q_z`` by default, when all
@@ -47,6 +53,7 @@ from selfid_jax.robot.latency import (  # the latency's public names, re-exporte
     _usable,
     estimate_latency,
     latency_estimate,
+    latency_fit,
     rotation_columns,
     shift_tracker,
 )
@@ -56,8 +63,9 @@ __all__ = ["CONTINUOUS_COHERENCE", "CONTINUOUS_STILL_FRACTION", "GAP_FACTOR", "L
            "NO_RESTS_ADVICE",
            "MIN_COHERENCE_PAIRS", "MIN_SETTLE_RUN_FRACTION", "MIN_SETTLE_STEPS", "MIN_STREAM_ROWS", "REF_SKIP",
            "REF_TOP_FRACTION", "SETTLE_SPEED_RATIO", "STILL_STEP_RATIO", "LatencyEstimate", "Segmentation",
-           "StreamInfo", "StreamStats", "estimate_latency", "is_continuous", "latency_estimate", "reduce_stream",
-           "reference", "settled_intervals", "shift_tracker", "stream_stats"]
+           "MIN_WINDOW_STEPS", "MIN_WINDOWS", "WINDOW_EDGE_FRACTION", "WINDOW_MOVE", "NoRestsError", "Windows",
+           "StreamInfo", "StreamStats", "estimate_latency", "is_continuous", "latency_estimate", "motion_windows",
+           "reduce_stream", "reference", "settled_intervals", "shift_tracker", "stream_stats"]
 
 # ------------------------------------------------------------------ detection thresholds
 REF_TOP_FRACTION = 0.005
@@ -87,12 +95,12 @@ moves (mean cosine about 0, standard error ``<= 1 / sqrt(pairs)``: 0.0 in the sh
 MIN_COHERENCE_PAIRS = 20
 """Fewer pairs of consecutive non-still steps than this: the coherence is not used (reported as 0)."""
 MIN_STREAM_ROWS = 8
+"""Fewer usable rows than this: never called a stream (too few to tell)."""
 LATENCY_SEARCH_FRACTION = 0.25
 """``latency="auto"`` searches lags up to this fraction of the log's span (at least ``max_lag_s``): the speeds still
 overlap over three quarters of the log there. A narrower search is fooled by a regular schedule of moves: with a
 move every 0.5 s a 400 ms lag correlates at -100 ms nearly as well (0.92 against 0.95), and a lag beyond the search
 was taken for its alias inside it. A peak at the edge is refused (the latency must be given)."""
-"""Fewer usable rows than this: never called a stream (too few to tell)."""
 
 # ------------------------------------------------------------------ segmentation defaults
 GAP_FACTOR = 3.0
@@ -114,13 +122,44 @@ real rests dominate the runs of a stream, short dips are dropped. For the test s
 
 
 
-NO_RESTS_ADVICE = ("A stream is read from the arm's rests between moves: record the moves with a rest after each "
-                   "(the arm still for a few tenths of a second, as the online runner's moves are), or give a larger "
-                   "settle speed (--settle-speed) or a shorter settle time (--settle-time) if it does rest. "
+# ------------------------------------------------------------------ windows (a stream without rests)
+WINDOW_MOVE = 0.03
+"""A stream without rests is cut into windows whose typical joint displacement (the median over windows of
+``max_j |q_j(end) - q_j(start)|``, actuator units: rad, or m for a prismatic joint) is this: the online runner's
+default self-ID magnitude ``m_a``, so a window is a sample like a rest-to-rest self-ID move, small enough that the
+Jacobian is nearly constant over it and large enough that the tracker's noise is small beside its tracked motion
+(0.1 mm against ~10 mm on a UR5e)."""
+MIN_WINDOW_STEPS = 4
+"""A window spans at least this many median row intervals (a faster arm gets windows of more than ``WINDOW_MOVE``)."""
+MIN_WINDOWS = 2
+"""A stream gives at least this many windows, or it is refused (too short, or it never moves)."""
+WINDOW_EDGE_FRACTION = 0.2
+"""Each window edge is the average of the rows within +- this fraction of a window of it, ``q`` and the pose over the
+same rows: the tracker noise divided by the square root of their number, the two consistent to second order in the
+motion (the Jacobian's change over 0.4 of a window). Consecutive edges' rows never overlap."""
+
+NO_RESTS_ADVICE = ("A stream is read from the arm's rests between moves or, without rests, from short windows of its "
+                   "motion (--mode windows); either needs the arm to move over many rows: record the moves with a rest "
+                   "after each (the arm still for a few tenths of a second, as the online runner's moves are), or give "
+                   "a larger settle speed (--settle-speed) or a shorter settle time (--settle-time) if it does rest. "
                    "--mode moves would pair the rows of the motion as settled moves: a wrong estimate")
-"""What a stream without two rests can do (the messages of :func:`settled_intervals` and :func:`reduce_stream`): never
-``--mode moves``, which pairs a continuous stream's rows as if each were a settled move (on the test stream without
-rests: ||J Jhat - I||_F 0.78)."""
+"""What a stream that gives no samples can do (the messages of :func:`reduce_stream`): never ``--mode moves``, which
+pairs a continuous stream's rows as if each were a settled move (on the test stream without rests:
+||J Jhat - I||_F 0.45-0.78, where its windows give 0.05)."""
+
+
+class NoRestsError(ValueError):
+    """A stream with fewer than two settled intervals (:func:`settled_intervals`, :func:`reduce_stream`): it is read
+    by windows (:func:`motion_windows`) instead where that is allowed."""
+
+
+class Windows(NamedTuple):
+    """A stream without rests cut into windows of one length (:func:`motion_windows`)."""
+
+    edges: np.ndarray  # (K + 1,) times (s) of the window edges, K windows of window_s each
+    window_s: float  # the window length (s)
+    move: float  # the target joint displacement per window (actuator units; WINDOW_MOVE)
+    median_move: float  # the median over the windows of max_j |q_j(end) - q_j(start)| (actuator units)
 
 
 class StreamStats(NamedTuple):
@@ -147,13 +186,13 @@ class Segmentation(NamedTuple):
 class StreamInfo(NamedTuple):
     """What :func:`reduce_stream` did to a log."""
 
-    continuous: bool  # True: reduced as a stream (one row per settled interval); False: returned unchanged
-    mode: str  # "auto", "stream" or "moves", as asked
+    continuous: bool  # True: reduced as a stream (one row per settled interval or window edge); False: unchanged
+    mode: str  # "auto", "stream", "windows" or "moves", as asked
     detected: bool | None  # is_continuous of the log (None for mode "moves": not checked)
     rows_in: int  # rows of the table given
     rows_out: int  # rows of the table returned
     rows_dropped: int  # rows dropped before reducing (non-finite, zero quaternion, t not increasing); 0 if unchanged
-    segments: int  # settled intervals found (= rows_out for a stream, 0 otherwise)
+    segments: int  # settled intervals found, or windows cut (rows_out, or rows_out - 1 for windows; 0 unchanged)
     still_fraction: float | None  # detection figures (StreamStats); None for mode "moves"
     coherence: float | None
     v_tol: float | None  # joint speed threshold used (actuator units / s); None if unchanged
@@ -161,11 +200,15 @@ class StreamInfo(NamedTuple):
     latency_s: float | None  # tracker shift applied (s); None: none applied
     latency_estimate_s: float | None  # the estimated tracker latency (s), latency="auto" only
     latency_correlation: float | None  # its speed correlation peak
-    intervals: np.ndarray  # (segments, 2) start and stop time (s) of each settled interval
+    intervals: np.ndarray  # (segments, 2) start and stop time (s) of each settled interval (or window)
     notes: tuple[str, ...]  # one line each: what was not done and why
+    reading: str = "rests"  # a stream: "rests" (one row per settled interval) or "windows" (one row per window edge)
+    window_s: float | None = None  # windows: their length (s), chosen from the motion (motion_windows)
+    window_move: float | None = None  # windows: the median joint displacement of a window (actuator units)
 
     def line(self) -> str:
-        """One line for the fit's report, e.g. ``a continuous stream: 2050 rows -> 41 settled rows (...)``."""
+        """One line for the fit's report, e.g. ``a continuous stream: 2050 rows -> 41 settled rows (...)`` or
+        ``a continuous stream without rests: 4030 rows -> 58 windows of 0.69 s (...)``."""
         if not self.continuous:
             why = ("as asked" if self.mode == "moves" else "not checked" if self.still_fraction is None
                    else f"still fraction {self.still_fraction:.2f} < {CONTINUOUS_STILL_FRACTION}")
@@ -179,6 +222,11 @@ class StreamInfo(NamedTuple):
                    f"{self.latency_correlation:.2f}), not taken out")
         else:
             lat = ", no tracker shift"
+        if self.reading == "windows":
+            return (f"a continuous stream without rests: {self.rows_in} rows -> {self.segments} windows of "
+                    f"{self.window_s:.3g} s (the length at which a window moves the joints {WINDOW_MOVE:g}, a self-ID "
+                    f"move m_a: median {self.window_move:.3g}), each window's joint and tracker displacement one "
+                    f"sample{lat}; {self.rows_dropped} bad rows dropped first")
         return (f"a continuous stream: {self.rows_in} rows -> {self.segments} settled rows (one per rest of >= "
                 f"{self.min_settle_s:.3g} s below {self.v_tol:.3g}/s){lat}; {self.rows_dropped} bad rows dropped "
                 "first")
@@ -263,8 +311,8 @@ def settled_intervals(t: Any, q: Any, *, v_tol: float | None = None, min_settle_
     MIN_SETTLE_RUN_FRACTION (0.25) x median duration of the runs below v_tol)``.
 
     Raises:
-      ValueError: rows not finite or not increasing, joints that never move,
-        or no settled interval (the message gives the figures to change).
+      NoRestsError: no settled interval (the message gives the figures to change).
+      ValueError: rows not finite or not increasing, joints that never move.
     """
     t = _time(t)
     q = _as_2d("q", q, t.shape[0])
@@ -300,13 +348,87 @@ def settled_intervals(t: Any, q: Any, *, v_tol: float | None = None, min_settle_
     long = durations >= min_settle_s * (1 - 1e-9)
     if not long.any():
         longest = f"{float(durations.max()):.3g} s" if durations.size else "none"
-        raise ValueError(
+        raise NoRestsError(
             f"no settled interval found: the joint speed (max over joints of |dq/dt|) never stays below "
             f"v_tol={v_tol:.3g}/s for min_settle_s={min_settle_s:.3g} s (lowest speed {float(speed[ok].min()):.3g}/s, "
             f"typical move speed {v_ref:.3g}/s, longest rest {longest}); does the arm rest between moves? "
             f"{NO_RESTS_ADVICE}")
     return Segmentation(run_a[long].astype(np.int64), run_b[long].astype(np.int64), float(v_tol),
                         float(min_settle_s), v_ref)
+
+
+def _window_move(t: np.ndarray, q: np.ndarray, lo: float, window_s: float, count: int) -> np.ndarray:
+    """``(count,)``: ``max_j |q_j(lo + (k + 1) w) - q_j(lo + k w)|`` of windows ``k`` (``q`` interpolated)."""
+    edges = lo + window_s * np.arange(count + 1)
+    qe = np.stack([np.interp(edges, t, q[:, j]) for j in range(q.shape[1])], axis=1)
+    return np.abs(np.diff(qe, axis=0)).max(axis=1)
+
+
+def motion_windows(t: Any, q: Any, *, move: float = WINDOW_MOVE, lo: float | None = None, hi: float | None = None
+                   ) -> Windows:
+    """A stream's time span ``[lo, hi]`` (default: all of ``t``) cut into windows of one length, chosen so that a
+    window moves the joints ``q (T, n)`` (at increasing times ``t (T,)``, s) about ``move`` (actuator units).
+
+    A window's move is ``max_j |q_j(end) - q_j(start)|`` (``q`` interpolated
+    linearly at the edges). The length ``w`` starts at ``move`` over the mean
+    joint speed (``max_j |dq_j/dt|`` over the steps that are no gap,
+    :data:`GAP_FACTOR`) and is rescaled by ``move / median move`` until the
+    median move of the windows is within 5 % of ``move`` (at most 8 rounds, at
+    most 4x per round: a random walk's move grows as ``sqrt(w)``, a straight
+    motion's as ``w``); ``w`` is kept within ``MIN_WINDOW_STEPS`` (4) median
+    row intervals and a :data:`MIN_WINDOWS` th of the span. The edges are
+    ``lo + k w``, ``k = 0..K`` with ``K = floor((hi - lo) / w)``.
+
+    Raises:
+      NoRestsError: fewer than :data:`MIN_WINDOWS` windows fit in the span, or the joints never move in it.
+    """
+    t = _time(t)
+    q = _as_2d("q", q, t.shape[0])
+    if not (np.isfinite(move) and move > 0):
+        raise ValueError(f"move (a window's joint displacement) must be a positive number, got {move!r}")
+    lo = float(t[0]) if lo is None else float(lo)
+    hi = float(t[-1]) if hi is None else float(hi)
+    dt = np.diff(t)
+    span = hi - lo
+    dt_med = float(np.median(dt)) if dt.size else 0.0
+    speed = np.abs(np.diff(q, axis=0)).max(axis=1) / np.where(dt > 0, dt, np.inf)
+    inside = (t[:-1] >= lo) & (t[1:] <= hi) & (dt <= GAP_FACTOR * dt_med)
+    mean_speed = float(speed[inside].mean()) if inside.any() else 0.0
+    shortest = MIN_WINDOW_STEPS * dt_med
+    if not (dt_med > 0 and span >= MIN_WINDOWS * shortest and mean_speed > 0):
+        raise NoRestsError(f"no windows of its motion can be cut: {span:.3g} s of the stream "
+                           f"({int(inside.sum())} row steps) with a mean joint speed of {mean_speed:.3g}/s, where "
+                           f"{MIN_WINDOWS} windows of at least {MIN_WINDOW_STEPS} rows of motion are needed")
+    longest = span / MIN_WINDOWS
+    w = float(np.clip(move / mean_speed, shortest, longest))
+    median = 0.0
+    for _ in range(8):
+        median = float(np.median(_window_move(t, q, lo, w, int(np.floor(span / w + 1e-9)))))
+        if not median > 0:
+            break
+        scale = float(np.clip(move / median, 0.25, 4.0))
+        new = float(np.clip(w * scale, shortest, longest))
+        if abs(median / move - 1.0) <= 0.05 or new == w:
+            break
+        w = new
+    count = int(np.floor(span / w + 1e-9))
+    median = float(np.median(_window_move(t, q, lo, w, count)))
+    if not median > 0:
+        raise NoRestsError(f"no windows of its motion can be cut: the joints do not move between {lo:.3f} and "
+                           f"{hi:.3f} s")
+    return Windows(lo + w * np.arange(count + 1), w, float(move), median)
+
+
+def _average(q: np.ndarray, pose: np.ndarray, qi: Sequence[int], ri: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of rows ``q (k, n)`` and ``pose (k, d)``; the pose's quaternion columns ``qi`` (w, x, y, z) and
+    rotation-vector columns ``ri`` averaged as rotations (sign-aligned to the last row's, renormalised)."""
+    q_mean, pose_mean = q.mean(axis=0), pose.mean(axis=0)
+    for cols, to_q, back in ((qi, _normalise, _normalise), (ri, _rotvec_to_quat, _quat_to_rotvec)):
+        if cols:
+            quats = to_q(pose[:, list(cols)])
+            quats = np.where((quats @ quats[-1] < 0)[:, None], -quats, quats)
+            pose_mean[list(cols)] = back(_normalise(quats.mean(axis=0)))
+    return q_mean, pose_mean
 
 
 # ------------------------------------------------------------------ the entry point
@@ -336,24 +458,27 @@ def reduce_stream(
     rotvec_cols: Sequence[str] | None = None,
     max_lag_s: float = LATENCY_MAX_S,
 ) -> tuple[dict[str, np.ndarray], StreamInfo]:
-    """A raw time series as the pairing wants it: one settled row per move. Returns ``(table, info)``.
+    """A raw time series as the pairing wants it: one settled row per move (or per window edge). Returns
+    ``(table, info)``.
 
     ``mode``: ``"auto"`` reduces the log if :func:`is_continuous` (on ``t_col``
     and ``q_cols``) says it is a stream and returns it unchanged otherwise;
-    ``"stream"`` always reduces, ``"moves"`` never (the table comes back as it
-    is, columns as numpy arrays, its bad rows left to the pairing's screens).
+    ``"stream"`` always reduces; ``"windows"`` always reduces, by windows
+    (step 5) even where the arm rests; ``"moves"`` never reduces (the table
+    comes back as it is, columns as numpy arrays, its bad rows left to the
+    pairing's screens).
 
     Reducing a stream:
 
     1. Rows with a non-finite ``t``/``q``/pose entry, a zero quaternion or a
        time not after the previous kept row's are dropped (``rows_dropped``).
     2. ``latency``: ``"auto"`` estimates the tracker latency
-       (:func:`latency_estimate`, over ``+-max(max_lag_s, LATENCY_SEARCH_FRACTION x the log's span)``, on the
-       position columns
-       or, without any, all pose columns) and shifts the pose columns by it
-       (:func:`shift_tracker`) when the correlation peak reaches
-       :data:`LATENCY_MIN_CORR`; a number shifts by that many seconds; None
-       shifts nothing.
+       (:func:`latency_estimate` for a stream with rests, :func:`latency_fit`
+       for one read by windows; over ``+-max(max_lag_s, LATENCY_SEARCH_FRACTION x the log's span)``, on the
+       position columns or, without any, all pose columns) and shifts the
+       pose columns by it (:func:`shift_tracker`) when the correlation peak
+       reaches :data:`LATENCY_MIN_CORR`; a number shifts by that many seconds;
+       None shifts nothing.
     3. :func:`settled_intervals` with ``v_tol`` (actuator units / s) and
        ``min_settle_s`` (s), defaults from the data (see there).
     4. Each interval gives one row: ``t`` of its last row (the arm's settled
@@ -366,14 +491,28 @@ def reduce_stream(
        consistent even if the arm still creeps. Quaternions are sign-aligned to
        the interval's last row, averaged and renormalised (rotation vectors via
        quaternions). Any other column takes its value at the interval's last row.
+       Only rows the latency shift leaves a pose for are averaged (the
+       shifted pose is held past the log's end): a rest with none gives no row
+       (noted).
+    5. A stream with fewer than two settled intervals (the arm moving without
+       rests; a forced ``"stream"`` on a log that does not look like one is
+       refused instead) is cut into windows of one length
+       (:func:`motion_windows`: a window moves the joints about
+       :data:`WINDOW_MOVE`, a self-ID move), within the rows the latency shift
+       left defined. Each window edge gives one row: ``q`` and the (shifted)
+       pose averaged over the rows within ``WINDOW_EDGE_FRACTION`` (0.2) of a
+       window of it, ``t`` their mean time, other columns at the row nearest
+       the edge. Consecutive rows then pair into one sample per window: its
+       joint and tracker displacement, about a nearly constant Jacobian.
 
     Consecutive returned rows then pair into one sample per move
     (:func:`selfid_jax.robot.log.samples_from_table`).
 
     Raises:
+      NoRestsError: (reducing) a stream too short or too still for two windows.
       ValueError: an unknown mode or option, a missing or non-numeric column,
-        (reducing) a stream without two settled intervals, or an estimated
-        latency at the edge of the search; one line that says which figure to change.
+        an estimated latency at the edge of the search; one line that says
+        which figure to change.
     """
     if mode not in _MODES:
         raise ValueError(f"stream mode must be one of {', '.join(_MODES)}, got {mode!r}")
@@ -398,7 +537,7 @@ def reduce_stream(
         t = _column(table, t_col, rows)
         q = np.stack([_column(table, c, rows) for c in q_cols], axis=1)
     except ValueError as err:
-        if mode == "stream":
+        if mode in ("stream", "windows"):
             raise
         # auto: a log that cannot be checked is left to the pairing's screens, whose messages name file and line
         return unchanged, StreamInfo(False, mode, None, rows, rows, 0, 0, None, None, None, None, None, None, None,
@@ -422,6 +561,34 @@ def reduce_stream(
     t_k, q_k, pose_k = t[idx], q[idx], pose[idx]
     notes: list[str] = []
 
+    seg: Segmentation | None = None
+    if mode != "windows":
+        try:
+            seg = settled_intervals(t_k, q_k, v_tol=v_tol, min_settle_s=min_settle_s)
+            if seg.start.shape[0] < 2:
+                raise NoRestsError(
+                    f"only one settled interval found (t = {t_k[seg.start[0]]:.3f} to {t_k[seg.stop[0]]:.3f} s, joint "
+                    f"speed below v_tol={seg.v_tol:.3g}/s for >= {seg.min_settle_s:.3g} s); a sample needs two")
+        except NoRestsError as err:
+            if mode == "stream" and not stats.continuous:  # forced: the log may be one settled row per move
+                raise ValueError(f"{err} (--mode stream was asked, but the log does not look like a stream: if it "
+                                 "holds one settled row per move, read it with --mode auto)") from None
+            given = ", ".join(f"{name} {value:g}{unit}" for name, value, unit in
+                              (("--settle-speed", v_tol, "/s"), ("--settle-time", min_settle_s, " s"))
+                              if value is not None)
+            notes.append(f"fewer than two rests{' at ' + given if given else ''}: read by windows of its motion")
+            seg = None
+        except ValueError as err:
+            if mode == "stream" and not stats.continuous:
+                raise ValueError(f"{err} (--mode stream was asked, but the log does not look like a stream: if it "
+                                 "holds one settled row per move, read it with --mode auto)") from None
+            raise
+
+    if seg is None:  # too short or too still for windows: refused before the latency is looked for
+        try:
+            motion_windows(t_k, q_k)
+        except NoRestsError as err:
+            raise NoRestsError(f"{err}. {NO_RESTS_ADVICE}") from None
     latency_s: float | None = None
     est: LatencyEstimate | None = None
     if latency == "auto":
@@ -431,18 +598,20 @@ def reduce_stream(
         # max_lag_s; a periodic schedule of moves makes a lag beyond a narrower search look like one inside it
         search = max(float(max_lag_s), LATENCY_SEARCH_FRACTION * float(t_k[-1] - t_k[0]))
         try:
-            est = latency_estimate(t_k, q_k, pose_k[:, pos], max_lag_s=search)
+            how = latency_estimate if seg is not None else latency_fit  # no rests: the speed is too smooth to time
+            est = how(t_k, q_k, pose_k[:, pos], max_lag_s=search)
         except ValueError as err:
             if "edge of the search" in str(err):
-                raise ValueError(f"the tracker latency is beyond what the log can show (the speed correlation peaks "
-                                 f"at the edge of a +-{search:.3g} s search, a quarter of the log): give it, "
+                raise ValueError(f"the tracker latency is beyond what the log can show (its best match lies at the "
+                                 f"edge of a +-{search:.3g} s search, a quarter of the log): give it, "
                                  f"--latency S (latency=S, seconds), or --latency none; {err}") from None
             notes.append(f"tracker latency not estimated ({err}); no shift applied")
         else:
             if est.correlation >= LATENCY_MIN_CORR:
                 latency_s = est.seconds
             else:
-                notes.append(f"tracker latency estimate {1e3 * est.seconds:.1f} ms not used: speed correlation "
+                what = "speed correlation" if seg is not None else "velocity fit's correlation"
+                notes.append(f"tracker latency estimate {1e3 * est.seconds:.1f} ms not used: {what} "
                              f"{est.correlation:.2f} < {LATENCY_MIN_CORR}; no shift applied")
     elif latency is not None:
         latency_s = float(latency)  # checked above: a number
@@ -451,42 +620,62 @@ def reduce_stream(
                                 quat_cols=quat_c, rotvec_cols=rotvec_c)
         pose_k = np.stack([shifted[c] for c in pose_cols], axis=1)
 
-    try:
-        seg = settled_intervals(t_k, q_k, v_tol=v_tol, min_settle_s=min_settle_s)
-    except ValueError as err:
-        if mode == "stream" and not stats.continuous:  # forced: the log may be one settled row per move after all
-            raise ValueError(f"{err} (--mode stream was asked, but the log does not look like a stream: if it holds "
-                             "one settled row per move, read it with --mode auto)") from None
-        raise
-    K = int(seg.start.shape[0])
-    if K < 2:
-        raise ValueError(f"only one settled interval found (t = {t_k[seg.start[0]]:.3f} to {t_k[seg.stop[0]]:.3f} s, "
-                         f"joint speed below v_tol={seg.v_tol:.3g}/s for >= {seg.min_settle_s:.3g} s); a sample needs "
-                         f"two. {NO_RESTS_ADVICE}")
-    if latency_s is not None:
-        short = (t_k[seg.stop] - t_k[seg.start]) / 2 < abs(latency_s)
-        if short.any() and latency == "auto":
-            notes.append(f"{int(short.sum())} settled intervals shorter than twice the tracker latency")
-
-    q_out = np.empty((K, q_k.shape[1]))
-    pose_out = np.empty((K, pose_k.shape[1]))
     qi = [pose_cols.index(c) for c in quat_c]
     ri = [pose_cols.index(c) for c in rotvec_c]
-    for k, (a, b) in enumerate(zip(seg.start, seg.stop)):
-        half = slice(a + int(np.searchsorted(t_k[a:b + 1], 0.5 * (t_k[a] + t_k[b]), side="left")), b + 1)
-        q_out[k] = q_k[half].mean(axis=0)
-        pose_out[k] = pose_k[half].mean(axis=0)
-        for cols, to_q, back in ((qi, _normalise, _normalise), (ri, _rotvec_to_quat, _quat_to_rotvec)):
-            if cols:
-                quats = to_q(pose_k[half][:, cols])
-                ref = quats[-1]
-                quats = np.where((quats @ ref < 0)[:, None], -quats, quats)
-                pose_out[k, cols] = back(_normalise(quats.mean(axis=0)))
-    last = idx[seg.stop]
+    rows_used: list[tuple[int, int]] = []  # (first, last + 1) row of t_k averaged into each output row
+    pick: list[int] = []  # the row of t_k whose other columns each output row takes
+    windows: Windows | None = None
+    shift = 0.0 if latency_s is None else latency_s
+    lo, hi = float(t_k[0]) + max(0.0, -shift), float(t_k[-1]) - max(0.0, shift)  # a shifted pose is held beyond
+    if seg is not None:
+        inside = []
+        for a, b in zip(seg.start, seg.stop):
+            first = int(a + np.searchsorted(t_k[a:b + 1], max(0.5 * (t_k[a] + t_k[b]), lo), side="left"))
+            end = int(a + np.searchsorted(t_k[a:b + 1], hi, side="right"))
+            if end > first:  # a rest whose second half the latency shift left undefined gives no row
+                rows_used.append((first, end))
+                pick.append(int(b))
+                inside.append(True)
+            else:
+                inside.append(False)
+        keep_seg = np.asarray(inside)
+        if not keep_seg.all():
+            notes.append(f"{int((~keep_seg).sum())} rests beyond the rows the tracker latency "
+                         f"({1e3 * shift:.0f} ms) leaves a pose for: not used")
+        if keep_seg.sum() < 2:
+            raise NoRestsError(f"only {int(keep_seg.sum())} rests within the rows the tracker latency "
+                               f"({1e3 * shift:.0f} ms) leaves a pose for; a sample needs two. {NO_RESTS_ADVICE}")
+        intervals = np.stack([t_k[seg.start], t_k[seg.stop]], axis=1)[keep_seg]
+    else:
+        try:
+            windows = motion_windows(t_k, q_k, lo=lo, hi=hi)
+        except NoRestsError as err:
+            raise NoRestsError(f"{err}. {NO_RESTS_ADVICE}") from None
+        h = WINDOW_EDGE_FRACTION * windows.window_s
+        kept = []
+        for e in windows.edges:
+            a = int(np.searchsorted(t_k, max(e - h, lo), side="left"))
+            b = int(np.searchsorted(t_k, min(e + h, hi), side="right"))
+            if b > a:  # no row near this edge (a gap): its two windows pair as one
+                rows_used.append((a, b))
+                pick.append(int(a + np.argmin(np.abs(t_k[a:b] - e))))
+                kept.append(e)
+        edges = np.asarray(kept)
+        intervals = np.stack([edges[:-1], edges[1:]], axis=1) if edges.size >= 2 else np.zeros((0, 2))
+        if len(rows_used) < MIN_WINDOWS + 1:
+            raise NoRestsError(f"only {len(rows_used)} window edges have rows near them; {NO_RESTS_ADVICE}")
+    K = len(rows_used)
+    q_out = np.empty((K, q_k.shape[1]))
+    pose_out = np.empty((K, pose_k.shape[1]))
+    t_out = np.empty(K)
+    for k, (a, b) in enumerate(rows_used):
+        q_out[k], pose_out[k] = _average(q_k[a:b], pose_k[a:b], qi, ri)
+        t_out[k] = t_k[pick[k]] if windows is None else float(t_k[a:b].mean())
+    last = idx[np.asarray(pick, np.int64)]
     out: dict[str, np.ndarray] = {}
     for c in names:
         if c == t_col:
-            out[c] = t_k[seg.stop]
+            out[c] = t_out
         elif c in q_cols:
             out[c] = q_out[:, q_cols.index(c)]
         elif c in pose_cols:
@@ -495,9 +684,12 @@ def reduce_stream(
             out[c] = unchanged[c][last]
     info = StreamInfo(
         continuous=True, mode=mode, detected=stats.continuous, rows_in=rows, rows_out=K,
-        rows_dropped=int(rows - idx.size), segments=K, still_fraction=stats.still_fraction,
-        coherence=stats.coherence, v_tol=seg.v_tol, min_settle_s=seg.min_settle_s, latency_s=latency_s,
-        latency_estimate_s=None if est is None else est.seconds,
+        rows_dropped=int(rows - idx.size), segments=K if windows is None else K - 1,
+        still_fraction=stats.still_fraction, coherence=stats.coherence,
+        v_tol=None if seg is None else seg.v_tol, min_settle_s=None if seg is None else seg.min_settle_s,
+        latency_s=latency_s, latency_estimate_s=None if est is None else est.seconds,
         latency_correlation=None if est is None else est.correlation,
-        intervals=np.stack([t_k[seg.start], t_k[seg.stop]], axis=1), notes=tuple(notes))
+        intervals=intervals, notes=tuple(notes), reading="rests" if windows is None else "windows",
+        window_s=None if windows is None else windows.window_s,
+        window_move=None if windows is None else windows.median_move)
     return out, info
