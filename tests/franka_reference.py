@@ -12,22 +12,16 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import json
-import os
-import shutil
-import signal
-import socket
 import subprocess
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import helpers_vendor_sim as vendor_sim
 import numpy as np
 
 FLANGE_Z = 0.107  # m, link 7 to the flange (fr3.xml's hand body, franky's O_T_F)
 EE_Z = 0.1034  # m, the flange to franky's default end effector of the Franka hand (F_T_EE)
-PORT = 1337
-AXES = ("x", "y", "z", "rx", "ry", "rz")  # libfranka's command port
+PORT = 1337  # libfranka's command port
 
 
 @functools.cache
@@ -68,48 +62,21 @@ def fr3_jacobian(q: np.ndarray, axes) -> np.ndarray:
 def session_error(run_dir: Path) -> tuple[float, np.ndarray]:
     """``(||J Ĵ - I||_F, q0 (7,))`` of a run directory's estimate against MuJoCo's Jacobian at the session's first
     joint reading."""
-    first = next(json.loads(line) for line in open(run_dir / "session.jsonl") if '"e":"obs"' in line)
-    q0 = np.array(first["q"])
-    est = np.load(run_dir / "inverse_jacobian.npz")
-    J = fr3_jacobian(q0, [AXES.index(str(a)) for a in est["task_axes"]])
-    return float(np.linalg.norm(J @ est["inverse_jacobian"] - np.eye(J.shape[0]))), q0
+    return vendor_sim.session_error(run_dir, fr3_jacobian)
 
 
 def port_open(port: int = PORT) -> bool:
-    with socket.socket() as s:
-        s.settimeout(0.2)
-        return s.connect_ex(("127.0.0.1", port)) == 0
+    return vendor_sim.port_open(port)
 
 
 @contextlib.contextmanager
 def franky_sim(log: Path, timeout_s: float = 30.0) -> Iterator[subprocess.Popen]:
     """``franky-sim -s mujoco`` headless on 127.0.0.1:1337 for the block, ended by its PID (and its process
     group) after; RuntimeError if the port is taken before it starts or does not open within ``timeout_s``."""
-    if port_open():
-        raise RuntimeError(f"127.0.0.1:{PORT} is already in use: another franky-sim or libfranka server is running")
-    exe = shutil.which("franky-sim")
-    if exe is None:
-        raise RuntimeError("franky-sim is not on PATH")
-    with open(log, "ab") as out:
-        proc = subprocess.Popen([exe, "-s", "mujoco"], stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
-    try:
-        deadline = time.monotonic() + timeout_s
-        while not port_open():
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"franky-sim did not listen on {PORT} (exit {proc.poll()}); see {log}")
-            time.sleep(0.05)
+    with vendor_sim.simulator(["franky-sim", "-s", "mujoco"], PORT, log, timeout_s) as proc:
         yield proc
-    finally:
-        kill(proc)
 
 
 def kill(proc: subprocess.Popen) -> None:
     """End the simulator by its PID's process group (SIGKILL: what a crash looks like to the arm's client)."""
-    if proc.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(10)
-    deadline = time.monotonic() + 10
-    while port_open() and time.monotonic() < deadline:
-        time.sleep(0.05)
+    vendor_sim.kill(proc, PORT)

@@ -11,12 +11,11 @@ reference (summary.json reference_error) comes from the kinematic parameters the
 from __future__ import annotations
 
 import contextlib
-import json
-import threading
 import time
 import types
 from pathlib import Path
 
+import helpers_vendor_sim as vendor_sim
 import numpy as np
 import pytest
 
@@ -192,7 +191,8 @@ def test_offset_correction_lands_a_biased_joint_on_its_target(clock):
 
 def test_a_joint_that_does_not_settle_raises_robot_error_naming_it(clock):
     arm = _arm(clock, bias=np.array([0, 0, 0.03, 0, 0, 0]), settle_timeout_s=0.5)
-    with pytest.raises(RobotError, match=r"Trossen: joint 3 did not settle within 0.5 s: 0.03 rad from its target"):
+    with pytest.raises(RobotError, match=r"Trossen: joint 3 did not settle within 0.5 s of the move: it stays 30 "
+                       r"mrad from its target"):
         arm.move(np.zeros(6))
 
 
@@ -346,18 +346,21 @@ def test_drivers_are_found_by_name_and_a_user_s_module_still_works(tmp_path, mon
 
     from selfid_jax.robot.drivers import DRIVERS, check_robot_args, connect, import_driver
     from selfid_jax.robot.drivers.franka import Franka
-    from selfid_jax.robot.drivers.load import ConnectError
+    from selfid_jax.robot.drivers.load import DriverFailure
 
     assert import_driver("trossen") is Trossen and import_driver("franka") is Franka
     assert set(DRIVERS) == {"franka", "trossen"}
     check_robot_args(driver="trossen", args={"host": "x"})
     with pytest.raises(ValueError, match=r"driver must be one of franka, trossen or 'package.module:Class', got 'ur'"):
         check_robot_args(driver="ur")
-    with pytest.raises(ConnectError, match="cannot connect with trossen: .*Failed to connect") as err:
+    with pytest.raises(DriverFailure, match="driver trossen failed in connect, before any motion: .*Failed to "
+                       r"connect \(TCP\) \(no WidowX AI controller answered at 127.0.0.1: check "
+                       r"robot.args.host") as failed:
         connect(driver="trossen", args={"host": "127.0.0.1", "connect_timeout_s": 0.2,
                                         "trossen_arm": fake_trossen_arm(Clock(), fail={"configure":
-                                                                                       "Failed to connect (TCP)"})})
-    assert err.value.key == "driver"
+                                                                                       "Failed to connect (TCP)"})},
+                announce=None)
+    assert failed.value.exit_code == 3 and failed.value.call == "connect"
     (tmp_path / "my_lab_arm.py").write_text("from test_trossen import ExternalTracker as Arm\n")
     monkeypatch.syspath_prepend(str(Path(__file__).parent))
     monkeypatch.delitem(sys.modules, "my_lab_arm", raising=False)
@@ -382,10 +385,10 @@ def trossen_sim_available():
 def test_the_vendor_driver_against_the_simulated_controller(trossen_sim_available):
     """The controller's pose, limits and kinematic parameters through the real driver: the pose agrees with MuJoCo's
     ee_site, the driver's model Jacobian with MuJoCo's; a controller fault is a robot_error (not a lost link); a
-    firmware the driver refuses is a ConnectError naming the versions."""
+    firmware the driver refuses is a DriverFailure (exit 3) naming the versions, with our hint."""
     tr = trossen_sim_available
     from selfid_jax.robot.drivers import connect
-    from selfid_jax.robot.drivers.load import ConnectError
+    from selfid_jax.robot.drivers.load import DriverFailure
 
     with tr.controller() as fault:
         arm = Trossen("127.0.0.1", start=HOME, start_time_s=1.0, connect_timeout_s=2.0)
@@ -406,20 +409,13 @@ def test_the_vendor_driver_against_the_simulated_controller(trossen_sim_availabl
             with contextlib.suppress(RobotError):  # holding a faulted arm fails; it is released all the same
                 arm.close()
         assert arm.arm is None
-    with tr.controller(driver_version="1.9"), pytest.raises(ConnectError, match="major and minor versions of the "
-                                                                            "driver and controller firmware must"):
-        connect(driver="trossen", args={"host": "127.0.0.1", "connect_timeout_s": 2.0})
+    with tr.controller(driver_version="1.9"), pytest.raises(DriverFailure, match="major and minor versions of the "
+                                                                             "driver and controller firmware must.*"
+                                                                             "update the firmware to v1.11"):
+        connect(driver="trossen", args={"host": "127.0.0.1", "connect_timeout_s": 2.0}, announce=None)
 
 
 # ---- end to end: selfid-jax online through trossen-arm against trossen-arm-sim
-
-
-def _summary(out: Path) -> dict:
-    return json.loads((out / "summary.json").read_text())
-
-
-def _journal(out: Path) -> list[dict]:
-    return [json.loads(line) for line in (out / "session.jsonl").read_text().splitlines()]
 
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "robot" / "online_trossen_sim.yaml"
@@ -440,43 +436,16 @@ def test_online_through_trossen_arm_on_trossen_arm_sim(trossen_sim_available, tm
     out3, out6 = tmp_path / "xyz", tmp_path / "6d"
     with tr.trossen_sim(tmp_path / "sim.log"):
         assert main(["online", str(CONFIG), "--out", str(out3), *SMALL, "--quiet"]) == 0
-    s3 = _summary(out3)
-    assert s3["status"] == "completed" and s3["converged"], s3
-    error3, q0 = tr.session_error(out3)
+    _, q0 = vendor_sim.converged_then_followed(out3, tr.session_error, 0.10)
     np.testing.assert_allclose(q0, HOME, atol=0.01)  # the driver moved the simulator to its start
-    assert error3 <= 0.10, error3
-    assert abs(s3["reference_error"] - error3) < 0.01
-    moves = [e for e in _journal(out3) if e["e"] == "move"]
-    assert all(e["phase"] == "follow" for e in moves[s3["samples"]:])  # no random move after convergence
-    assert s3["waypoints"] == s3["waypoints_total"] and s3["track_max_m"] < 0.01
 
     six = ["--set", "selfid.task=x,y,z,rx,ry,rz", *SMALL, "--quiet"]
     with tr.trossen_sim(tmp_path / "sim.log") as sim:
-        killer = threading.Thread(target=_kill_after_samples, args=(tr, sim, out6 / "session.jsonl", 4))
-        killer.start()
-        code = main(["online", str(CONFIG), "--out", str(out6), *six])
-        killer.join()
-    assert code == 3, code  # the robot or its driver failed
-    s6 = _summary(out6)
-    assert s6["status"] == "connection" and "UDP" in s6["detail"], s6
-    stops = [e for e in _journal(out6) if e["e"] == "stop"]
-    assert stops and stops[-1]["reason"] == "connection"
-    logged = sum(1 for e in _journal(out6) if e["e"] == "sample")
-    assert logged >= 4
+        vendor_sim.killed_during_selfid(lambda: main(["online", str(CONFIG), "--out", str(out6), *six]), sim,
+                                        tr.PORT, out6, "UDP")
     capsys.readouterr()
     with tr.trossen_sim(tmp_path / "sim.log"):
         assert main(["online", str(CONFIG), "--out", str(out6), "--resume", *six]) == 0
-    s6 = _summary(out6)
-    assert s6["status"] == "completed" and s6["converged"] and s6["waypoints"] == s6["waypoints_total"], s6
-    error6, _ = tr.session_error(out6)
-    assert error6 <= 0.30, error6
-    assert abs(s6["reference_error"] - error6) < 0.02
+    vendor_sim.converged_then_followed(out6, tr.session_error, 0.30, reference_tol=0.02, resumed=True)
 
 
-def _kill_after_samples(tr, sim, log: Path, count: int) -> None:
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if log.exists() and log.read_text().count('"e":"sample"') >= count:
-            tr.kill(sim)
-            return
-        time.sleep(0.02)

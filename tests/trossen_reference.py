@@ -12,21 +12,17 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import json
 import multiprocessing
-import os
-import shutil
-import signal
 import socket
 import subprocess
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import helpers_vendor_sim as vendor_sim
 import numpy as np
 
 PORT = 50001  # the arm controller's TCP port (its UDP port is 50000); neither can be chosen
-AXES = ("x", "y", "z", "rx", "ry", "rz")
 
 
 @functools.cache
@@ -63,17 +59,11 @@ def ee_jacobian(q: np.ndarray, axes) -> np.ndarray:
 def session_error(run_dir: Path) -> tuple[float, np.ndarray]:
     """``(||J Ĵ - I||_F, q0 (6,))`` of a run directory's estimate against MuJoCo's Jacobian at the session's first
     joint reading."""
-    first = next(json.loads(line) for line in open(run_dir / "session.jsonl") if '"e":"obs"' in line)
-    q0 = np.array(first["q"])
-    est = np.load(run_dir / "inverse_jacobian.npz")
-    J = ee_jacobian(q0, [AXES.index(str(a)) for a in est["task_axes"]])
-    return float(np.linalg.norm(J @ est["inverse_jacobian"] - np.eye(J.shape[0]))), q0
+    return vendor_sim.session_error(run_dir, ee_jacobian)
 
 
 def port_open(port: int = PORT) -> bool:
-    with socket.socket() as s:
-        s.settimeout(0.2)
-        return s.connect_ex(("127.0.0.1", port)) == 0
+    return vendor_sim.port_open(port)
 
 
 def free_port() -> int:
@@ -87,34 +77,14 @@ def trossen_sim(log: Path, timeout_s: float = 30.0) -> Iterator[subprocess.Popen
     """``trossen-arm-sim --host 127.0.0.1`` (its collision stream on a free port) for the block, ended by its PID
     (and its process group) after; RuntimeError if the controller's port is taken before it starts or does not
     open within ``timeout_s``."""
-    if port_open():
-        raise RuntimeError(f"127.0.0.1:{PORT} is already in use: another trossen-arm-sim or arm controller is running")
-    exe = shutil.which("trossen-arm-sim")
-    if exe is None:
-        raise RuntimeError("trossen-arm-sim is not on PATH")
-    with open(log, "ab") as out:
-        proc = subprocess.Popen([exe, "--host", "127.0.0.1", "--ws-port", str(free_port())], stdout=out,
-                                stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        deadline = time.monotonic() + timeout_s
-        while not port_open():
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"trossen-arm-sim did not listen on {PORT} (exit {proc.poll()}); see {log}")
-            time.sleep(0.05)
+    command = ["trossen-arm-sim", "--host", "127.0.0.1", "--ws-port", str(free_port())]
+    with vendor_sim.simulator(command, PORT, log, timeout_s) as proc:
         yield proc
-    finally:
-        kill(proc)
 
 
 def kill(proc: subprocess.Popen) -> None:
     """End the simulator by its PID's process group (SIGKILL: what a power cut looks like to the arm's driver)."""
-    if proc.poll() is None:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait(10)
-    deadline = time.monotonic() + 10
-    while port_open() and time.monotonic() < deadline:
-        time.sleep(0.05)
+    vendor_sim.kill(proc, PORT)
 
 
 def _serve_controller(conn, driver_version: str | None) -> None:

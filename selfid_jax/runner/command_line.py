@@ -54,7 +54,10 @@ class Command(NamedTuple):
 
     ``run(args) -> exit code`` reports bad input by raising
     :class:`~selfid_jax.runner.errors.ConfigError` (or ``OSError``): one line on
-    stderr, exit 2, like the runner's own commands.
+    stderr, exit 2, like the runner's own commands. An exception with an integer
+    ``exit_code`` attribute above 2 (a robot's driver failing,
+    :class:`selfid_jax.robot.drivers.load.DriverFailure`: 3) is one line on stderr
+    and that exit code.
     """
 
     help: str  # one line for `selfid-jax --help`
@@ -501,6 +504,12 @@ def main(argv: Sequence[str] | None = None,
     except KeyboardInterrupt:
         print(f"{_PROG}: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:
+        code = getattr(err, "exit_code", None)  # an error that says its own exit code (a robot's driver failing: 3)
+        if not isinstance(code, int) or isinstance(code, bool) or code in (0, 1, 2):
+            raise
+        print(f"{_PROG} {args.command}: error: {' '.join(str(err).split())}", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

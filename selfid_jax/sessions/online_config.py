@@ -7,6 +7,7 @@ The YAML a lab writes for ``selfid-jax online CONFIG`` (and for
       host: 127.0.0.1
       port: 50007
       timeout_s: 5.0
+    # robot: {driver: franka, args: {host: 172.16.0.2}}     # ... or a shipped driver (franka, trossen) ...
     # robot: {driver: "package.module:Class", args: {...}}   # ... or a user's driver, Class(**args)
     selfid: {task: "x,y,z", m_a: 0.03, eps: 0.0, eps_rel: 0.05, max_samples: 200, seed: 0,
              settle_s: 0.2, poll_s: 0.01, method: closed_form, v_tol: 1.0e-9}
@@ -53,7 +54,10 @@ Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 
 
 class RobotSection(BaseModel):
-    """How to reach the robot: ``host``/``port`` (the TCP client) or ``driver``/``args`` (a user's class)."""
+    """How to reach the robot: ``host``/``port`` (the TCP client of robot-sim or a bridge) or ``driver``/``args``: a
+    shipped driver (``franka``: a Franka FR3 or Panda over libfranka; ``trossen``: a Trossen WidowX AI) or a user's
+    class. A shipped driver's ``args`` are checked against its class's arguments with the config, a user's class's
+    when it is imported, before anything connects."""
 
     model_config = STRICT
 
@@ -62,7 +66,10 @@ class RobotSection(BaseModel):
     timeout_s: float = Field(5.0, gt=0, description="s, the TCP client's timeout per request")
     driver: str | None = Field(None, description="a shipped driver by name (franka, trossen) or 'package.module:Class' "
                                                  "of a driver implementing Robot")
-    args: dict[str, Any] = Field(default_factory=dict, description="keyword arguments of the driver class")
+    args: dict[str, Any] = Field(default_factory=dict, description="keyword arguments of the driver class, checked "
+                                 "against its signature before connecting (franka: host, the arm's FCI address; "
+                                 "connect_timeout_s, 5 s; realtime; dynamics; settle_band, band_tol; ...: "
+                                 "docs/drivers.md)")
 
     @model_validator(mode="after")
     def _one_form(self):
@@ -266,12 +273,39 @@ def load_online_config(path: str | Path, overrides: Sequence[str] = ()) -> Onlin
 
     Raises :class:`selfid_jax.runner.errors.ConfigError` naming the file and
     the dotted key (unknown keys, wrong types, out-of-range values, a robot
-    section of neither or both forms), before anything connects.
+    section of neither or both forms, a shipped driver's argument it does
+    not take or lacks), before anything connects.
     """
     from selfid_jax.runner.config import read_config, validate
 
     data, set_keys = read_config(path, overrides)
-    return validate(OnlineConfig, data, path, set_keys)  # type: ignore[arg-type,return-value]
+    cfg: OnlineConfig = validate(OnlineConfig, data, path, set_keys)  # type: ignore[arg-type,assignment]
+    _check_shipped_driver_args(cfg, path, set_keys)
+    return cfg
+
+
+def _check_shipped_driver_args(cfg: OnlineConfig, path: str | Path, set_keys: dict[str, str]) -> None:
+    """A shipped driver's ``robot.args`` against its class's signature (the driver's module, not its vendor
+    library, is imported): ConfigError naming the file, ``robot.args.<key>``, the arguments the driver takes and
+    the ``--set`` that gave it. A user's driver (``'module:Class'``) is checked the same way when it is imported,
+    at connect."""
+    from selfid_jax.robot.drivers.load import (
+        DRIVERS,
+        DriverArgumentError,
+        check_driver_args,
+        driver_spec,
+        import_driver,
+    )
+    from selfid_jax.runner.errors import ConfigError
+
+    if cfg.robot.driver is None or driver_spec(cfg.robot.driver) not in DRIVERS.values():
+        return
+    try:
+        check_driver_args(import_driver(cfg.robot.driver), cfg.robot.args, cfg.robot.driver)
+    except DriverArgumentError as err:
+        key = f"robot.args.{err.key}"
+        source = f" (from --set {set_keys[key]})" if key in set_keys else ""
+        raise ConfigError(f"{path}: key '{key}': {err}{source}") from None
 
 
 def default_out(cfg: OnlineConfig, config_path: str | Path) -> Path:

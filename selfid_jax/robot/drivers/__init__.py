@@ -2,7 +2,9 @@
 
 :mod:`selfid_jax.robot.drivers.load` reaches a robot from a config's plain values (:func:`connect`: a driver by
 name, ``franka``, ``trossen`` or ``'package.module:Class'``, with its ``args``, or the TCP client at ``host:port``;
-:data:`DRIVERS`, :func:`import_driver`, :func:`check_robot_args`, :class:`ConnectError`).
+:data:`DRIVERS`, :func:`import_driver`, :func:`check_robot_args`, :func:`check_driver_args` (a config's
+``args`` against the driver's signature), :class:`ConnectError` (bad input, exit 2), :class:`DriverFailure` (the
+driver failed connecting or in ``limits()``, exit 3)).
 :mod:`selfid_jax.robot.drivers.franka`: a Franka arm (FR3, Panda) over libfranka through ``franky-control``
 (``pip install "selfid-jax[franka]"``, ``robot: {driver: franka}``). :mod:`selfid_jax.robot.drivers.trossen`: a
 Trossen WidowX AI over its vendor's ``trossen-arm`` (``pip install "selfid-jax[trossen]"``, ``robot: {driver:
@@ -11,6 +13,15 @@ vendor errors, an external tracker), so that a further vendor is one short modul
 No vendor library is imported here: a driver's module imports its vendor's library when the driver connects.
 """
 
-from selfid_jax.robot.drivers.load import DRIVERS, ConnectError, check_robot_args, connect, import_driver
+from selfid_jax.robot.drivers.load import (
+    DRIVERS,
+    ConnectError,
+    DriverFailure,
+    check_driver_args,
+    check_robot_args,
+    connect,
+    import_driver,
+)
 
-__all__ = ["DRIVERS", "ConnectError", "check_robot_args", "connect", "import_driver"]
+__all__ = ["DRIVERS", "ConnectError", "DriverFailure", "check_driver_args", "check_robot_args", "connect",
+           "import_driver"]

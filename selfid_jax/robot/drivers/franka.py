@@ -10,10 +10,15 @@ each side by ``limit_margin``; the config's ``safety.limits_lower/upper`` and
 target as one franky ``JointMotion`` (libfranka's joint-position interface,
 scaled by ``dynamics``), which returns when the planned trajectory ends, not
 when the arm is still; it then reads the joints every ``poll_s`` until the
-arm has **settled**: every joint within ``target_tol`` of its target and none
-moving more than ``settle_tol`` over the last ``settle_window_s``. An arm that
-has not settled after ``settle_timeout_s`` raises :class:`RobotError` (a
-``robot_error`` stop): a sample then always pairs two settled poses.
+arm has **settled**: every joint within ``target_tol`` of its target and
+moving less than ``settle_tol`` over the last ``settle_window_s``, or, within
+``settle_band`` (2 mrad) of its target, less than ``band_tol`` (0.5 mrad):
+franky-sim's joint 7 creeps back and forth in a stick-slip band of about
+±1.8 mrad for seconds after a move, more than ``settle_tol`` in one window of
+five, and one session in 16 used to stop on it. An arm that has not settled
+after ``settle_timeout_s`` raises :class:`RobotError` (a ``robot_error``
+stop) naming the joint, how far off it is and how far it still moves: a
+sample then always pairs two settled poses.
 A joint controller holds a joint a little off its setpoint under load
 (franky-sim's FR3 holds joint 7 1.7 mrad below it, whatever the move): the
 runner asks for a target measured from where the joints are, so an
@@ -39,10 +44,18 @@ the arm's own pose keeps the stamp of the read at which the arm's clock last
 advanced, so an arm whose state stops updating gives a stale pose (the
 runner's ``stale`` stop) rather than a fresh-looking one.
 
-Vendor errors become the runner's: franky's ``NetworkException`` (libfranka's
-UDP timeout, a refused connection) a :class:`RobotConnectionError` (the
-``connection`` stop), any other franky exception (a reflex, a refused
-command, an arm in an error state) a :class:`RobotError` (``robot_error``).
+Connecting prints nothing itself (``selfid_jax.robot.drivers.connect``
+says "connecting to franka at HOST ..." first) and ends after
+``connect_timeout_s`` (5 s) with a :class:`RobotConnectionError`: libfranka
+itself waits as long as another client holds the arm (franky-sim answers
+one client at a time) and about a minute for an address where nothing
+answers. Vendor errors become the runner's: franky's ``NetworkException``
+(libfranka's UDP timeout, a refused connection) a
+:class:`RobotConnectionError` (the ``connection`` stop), any other franky
+exception (a reflex, a refused command, an arm in an error state) a
+:class:`RobotError` (``robot_error``), each with libfranka's message and our
+hint of what it means beside it (:data:`HINTS`: a wrong address, FCI not
+activated, another client, a reflex, a kernel without real time).
 The driver never calls ``recover_from_errors``: an arm in an error state is
 refused before the first move, and recovering is the user's decision at the
 arm. :meth:`Franka.close` stops any motion and disconnects. The parts every
@@ -52,6 +65,7 @@ vendor errors, an external tracker) are :mod:`selfid_jax.robot.drivers.common`'s
 
 from __future__ import annotations
 
+import functools
 import time
 import xml.etree.ElementTree as ET
 from typing import Any
@@ -59,9 +73,12 @@ from typing import Any
 import numpy as np
 
 from selfid_jax.robot.drivers.common import (
+    CONNECT_TIMEOUT_S,
     ArmClock,
+    Hint,
     Settling,
     VendorErrors,
+    call_within,
     check_range,
     check_tracker,
     close_tracker,
@@ -74,9 +91,37 @@ from selfid_jax.robot.drivers.common import (
 )
 from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits
 
-__all__ = ["Franka", "urdf_joint_limits"]
+__all__ = ["HINTS", "Franka", "urdf_joint_limits"]
 
 N_JOINTS = 7
+
+HINTS = (  # what libfranka's messages mean for the user, first match wins ({host}: robot.args.host)
+    Hint(r"FCI refused|enable FCI",
+         "nothing at {host} accepts libfranka's connection on port 1337: check that robot.args.host is the arm's "
+         "FCI address, that the arm is on with its joints unlocked and FCI activated in Desk, and, for franky-sim, "
+         "that it runs and listens at that address"),
+    Hint(r"host not found|resolve",
+         "{host} is not a known host name: check robot.args.host (the arm's FCI address, e.g. 172.16.0.2)"),
+    Hint(r"TCP connection got interrupted|connection timeout|timed out|unreachable",
+         "{host} does not answer: check robot.args.host, that the arm is on and this computer is on its network "
+         "(a cable to the arm's control box, an address on its subnet)"),
+    Hint(r"realtime|real-time|SCHED_FIFO",
+         "this computer runs no real-time kernel: set robot.args.realtime: false for a simulator or a bench test; "
+         "a real arm needs a real-time kernel (libfranka's docs)"),
+    Hint(r"incompatible|version",
+         "libfranka (franky-control) and the arm's system version do not match: install the franky-control "
+         "built for the arm's version"),
+    Hint(r"reflex",
+         "the arm stopped itself (a collision or a limit reflex): clear the error at the arm (Desk, or the "
+         "pilot's buttons) and check the joints' clearance before a new session; this driver never recovers by "
+         "itself"),
+    Hint(r"rejected|not possible in the current mode|user stop",
+         "the arm refused the command: its user stop is pressed, its joints are locked, FCI is not active, or "
+         "another client controls it"),
+    Hint(r"UDP",
+         "the arm stopped sending its state: its network link dropped, it was switched off, or the simulator "
+         "ended; continue with --resume once it is back"),
+)
 
 
 def urdf_joint_limits(urdf: str, n: int = N_JOINTS) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -105,6 +150,23 @@ def urdf_joint_limits(urdf: str, n: int = N_JOINTS) -> tuple[np.ndarray, np.ndar
     return np.array(lower), np.array(upper), names
 
 
+def _silent_arm(host: str) -> str:
+    """What an arm that did not answer libfranka's connect in time means: a TCP connection to its port 1337 that
+    opens (within 1 s) is an arm that takes connections but serves another client; one that does not, an address
+    where nothing answers."""
+    import socket
+
+    try:
+        with socket.create_connection((host, 1337), timeout=1.0):
+            pass
+    except OSError:
+        return (f"nothing at {host} answers on libfranka's port 1337: check robot.args.host (the arm's FCI "
+                "address), that the arm is on and this computer is on its network")
+    return (f"{host} takes connections on port 1337 but does not answer as an arm: another client holds the arm "
+            "(a second session, a franky or libfranka program: end it and run again), or robot.args.host is not the "
+            "arm's FCI address (raise robot.args.connect_timeout_s only for an arm that is slow to answer)")
+
+
 class Franka:
     """The robot protocol (:class:`~selfid_jax.robot.protocol.Robot`) over a Franka arm at ``host``.
 
@@ -126,6 +188,12 @@ class Franka:
         settle_timeout_s: [s] after the move returns, the longest wait for
             the arm to settle; then :class:`RobotError`.
         poll_s: [s] between joint reads while settling.
+        settle_band: [rad] within this of its target a joint may still
+            creep (a stick-slip band) ...
+        band_tol: [rad] ... by at most this per ``settle_window_s``.
+        connect_timeout_s: [s] the longest wait for the arm to accept the
+            connection (libfranka waits while another client holds the arm);
+            then :class:`RobotConnectionError`.
         realtime: False to connect without a real-time kernel
             (``RealtimeConfig.Ignore``: a simulator, or a test bench); a real
             arm should run on a real-time kernel.
@@ -138,14 +206,21 @@ class Franka:
             None imports ``franky``.
     """
 
+    ARGUMENT_NOTES = {"port": "libfranka always uses the arm's port 1337: robot.args.host is all it needs"}
+
     def __init__(self, host: str, *, dynamics: float = 0.1, max_step: float = 0.05, limit_margin: float = 0.05,
                  settle_tol: float = 2e-4, settle_window_s: float = 0.1, target_tol: float = 0.01,
-                 settle_timeout_s: float = 3.0, poll_s: float = 0.01, realtime: bool = True,
+                 settle_timeout_s: float = 3.0, poll_s: float = 0.01, settle_band: float = 2e-3,
+                 band_tol: float = 5e-4, connect_timeout_s: float = CONNECT_TIMEOUT_S, realtime: bool = True,
                  tracker: str = "end_effector", tracker_args: dict[str, Any] | None = None,
                  offset_correction: bool = True, franky: Any = None):
+        if not isinstance(host, str) or not host.strip():
+            raise ValueError(f"Franka: host must be the arm's FCI address (e.g. 172.16.0.2), got {host!r}")
         check_range("Franka", "dynamics", dynamics, 0.0, 1.0)
         check_range("Franka", "max_step", max_step, 0.0, 0.5)
-        self.settling = Settling(settle_tol, settle_window_s, target_tol, settle_timeout_s, poll_s).check("Franka")
+        connect_timeout_s = check_range("Franka", "connect_timeout_s", connect_timeout_s, 0.0, 600.0, unit="s")
+        self.settling = Settling(settle_tol, settle_window_s, target_tol, settle_timeout_s, poll_s, settle_band,
+                                 band_tol).check("Franka")
         check_range("Franka", "limit_margin", limit_margin, 0.0, 0.5, include_lo=True, include_hi=False, unit="rad")
         check_tracker("Franka", tracker, tracker_args, ("end_effector", "flange"))
         if franky is None:
@@ -160,10 +235,12 @@ class Franka:
         self._clock = ArmClock()  # the arm's clock at the last read, and our stamp of the read it advanced at
         self._pose_t = -np.inf  # [s] the stamp of the last read's pose
         self._vendor = VendorErrors("Franka", host, franky.Exception,
-                                    lambda err: isinstance(err, franky.NetworkException))
+                                    lambda err: isinstance(err, franky.NetworkException), HINTS)
         realtime_config = franky.RealtimeConfig.Enforce if realtime else franky.RealtimeConfig.Ignore
         with self._vendor("connect"):
-            self.robot = franky.Robot(host, realtime_config=realtime_config)
+            self.robot = call_within(functools.partial(franky.Robot, host, realtime_config=realtime_config),
+                                     connect_timeout_s, what=f"Franka connect at {host}",
+                                     hint=functools.partial(_silent_arm, host))
             self.robot.relative_dynamics_factor = self.dynamics
 
     def _check_open(self) -> None:

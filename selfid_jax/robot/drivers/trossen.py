@@ -69,6 +69,7 @@ import numpy as np
 from selfid_jax.robot.drivers.common import (
     CONNECT_TIMEOUT_S,
     ArmClock,
+    Hint,
     Settling,
     VendorErrors,
     check_range,
@@ -83,11 +84,29 @@ from selfid_jax.robot.drivers.common import (
 )
 from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits
 
-__all__ = ["Trossen", "kinematic_model", "rotvec_quaternion"]
+__all__ = ["HINTS", "Trossen", "kinematic_model", "rotvec_quaternion"]
 
 N_JOINTS = 6  # the arm's joints; the gripper is the controller's seventh
 MODEL_TOL_M = 1e-3  # m: the kinematic model's pose must agree with the controller's this well
 _LINK = re.compile(r"\b(UDP|TCP)\b|initial joint outputs")  # libtrossen_arm's messages about the network link
+HINTS = (  # what libtrossen_arm's messages mean for the user, first match wins ({host}: robot.args.host)
+    Hint(r"Failed to read TCP message.*(temporarily unavailable|timed out)",
+         "the controller at {host} took the connection but did not answer within connect_timeout_s: another client "
+         "holds it (a second session, the vendor's demo): end it and run again", ("connect",)),
+    Hint(r"Failed to connect|TCP server",
+         "no WidowX AI controller answered at {host}: check robot.args.host (the controller's address), that the "
+         "controller is powered and on this network; another client connected to it (a second session, the "
+         "vendor's demo) also keeps it from answering"),
+    Hint(r"firmware|version",
+         "the controller's firmware and trossen-arm differ in major.minor version: the trossen extra installs "
+         "trossen-arm 1.11; update the firmware to v1.11 or install the trossen-arm of its version"),
+    Hint(r"UDP|initial joint outputs",
+         "the controller stopped answering: its network link dropped, it was powered off, or the simulator ended; "
+         "continue with --resume once it is back"),
+    Hint(r"Error occurred",
+         "the controller is in an error state (the message says which): clear it at the arm, or, having checked "
+         "the arm, connect once with robot.args.clear_error: true"),
+)
 
 
 def rotvec_quaternion(rotvec: np.ndarray) -> np.ndarray:
@@ -155,7 +174,7 @@ class Trossen:
         start: six joint angles [rad] to move to when connecting, or None
             (see the module's docstring).
         start_time_s: [s] the duration of that move.
-        settle_tol, settle_window_s, target_tol, settle_timeout_s, poll_s:
+        settle_tol, settle_window_s, target_tol, settle_timeout_s, poll_s, settle_band, band_tol:
             when a move is over (:class:`~selfid_jax.robot.drivers.common.Settling`).
         connect_timeout_s: [s] the longest wait for the controller at connect.
         clear_error: clear the controller's error state when connecting.
@@ -167,18 +186,25 @@ class Trossen:
             (tests); None imports ``trossen_arm``.
     """
 
+    ARGUMENT_NOTES = {"port": "the controller's ports are fixed (TCP 50001, UDP 50000): robot.args.host is all it "
+                              "needs"}
+
     def __init__(self, host: str, *, model: str = "wxai_v0", end_effector: str = "wxai_v0_follower",
                  move_time_s: float = 0.3, max_step: float = 0.05, limit_margin: float = 0.05,
                  start: list[float] | None = None, start_time_s: float = 3.0, settle_tol: float = 2e-4,
                  settle_window_s: float = 0.1, target_tol: float = 0.01, settle_timeout_s: float = 3.0,
-                 poll_s: float = 0.01, connect_timeout_s: float = CONNECT_TIMEOUT_S, clear_error: bool = False,
+                 poll_s: float = 0.01, settle_band: float = 2e-3, band_tol: float = 5e-4,
+                 connect_timeout_s: float = CONNECT_TIMEOUT_S, clear_error: bool = False,
                  tracker: str = "end_effector", tracker_args: dict[str, Any] | None = None,
                  offset_correction: bool = False, trossen_arm: Any = None):
         self.move_time_s = check_range("Trossen", "move_time_s", move_time_s, 0.0, 10.0)
         self.max_step = check_range("Trossen", "max_step", max_step, 0.0, 0.5)
         self.limit_margin = check_range("Trossen", "limit_margin", limit_margin, 0.0, 0.5, include_lo=True,
                                         include_hi=False, unit="rad")
-        self.settling = Settling(settle_tol, settle_window_s, target_tol, settle_timeout_s, poll_s).check("Trossen")
+        if not isinstance(host, str) or not host.strip():
+            raise ValueError(f"Trossen: host must be the arm controller's address (e.g. 192.168.1.2), got {host!r}")
+        self.settling = Settling(settle_tol, settle_window_s, target_tol, settle_timeout_s, poll_s, settle_band,
+                                 band_tol).check("Trossen")
         connect_timeout_s = check_range("Trossen", "connect_timeout_s", connect_timeout_s, 0.0, 600.0)
         start_time_s = check_range("Trossen", "start_time_s", start_time_s, 0.0, 60.0)
         start_q = None if start is None else self._target(start, "start")
@@ -198,7 +224,7 @@ class Trossen:
         self._clock = ArmClock()
         self._model: Any = None  # the kinematic model (kinematic_model), built at the first jacobian()
         self._vendor = VendorErrors("Trossen", host, (ta.RuntimeError, ta.LogicError),
-                                    lambda err: bool(_LINK.search(str(err))))
+                                    lambda err: bool(_LINK.search(str(err))), HINTS)
         self.arm: Any = ta.TrossenArmDriver()
         try:
             with self._vendor("connect"):
