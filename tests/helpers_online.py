@@ -45,14 +45,18 @@ class FakeArm:
     advances. ``tracker_clock``: the tracker's stamp as a function of the driver's time. ``stuck`` / ``slow``:
     an actuator that does not move / covers a tenth of each command. ``delay_at``: from this read on each reading
     arrives ``delay_s`` after it was stamped (a slow transport). ``pose_lag``: the tracker shows the arm one move
-    late (its latency longer than the settle time).
+    late (its latency longer than the settle time). ``jitter``: Gaussian tracker noise [m per axis], new at every
+    read (seeded), so readings at rest differ. ``joint_names``: the driver's names of its joints (messages use them).
     """
 
     def __init__(self, q0=START, *, lower=(-3.0, -3.0, -3.0), upper=(3.0, 3.0, 3.0), max_step=0.2, dropouts=(),
                  freeze_at=None, fail_move_at=None, interrupt_at=None, mirror=False, noise=1e-5, fail_move_with=None,
                  fail_read_at=None, fail_read_with="TimeoutError", valid_as=None, in_place=False,
                  frozen_pose_at=None, tracker_clock=None, stuck=None, slow=None, delay_at=None, delay_s=0.0,
-                 pose_lag=False, no_quaternion=False, band=None):
+                 pose_lag=False, no_quaternion=False, band=None, jitter=0.0, joint_names=None):
+        self.jitter, self._rng = jitter, np.random.default_rng(7)
+        if joint_names is not None:
+            self.joint_names = joint_names
         self.no_quaternion, self.band = no_quaternion, band
         self.pose_lag, self._q_before = pose_lag, None
         self.frozen_pose_at, self.tracker_clock, self.stuck, self.slow = frozen_pose_at, tracker_clock, stuck, slow
@@ -100,6 +104,8 @@ class FakeArm:
             qk = self._q_before
         p, quat = arm_pose(qk)
         p = p + self.noise * np.sin(1e3 * self.q.sum() + np.arange(3))  # deterministic "noise": a function of q
+        if self.jitter:
+            p = p + self._rng.normal(0.0, self.jitter, 3)
         if self.freeze_at is not None and self.reads >= self.freeze_at:
             self.frozen_since = self.frozen_since or time.monotonic()
             return Observation(t, self.q.copy(), *self._pose, self._tt, True)

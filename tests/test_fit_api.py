@@ -147,7 +147,8 @@ def test_bad_options_are_refused_by_keyword_and_flag_before_the_log_is_read(tmp_
     missing = tmp_path / "missing.csv"
     for kwargs, flags, message in [
         (dict(latency="late"), ["--latency", "late"], "latency (--latency): expected auto, none or a number"),
-        (dict(mode="continuous"), ["--mode", "continuous"], "mode (--mode): expected one of auto, stream, moves"),
+        (dict(mode="continuous"), ["--mode", "continuous"],
+         "mode (--mode): expected one of auto, stream, windows, moves"),
         (dict(settle_speed=-1.0), ["--settle-speed", "-1"], "settle_speed (--settle-speed) must be a positive"),
         (dict(max_gap=0.0), ["--max-gap", "0"], "max_gap (--max-gap) must be positive seconds"),
         (dict(start=2.0, stop=1.0), ["--start", "2", "--stop", "1"], "--stop 1 is before --start 2"),

@@ -158,7 +158,7 @@ def test_resume_with_the_robot_moved_stops_as_moved_before_any_move(tmp_path, co
     np.testing.assert_array_equal(centre, START)
     moved = FakeArm(q0=np.array(START) + [0.0, 0.061, 0.0])  # 2 m_a + 1 mm away in actuator 1
     res = live.run_online(moved, opts(), tmp_path / "a", resume=True)
-    assert res.status == live.Stop.MOVED and "actuator 1 is +0.061 from where self-ID started" in res.detail
+    assert res.status == live.Stop.MOVED and "joint 2 is +0.061 from where self-ID started" in res.detail
     assert moved.moves == [] and moved.closed
     near = FakeArm(q0=np.array(START) + [0.0, 0.059, 0.0])  # within reach: self-ID continues and converges
     assert live.run_online(near, opts(), tmp_path / "a", resume=True).status == live.Stop.CONVERGED
@@ -317,7 +317,7 @@ def test_an_actuator_that_does_not_follow_its_commands_stops_self_id(tmp_path, k
     fake = FakeArm(**kw)
     res = live.run_online(fake, opts(), tmp_path)
     i = next(iter(kw.values()))
-    assert res.status == live.Stop.ACTUATOR and f"actuator {i} moved" in res.detail, res.detail
+    assert res.status == live.Stop.ACTUATOR and f"joint {i + 1} moved" in res.detail, res.detail
     assert len(fake.moves) == 5 and not res.converged
 
 

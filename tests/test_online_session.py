@@ -44,8 +44,13 @@ def assert_same_run(cli_run: Path, api_run: Path, api_files: dict[str, Path]) ->
         with np.load(cli_run / "inverse_jacobian.npz") as za, np.load(api_run / "inverse_jacobian.npz") as zb:
             assert sorted(za.files) == sorted(zb.files)
             for k in za.files:
-                np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
+                if k == "trust":  # the trust record: the same but for where the log is
+                    ta, tb = (json.loads(str(z[k])) for z in (za, zb))
+                    assert {**ta, "log": None} == {**tb, "log": None}
+                else:
+                    np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
         ja, jb = (json.loads((r / "inverse_jacobian.json").read_text()) for r in (cli_run, api_run))
+        ja["trust"]["log"] = jb["trust"]["log"] = None
         assert {k: v for k, v in ja.items() if k != "log"} == {k: v for k, v in jb.items() if k != "log"}
 
 

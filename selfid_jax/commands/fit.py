@@ -5,7 +5,7 @@ Usage::
     selfid-jax fit LOG [--task x,y,z | --task-dim 3] [--eps E] [--eps-rel R] [--refine METHOD]
                        [--start S] [--stop S] [--max-gap S|auto|inf] [--out DIR]
                        [--columns MAP] [--joint-names A,B,..] [--length mm] [--time ns] [--angle deg]
-                       [--mode auto|stream|moves] [--latency auto|S|none] [--strict]
+                       [--mode auto|stream|windows|moves] [--latency auto|S|none] [--strict]
     selfid-jax fit BAG --joints /joint_states --tracker /mocap/pose [--child-frame F] ...
     selfid-jax fit BAG --joints /joint_states --camera /camera/image_raw --tag tag36h11:ID:EDGE_M [--camera-info F]
     selfid-jax fit JOINTS.csv --video FRAMES --frame-times TIMES.csv --camera-info CAMERA.yaml --tag tag36h11:ID:EDGE_M
@@ -44,8 +44,9 @@ DESCRIPTION = (
     "A time series logged continuously is reduced to one settled row per move. Bad "
     "rows (non-finite, duplicated or non-monotonic time, gaps) are dropped and counted. Writes estimates.npz, "
     "summary.json (with how far to trust the fit), figures/convergence.png/.pdf and, when it converged, "
-    "inverse_jacobian.npz/.json into the run directory; exits 1 when it did not (or, with --strict, when a trust "
-    "figure is out of bounds)."
+    "inverse_jacobian.npz/.json (with the trust figures and warnings, which selfid-jax online --estimate checks) "
+    "into the run directory; exits 1 when it did not (or, with --strict, when a trust figure is out of bounds, "
+    "and then writes no inverse_jacobian)."
 )
 
 
@@ -127,18 +128,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "a joint beyond two turns refused as looking like degrees; state rad for a multi-turn joint); "
                    "converted to rad")
     g.add_argument("--mode", default=_READ.mode, metavar="|".join(MODES),
-                   help="a time series logged continuously (a stream) is reduced to one settled row per move; auto "
-                   f"detects it, stream/moves force either reading (default {_READ.mode})")
+                   help="a time series logged continuously (a stream) is reduced to one settled row per move, or, "
+                   "without rests, to short windows each moving the joints about m_a; auto detects a stream; stream "
+                   "(rests, else windows), windows and moves (every row a move) force a reading "
+                   f"(default {_READ.mode})")
     g.add_argument("--latency", default=str(_READ.latency), metavar="|".join(("S", *LATENCY_CHOICES)),
-                   help="a stream's tracker latency behind the encoders (s): auto estimates it by cross-correlating "
-                   f"their speeds; none: no shift (default {_READ.latency})")
+                   help="a stream's tracker latency behind the encoders (s): auto estimates it from the log (their "
+                   "speeds cross-correlated for a stream with rests, a least-squares lag fit of tracker on joint "
+                   f"velocity for windows); none: no shift (default {_READ.latency})")
     g.add_argument("--settle-speed", type=float, default=_READ.settle_speed, metavar="V",
                    help="a stream: joint speed below which the arm is at rest (actuator units/s; default from the "
                    "stream)")
     g.add_argument("--settle-time", type=_seconds, default=_READ.settle_time, metavar="S",
                    help="a stream: shortest rest that counts as settled (s; default from the stream)")
-    g.add_argument("--strict", action="store_true", help="exit 1 when a trust figure (held-out error, condition "
-                   "number, actuator effect, refused fraction) is outside its bound")
+    g.add_argument("--strict", action="store_true", help="exit 1, and write no inverse_jacobian.npz/.json, when a "
+                   "trust figure (held-out error, condition number, an actuator that did not move or barely acts, "
+                   "refused fraction, a unit that looks swapped) is outside its bound")
 
 
 def options(args: argparse.Namespace) -> dict:
@@ -159,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
     log = example_log() if args.example else args.log
     out = args.out if args.out is not None else default_run_dir(log)
     try:
-        result, files = fit_to_run(log, out, **options(args))
+        result, files = fit_to_run(log, out, strict=bool(getattr(args, "strict", False)), **options(args))
     except ConfigError:
         raise
     except ValueError as err:  # LogError included: one line naming file, column, row
@@ -188,8 +193,12 @@ def run(args: argparse.Namespace) -> int:
         when = f", t = {result.converged_time:.3f} s" if result.converged_time is not None else ""
         print(f"converged at sample {result.converged_at} of {result.deltas.shape[0]}{when} "
               f"(eps={result.eps:g}, eps_rel={result.eps_rel:g})")
-        print(f"inverse Jacobian ({n}x{m}, {', '.join(sorted(set(estimate_units(s.axis_names))))}): "
-              f"{files[JINV_NPZ]} (and {JINV_JSON})")
+        if JINV_NPZ in files:
+            print(f"inverse Jacobian ({n}x{m}, {', '.join(sorted(set(estimate_units(s.axis_names))))}): "
+                  f"{files[JINV_NPZ]} (and {JINV_JSON}; with its trust figures)")
+        else:
+            print(f"--strict: {len(trust.warnings)} trust warning(s): no inverse Jacobian written (the estimate is "
+                  f"in {Path(out) / SUMMARY_FILE}, estimate_so_far)")
     else:
         print(f"not converged in {result.deltas.shape[0]} samples (eps={result.eps:g}, eps_rel={result.eps_rel:g}; "
               f"last change {result.deltas[-1]:.3g} > {result.thresholds[-1]:.3g}): no inverse Jacobian written "

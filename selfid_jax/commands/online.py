@@ -1,6 +1,7 @@
 """``selfid-jax online CONFIG``: self-ID a connected robot live (Algorithm 1), then optionally follow a path.
 
-    selfid-jax online CONFIG [--resume] [--out DIR] [--set key.sub=value ...] [--quiet] [--estimate FILE]
+    selfid-jax online CONFIG [--resume] [--out DIR] [--set key.sub=value ...] [--quiet]
+                             [--estimate FILE [--accept-flagged-estimate]]
 
 CONFIG (YAML, strict: unknown keys, wrong types and out-of-range values are
 refused with the dotted key, before connecting): its schema, with an
@@ -19,7 +20,11 @@ arguments, calls it and prints the report. ``--resume`` continues a
 stopped session from its log. ``--estimate FILE`` follows the path with the
 inverse Jacobian of ``selfid-jax fit`` or of an earlier session instead of
 self-identifying (no random move; logged as an ``estimate`` record, so
-``--resume`` continues with it). While the session runs, a progress line per
+``--resume`` continues with it); its trust figures are printed first and
+one whose file is flagged (trust warnings, or not converged) is refused
+(exit 2) unless ``--accept-flagged-estimate``; a file written before
+estimate files carried trust figures is followed with a line saying so.
+While the session runs, a progress line per
 self-ID sample and following move goes to stdout (in place on a terminal;
 none with ``--quiet``).
 
@@ -70,7 +75,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimate", type=Path, default=None, metavar="FILE",
                    help="follow the config's path with this estimate instead of self-identifying (no random move): "
                    "the inverse_jacobian.npz of selfid-jax fit or of an earlier online session; refused unless its "
-                   "task axes are the config's and its shape (actuators, task axes) the robot's")
+                   "task axes are the config's and its shape (actuators, task axes) the robot's. Its trust figures "
+                   "are shown first; one flagged (trust warnings, or not converged) is refused unless "
+                   "--accept-flagged-estimate")
+    p.add_argument("--accept-flagged-estimate", action="store_true",
+                   help="follow with an --estimate whose file carries trust warnings (or did not converge) instead "
+                   "of refusing it")
     p.add_argument("--quiet", action="store_true", help="no progress line (one per self-ID sample and following "
                    "move, updated in place on a terminal); the final report is still printed")
 
@@ -91,9 +101,16 @@ def run(args: argparse.Namespace) -> int:
     from selfid_jax.sessions.online_run import run_session
 
     out = args.out if args.out is not None else default_out(cfg, args.config)
-    result, files = run_session(cfg, out, config_path=args.config, resume=args.resume,
-                                estimate=getattr(args, "estimate", None),
-                                progress=None if getattr(args, "quiet", False) else ProgressLine())
+    estimate = getattr(args, "estimate", None)
+    accept = bool(getattr(args, "accept_flagged_estimate", False))
+    if estimate is not None and cfg.path is not None:  # its trust figures, before anything connects or moves
+        from selfid_jax.sessions.online_run import check_estimate
+
+        for line in check_estimate(estimate, cfg.selfid.task, accept_flagged=accept):
+            print(line)
+    result, files = run_session(cfg, out, config_path=args.config, resume=args.resume, estimate=estimate,
+                                progress=None if getattr(args, "quiet", False) else ProgressLine(),
+                                accept_flagged_estimate=accept)
     _report(result, files)
     return exit_code(result.status)
 
@@ -124,6 +141,16 @@ def _report(result: OnlineResult, files: dict[str, Path]) -> None:
     print(f"self-ID: {result.samples} samples{resumed}, {result.moves} random moves, rejected: {rejected}")
     if result.converged:
         print(f"converged at sample {result.converged_at}")
+    elif result.estimate_source is not None and result.given_converged_at is not None:
+        print(f"the estimate's own self-ID converged at sample {result.given_converged_at} ({result.estimate_source})")
+    if result.trust is not None:
+        t = result.trust
+        print(f"trust: held-out error {t.heldout_error:.3g}, condition number {t.condition:.3g}")
+        for w in t.warnings:
+            print(f"  warning: {w}")
+    if result.reference_error is not None:
+        where = "following started" if result.estimate_source is not None else "self-ID started"
+        print(f"against the driver's model Jacobian J where {where}: ||J Ĵ - I||_F {result.reference_error:.3g}")
     print(f"wall time: self-ID {result.selfid_s:.1f} s, following {result.follow_s:.1f} s")
     if result.waypoints_total:
         print(f"follow: {result.waypoints}/{result.waypoints_total} waypoints in {result.follow_steps} moves")

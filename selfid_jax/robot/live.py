@@ -86,13 +86,13 @@ from selfid_jax.math.checks import check_magnitude, float_dtype
 from selfid_jax.robot.journal import Journal, read_journal
 from selfid_jax.robot.log import parse_task
 from selfid_jax.robot.options import AXIS_NAMES, MIN_SAMPLES_PER_AXIS, ONLINE_METHODS, FollowOptions, OnlineOptions
-from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits
-from selfid_jax.robot.quality import Quality
-from selfid_jax.robot.safety import envelope
+from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits, joint_labels
+from selfid_jax.robot.quality import Quality, Trust, read_trust, trust
+from selfid_jax.robot.safety import check_room, envelope
 from selfid_jax.robot.session import DriverFault, ResumeError, Session, Stop, Stopped
 from selfid_jax.robot.steps import init_state, sample_step
 
-__all__ = ["LOG_FILE", "OnlineResult", "given_estimate", "run_online"]
+__all__ = ["LOG_FILE", "EstimateFile", "OnlineResult", "given_estimate", "read_estimate", "run_online"]
 
 LOG_FILE = "session.jsonl"
 LOG_VERSION = 2  # 2: following logs rejected readings; the follow law is control.law.command
@@ -123,12 +123,16 @@ class OnlineResult(NamedTuple):
     selfid_s: float = 0.0  # s of wall time in self-ID (moves, reads, estimator; every session of the log)
     follow_s: float = 0.0  # s of wall time following the path (every session of the log)
     estimate_source: str | None = None  # where a given estimate came from (OnlineOptions.estimate); None: self-ID
-    reference: np.ndarray | None = None  # (6, n) the driver's model Jacobian where self-ID started (Robot.jacobian)
+    reference: np.ndarray | None = None  # (6, n) the driver's model Jacobian (Robot.jacobian) where self-ID started,
+    #   or, following with a given estimate, where following started
+    trust: Trust | None = None  # the converged samples' trust figures and warnings (quality.trust); None before
+    given_trust: dict | None = None  # a given estimate's file: its quality.trust_record; None for a file without one
+    given_converged_at: int | None = None  # a given estimate's file: its convergence sample (None: not recorded)
 
     @property
     def reference_error(self) -> float | None:
         """``||J Ĵ - I||_F``: the estimate against the driver's model Jacobian ``J`` (its task rows) where self-ID
-        started; None without a reference."""
+        started (following with a given estimate: where following started); None without a reference."""
         if self.reference is None:
             return None
         J = self.reference[list(self.axes)]
@@ -178,9 +182,66 @@ def _check_path(path: Path, logged, follow: FollowOptions | None, axes) -> None:
                           "with the logged path, or start a new run directory")
 
 
+class EstimateFile(NamedTuple):
+    """An estimate file (``inverse_jacobian.npz`` of ``selfid-jax fit`` or ``selfid-jax online``) as read."""
+
+    estimate: np.ndarray  # (n, m) inverse Jacobian, float64
+    task_axes: list[str]  # the task axes it serves, e.g. ["x", "y", "z"]
+    trust: dict | None  # its quality.trust_record (figures, warnings, report); None: written before files carried one
+    converged_at: int | None  # the sample at which its self-ID converged (Sec. IV-D), None where not recorded
+
+
+NPZ_EXPECTED = "expected the inverse_jacobian.npz that selfid-jax fit or selfid-jax online writes"
+
+
+def read_estimate(path: str | Path) -> EstimateFile:
+    """Read an estimate file: ``inverse_jacobian`` ``(n, m)``, ``task_axes`` and, where it carries one, its trust
+    record (:func:`selfid_jax.robot.quality.read_trust`).
+
+    Raises ValueError starting with the file's name and saying what was
+    expected: no such file, not an npz (a zip archive: a text, YAML or
+    ``.npy`` file is refused without reading it as one), no
+    ``inverse_jacobian`` or ``task_axes`` entry, an unreadable trust entry.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file ({NPZ_EXPECTED})")
+    try:
+        with path.open("rb") as f:
+            head = f.read(4)
+    except OSError as err:
+        raise ValueError(f"{path}: cannot be read ({err.strerror or err})") from None
+    if head != b"PK\x03\x04":  # an .npz is a zip archive; anything else is not read (numpy would try pickle)
+        raise ValueError(f"{path}: not an .npz file ({NPZ_EXPECTED})")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in ("inverse_jacobian", "task_axes") if k not in z.files]
+            if missing:
+                raise ValueError(f"{path}: has no {missing[0]!r} entry ({NPZ_EXPECTED})")
+            est = np.array(z["inverse_jacobian"], np.float64)
+            axes = [str(a) for a in np.atleast_1d(z["task_axes"]).tolist()]
+            try:
+                record = read_trust(z)
+            except ValueError as err:
+                raise ValueError(f"{path}: {err}") from None
+            conv = int(z["converged_at"]) if "converged_at" in z.files else None
+    except ValueError as err:
+        if str(err).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: cannot be read as an .npz ({' '.join(str(err).split())}; {NPZ_EXPECTED})"
+                         ) from None
+    except Exception as err:  # noqa: BLE001 - a corrupt archive: one message naming it
+        raise ValueError(f"{path}: cannot be read as an .npz ({type(err).__name__}: {err}; {NPZ_EXPECTED})"
+                         ) from None
+    if record is not None and isinstance(record.get("converged_at"), int):
+        conv = int(record["converged_at"])
+    return EstimateFile(est, axes, record, conv)
+
+
 def given_estimate(value, n: int, axes: tuple[int, ...]) -> tuple[np.ndarray, str]:
     """``(estimate (n, m), source)`` of ``OnlineOptions.estimate``: an ``.npz`` file of ``selfid-jax fit`` or
-    ``selfid-jax online`` (``inverse_jacobian`` and ``task_axes``) or an ``(n, m)`` array (source ``"array"``).
+    ``selfid-jax online`` (``inverse_jacobian`` and ``task_axes``; :func:`read_estimate`) or an ``(n, m)`` array
+    (source ``"array"``).
 
     Raises ValueError naming the file (or ``estimate``) and what differs: no
     such file, not an npz, a missing key, task axes other than ``axes``, a
@@ -192,20 +253,11 @@ def given_estimate(value, n: int, axes: tuple[int, ...]) -> tuple[np.ndarray, st
     if isinstance(value, (str, Path)):
         path = Path(value)
         where, source = f"estimate: {path}", str(path)
-        if not path.is_file():
-            raise ValueError(f"{where}: no such file")
         try:
-            with np.load(path, allow_pickle=False) as z:
-                missing = [k for k in ("inverse_jacobian", "task_axes") if k not in z.files]
-                if missing:
-                    raise ValueError(f"{where}: has no {missing[0]!r} (expected the inverse_jacobian.npz of "
-                                     "selfid-jax fit or selfid-jax online)")
-                est = np.array(z["inverse_jacobian"], np.float64)
-                logged = [str(a) for a in np.atleast_1d(z["task_axes"]).tolist()]
-        except ValueError:
-            raise
-        except Exception as err:  # noqa: BLE001 - a file that is not an npz: one message naming it
-            raise ValueError(f"{where}: not an .npz of an estimate: {type(err).__name__}: {err}") from None
+            read = read_estimate(path)
+        except ValueError as err:
+            raise ValueError(f"estimate: {err}") from None
+        est, logged = read.estimate, read.task_axes
         if logged != [AXIS_NAMES[a] for a in axes]:
             raise ValueError(f"{where}: its task axes are {','.join(logged)}, the task is {names} (selfid.task); "
                              "an estimate serves only the task it was identified for")
@@ -350,9 +402,12 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             i = big[0]
             raise ValueError(f"m_a: {m_a[i]:g} for actuator {i} exceeds the largest step allowed, "
                              f"{env.max_step[i]:g} (max_step: the driver's or the user's); lower m_a")
+        if options.estimate is None:  # self-ID will move each actuator by up to m_a: its range must allow that
+            check_room(env, m_a, joint_labels(robot, n))
         if options.path is not None:
             options.path.offsets(axes)
         given = None if options.estimate is None else given_estimate(options.estimate, n, axes)
+        given_file = read_estimate(options.estimate) if isinstance(options.estimate, (str, Path)) else None
         if given is not None and options.path is None:
             raise ValueError("estimate: following with a given estimate needs a path (path); without one there "
                              "is nothing to do")
@@ -381,7 +436,7 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             journal = Journal(log_path)
             journal.append(header)
             if given is not None:
-                journal.append({"e": "estimate", "source": given[1], "estimate": given[0]})
+                journal.append(_estimate_record(given, given_file))
         session = Session(robot, options, env, axes, m_a, journal, stop_requested, sleep, on_event)
         session.min_count = min_samples(options, m)
         session.state = init_state(n, m, method=options.method, v_tol=options.v_tol,
@@ -399,7 +454,10 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                 raise ResumeError(f"{log_path}: cannot resume: the log follows with the estimate from {given[1]} "
                                   "and this session has no path; give the path")
             if given is not None and logged_given is None:
-                journal.append({"e": "estimate", "source": given[1], "estimate": given[0]})
+                journal.append(_estimate_record(given, given_file))
+            elif logged_given is not None:  # the log's estimate: its file's trust as logged when it was given
+                rec = next(r for r in contents.records if r["e"] == "estimate")
+                given_file = EstimateFile(logged_given[0], [], rec.get("trust"), rec.get("converged_at"))
         session.given = given
         journal.append({"e": "session", "resume": resume, "replayed": replayed, "truncated": truncated,
                         "wall_time": time.time(), "lower": env.lower, "upper": env.upper, "max_step": env.max_step,
@@ -410,6 +468,7 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         try:
             if given is not None and options.path is not None:  # follow with it: no self-ID, no random move
                 phase, t0 = "follow_s", time.monotonic()
+                _follow_reference(session)
                 session.follow(options.path, given[0])
             if int(session.state.converged_at) < 1:
                 session.selfid()
@@ -449,6 +508,12 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
     assert session is not None and session.state is not None
     state = jax.device_get(session.state)
     estimate = np.asarray(state.estimate) if session.given is None else session.given[0]
+    figures = None
+    if session.quality is not None:  # the converged samples: their figures and warnings, actuators by the driver's
+        figures = trust(session.quality, estimate, sum(session.rejected.values()), session.k,
+                        names=joint_labels(robot, session.n))
+    if session.given is None:
+        given_file = None
     path_total = 0 if session.offsets is None else int(session.offsets.shape[0])
     return OnlineResult(
         status=status, detail=detail, estimate=estimate, state=state,
@@ -458,4 +523,27 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         step_ms=np.asarray(session.step_ms, np.float64), quality=session.quality, axes=axes, log=log_path,
         track=np.asarray(track, np.float64), selfid_s=earlier["selfid_s"] + wall["selfid_s"],
         follow_s=earlier["follow_s"] + wall["follow_s"],
-        estimate_source=None if session.given is None else session.given[1], reference=session.reference)
+        estimate_source=None if session.given is None else session.given[1], reference=session.reference,
+        trust=figures, given_trust=None if given_file is None else given_file.trust,
+        given_converged_at=None if given_file is None else given_file.converged_at)
+
+
+def _estimate_record(given: tuple[np.ndarray, str], file: EstimateFile | None) -> dict[str, Any]:
+    """The log's ``estimate`` record of a given estimate: it, its source and its file's trust record and convergence
+    sample (None where the file has none), so a resumed session reports them without the file."""
+    return {"e": "estimate", "source": given[1], "estimate": given[0],
+            "trust": None if file is None else file.trust, "converged_at": None if file is None else file.converged_at}
+
+
+def _follow_reference(session: Session) -> None:
+    """Following with a given estimate from the start: the driver's model Jacobian where following starts (one read,
+    no motion), logged as the ``reference`` record, so the estimate is reported against it; nothing where the
+    driver has no model, or the log has a reference or started following already."""
+    if session.reference is not None or session.anchor is not None or \
+            not callable(getattr(session.robot, "jacobian", None)):
+        return
+    obs = session.fresh("follow")
+    J = session.reference_jacobian(obs.q)
+    if J is not None:
+        session.reference = J
+        session.journal.append({"e": "reference", "q": obs.q, "jacobian": J, "at": "follow"})

@@ -40,7 +40,7 @@ from selfid_jax.robot.log import Samples
 from selfid_jax.robot.quality import Trust, held_out, trust, unit_warnings
 from selfid_jax.robot.read import ReadReport, read_log
 
-__all__ = ["FitResult", "FitTrace", "fit", "fit_samples"]
+__all__ = ["FitResult", "FitTrace", "actuator_labels", "fit", "fit_samples"]
 
 _READ, _FIT = ReadOptions(), FitOptions()  # the defaults of fit's keywords (and the command's flags): one source
 
@@ -257,17 +257,45 @@ def fit(
         estimates=np.asarray(host.estimates), deltas=np.asarray(host.deltas), thresholds=np.asarray(host.thresholds),
         accepted=accepted, converged_at=int(host.converged_at), samples=samples,
         eps=float(eps), eps_rel=float(eps_rel), method=method, state=host.state,
-        trust=_trust(samples, accepted, estimate, report.units), report=report,
+        trust=_trust(samples, accepted, estimate, report.units,
+                     None if isinstance(log, Samples) else
+                     actuator_labels(estimate.shape[0], options, report, pairs=samples.layout == "pairs")),
+        report=report,
     )
 
 
-def _trust(samples: Samples, accepted: np.ndarray, estimate: np.ndarray, units: dict[str, str]) -> Trust:
+def actuator_labels(n: int, options: ReadOptions, report: ReadReport, *, pairs: bool = False) -> tuple[str, ...]:
+    """How a fit's messages name actuator ``i`` (its column ``q_i``; ``dtheta_i`` in a log of sample ``pairs``): the
+    log's own name beside the column, ``"wrist_3_joint (q_5)"``, where the log named it (a bag's JointState names,
+    ``joint_names``, a ``columns`` mapping, columns numbered from 1), else the column, ``"q_5"``."""
+    opts = options.check()
+    col = "dtheta" if pairs else "q"
+    names: list[str | None] = [None] * n
+    if report.bag is not None:
+        names[:] = [str(x) for x in report.bag.joint_names[:n]]
+    elif opts.joint_names:
+        names[:] = [str(x) for x in opts.joint_names[:n]]
+    elif isinstance(opts.columns, Mapping):
+        for old, new in opts.columns.items():
+            k = new[len(col) + 1:]
+            if new.startswith(f"{col}_") and k.isdigit() and int(k) < n:
+                names[int(k)] = old
+    elif any(note.startswith("joints numbered from 1") for note in report.notes):
+        names[:] = [f"q_{i + 1}" for i in range(n)]  # the log's columns q_1 .. q_n
+    names += [None] * (n - len(names))
+    return tuple(f"{col}_{i}" if name in (None, f"{col}_{i}") else f"{name} ({col}_{i})"
+                 for i, name in enumerate(names))
+
+
+def _trust(samples: Samples, accepted: np.ndarray, estimate: np.ndarray, units: dict[str, str],
+           names: tuple[str, ...] | None = None) -> Trust:
     """:func:`selfid_jax.robot.quality.trust` of a fit: the held-out error of the accepted samples (the largest
     actuator step of a sample as the move scale), the refused rows and samples against the log's rows, and the
     motion per move against the units read in (``units``: column -> unit;
-    :func:`~selfid_jax.robot.quality.unit_warnings`)."""
+    :func:`~selfid_jax.robot.quality.unit_warnings`); ``names``: :func:`actuator_labels` (default ``q_i``)."""
     ok = np.asarray(accepted, bool)
     D, V = np.asarray(samples.dtheta, np.float64)[ok], np.asarray(samples.V, np.float64)[ok]
     quality = held_out(D, V, float(np.max(np.abs(D), initial=0.0)))
     refused = sum(r.count for r in samples.rejected) + int((~ok).sum())
-    return trust(quality, estimate, refused, samples.rows, unit_warnings(D, V, samples.axes, units))
+    labels = names if names is not None else tuple(f"q_{i}" for i in range(estimate.shape[0]))
+    return trust(quality, estimate, refused, samples.rows, unit_warnings(D, V, samples.axes, units), labels)

@@ -20,7 +20,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Observation", "RobotLimits", "Robot", "RobotError", "RobotConnectionError", "check_limits"]
+__all__ = ["Observation", "RobotLimits", "Robot", "RobotError", "RobotConnectionError", "check_limits", "joint_labels"]
 
 
 class RobotError(RuntimeError):
@@ -85,6 +85,10 @@ class Robot(Protocol):
     # the tracked point (an external tracker). The runner calls it once, where
     # self-ID starts, logs it and reports the estimate against it (summary.json reference_error, the estimate
     # figure). It never moves the robot.
+    #
+    # Optional: a driver may also have an attribute
+    #     joint_names: a sequence of n strings, the vendor's names of the actuators in order
+    # which the runner's messages use beside the 1-based joint number (joint_labels).
 
 
 def check_limits(limits: RobotLimits, n: int | None = None) -> RobotLimits:
@@ -120,3 +124,17 @@ def check_limits(limits: RobotLimits, n: int | None = None) -> RobotLimits:
     if bad.size:
         raise ValueError(f"robot limits: max_step[{bad[0]}] is {step[bad[0]]}, must be > 0")
     return RobotLimits(lower, upper, step)
+
+
+def joint_labels(robot: object, n: int) -> list[str]:
+    """How the runner's messages name actuator ``i`` (0-based) of ``robot``: ``"joint i+1"``, 1-based as drivers
+    and vendors count, followed by the driver's name in brackets where it has ``joint_names`` (``n`` distinct
+    non-empty strings; anything else is ignored): e.g. ``"joint 2 (shoulder_lift_joint)"``."""
+    try:
+        names = getattr(robot, "joint_names", None)
+        names = None if names is None or isinstance(names, (str, bytes)) else [str(x) for x in names]
+    except Exception:  # noqa: BLE001 - a driver's property that fails: number the joints, the names are cosmetic
+        names = None
+    if names is not None and (len(names) != n or len(set(names)) != n or not all(x.strip() for x in names)):
+        names = None
+    return [f"joint {i + 1}" + ("" if names is None else f" ({names[i]})") for i in range(n)]

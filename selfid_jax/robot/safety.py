@@ -18,7 +18,7 @@ from selfid_jax.robot.options import DIVERGE_DIST, STALE_S
 from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits, check_limits
 
 __all__ = ["COMMAND_MEMORY", "Commanded", "Envelope", "Sight", "actuation_target", "angle_between", "check_observation",
-           "envelope"]
+           "check_room", "envelope", "linear_reach", "tracker_noise"]
 
 
 class Envelope(NamedTuple):
@@ -74,6 +74,61 @@ def envelope(limits: RobotLimits, *, lower=None, upper=None, max_step=None, box_
         if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
             raise ValueError(f"{name}: must be a finite number > 0, got {v!r}")
     return Envelope(lo, hi, step, blo, bhi, float(stale_s), float(diverge_dist))
+
+
+def check_room(env: Envelope, m_a: np.ndarray, labels: list[str]) -> None:
+    """ValueError naming the first actuator whose range ``upper - lower`` (the driver's limits narrowed by the
+    user's) is below its self-ID magnitude ``m_a (n,)``: its random moves could not reach ``m_a``, so self-ID
+    would fit its column from moves too short to see beside the others' (a confident, wrong estimate).
+    ``labels``: the actuators' names in messages (:func:`~selfid_jax.robot.protocol.joint_labels`)."""
+    room = env.upper - env.lower
+    bad = np.flatnonzero(room < m_a)
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"limits: {labels[i]} has a range of {room[i]:.4g} ([{env.lower[i]:.6g}, "
+                         f"{env.upper[i]:.6g}], the driver's limits narrowed by safety.limits_lower/upper), below "
+                         f"its self-ID magnitude m_a = {m_a[i]:.4g}: self-ID cannot move it by m_a and would "
+                         "identify its column from moves too short to trust. Widen its limits, or lower m_a for "
+                         "it (m_a per actuator); no move was made")
+
+
+def linear_reach(Jinv: np.ndarray, offsets: np.ndarray, q: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray) -> tuple[int, int, float] | None:
+    """The first waypoint the estimate says needs an actuator beyond its limits, or None.
+
+    ``Jinv (n, m)`` the inverse Jacobian followed with, ``offsets (W, m)`` the
+    waypoints' offsets from the start in task units (m; rad for rotation
+    axes), ``q (n,)`` the actuators at the start, ``lower``/``upper (n,)``
+    the envelope's limits. Following with a fixed estimate moves the
+    actuators by ``Jinv V`` for each commanded twist ``V``, so to first order
+    it takes them to ``q + Jinv offsets[w]`` at waypoint ``w``; a waypoint
+    where an actuator would need more than twice the room its limit leaves in
+    that direction is out of reach within the limits (the factor 2 leaves room
+    for the linearization's error over the path). Returns ``(w, i, needed
+    position of actuator i)`` for the first such waypoint (0-based).
+    """
+    d = np.asarray(offsets, np.float64) @ np.asarray(Jinv, np.float64).T  # (W, n) linear actuator change
+    room = np.where(d > 0, upper - q, q - lower)  # (W, n) room in each move's direction
+    hit = np.argwhere(np.abs(d) > 2.0 * np.maximum(room, 0.0))
+    if not hit.size:
+        return None
+    w, i = (int(x) for x in hit[0])
+    return w, i, float(q[i] + d[w, i])
+
+
+def tracker_noise(positions: np.ndarray, rotvecs: np.ndarray) -> tuple[float, float]:
+    """Standard deviation per axis of ``k`` tracker readings of a pose at rest: ``(position [m], rotation [rad])``.
+
+    ``positions (k, 3)`` m; ``rotvecs (k, 3)`` rad, each reading's orientation
+    as a rotation vector relative to one of them (small angles). The pooled
+    sample standard deviation over the three axes (``k - 1`` degrees of
+    freedom each); ``k >= 2``.
+    """
+    out = []
+    for x in (np.asarray(positions, np.float64), np.asarray(rotvecs, np.float64)):
+        k = x.shape[0]
+        out.append(float(np.sqrt(np.sum((x - x.mean(axis=0)) ** 2) / (3 * (k - 1)))))
+    return out[0], out[1]
 
 
 def actuation_target(seed: int, k: int, q: np.ndarray, m_a: np.ndarray, lower: np.ndarray,

@@ -27,7 +27,7 @@ from selfid_jax.math.checks import float_dtype
 from selfid_jax.robot.log import pairs_from_time_series, rotations
 from selfid_jax.robot.protocol import Observation
 
-__all__ = ["follow_command", "host_step", "init_state", "sample_step", "task_difference"]
+__all__ = ["follow_command", "host_step", "init_state", "sample_step", "task_difference", "waypoint_errors"]
 
 
 def task_difference(obs: Observation, prev: Observation, axes: Sequence[int]) -> np.ndarray:
@@ -108,3 +108,25 @@ def follow_command(Jinv: np.ndarray, offsets: np.ndarray, anchor: Observation, w
                               axes=tuple(axes))
         cmd, dist = jax.device_get(out)
     return cmd, float(dist)
+
+
+@functools.partial(jax.jit, static_argnames=("axes",))
+def _waypoint_errors(offsets, p0, quat0, p, quat, *, axes):
+    task = Task.from_axes(offsets, (p0, geometry.quaternion_to_rotation(quat0)), axes)
+    seen = (p, geometry.quaternion_to_rotation(quat))
+    e_p, e_r = jax.vmap(lambda w: task.error(seen, w))(jax.numpy.arange(offsets.shape[0]))
+    return jax.numpy.linalg.norm(e_p, axis=-1), jax.numpy.linalg.norm(e_r, axis=-1)
+
+
+def waypoint_errors(offsets: np.ndarray, anchor: Observation, obs: Observation,
+                    axes: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """``(|e_p| (W,), |e_r| (W,))``: the norms of the position [m] and rotation [rad] errors from ``obs``'s pose to
+    each of the ``W`` waypoints ``offsets (W, m)`` taken from ``anchor``'s pose, as
+    :meth:`selfid_jax.control.task.Task.error` (the follow law's waypoint test) computes them; float64 numpy
+    (rotation errors zero for a task without rotation axes)."""
+    with jax.enable_x64(True):
+        f64 = functools.partial(np.asarray, dtype=np.float64)
+        out = _waypoint_errors(f64(offsets), f64(anchor.position), f64(anchor.quaternion), f64(obs.position),
+                               f64(obs.quaternion), axes=tuple(axes))
+        e_p, e_r = jax.device_get(out)
+    return np.asarray(e_p, np.float64), np.asarray(e_r, np.float64)

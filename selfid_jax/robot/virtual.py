@@ -56,8 +56,11 @@ from selfid_jax.math.geometry import rotation_to_quaternion, so3_exp
 from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits, check_limits
 from selfid_jax.systems import REGISTRY, System
 
-__all__ = ["Faults", "LatencySpike", "TickStats", "VirtualRobot", "Window", "build_system", "default_q0",
-           "servo_step", "system_limits"]
+UR5E_JOINT_NAMES = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
+"""Universal Robots' names of the UR5e's joints, base to tool."""
+
+__all__ = ["UR5E_JOINT_NAMES", "Faults", "LatencySpike", "TickStats", "VirtualRobot", "Window", "build_system",
+           "default_q0", "servo_step", "system_limits"]
 
 
 class Window(NamedTuple):
@@ -207,6 +210,8 @@ class VirtualRobot:
             raise ValueError(f"realism.period: the virtual robot ticks in real time, needs a period > 0 s, "
                              f"got {r.period!r}")
         self.system, self.realism, self.faults = system, r, faults
+        # the vendor's joint names where the system is a known arm (the runner's messages name joints by them)
+        self.joint_names = UR5E_JOINT_NAMES if system.name.startswith("ur5e") else None
         self.n = int(system.n_act)
         self.period = float(r.period)
         self.latency = int(r.latency)

@@ -8,9 +8,13 @@ under the run directory's lock:
 * ``estimates.npz``: ``estimates (T, n, m)`` after every sample, ``deltas (T,)``
   (``||J_t - J_{t-1}||_F``), ``thresholds (T,)``, ``accepted (T,)``, ``t (T,)``
   and ``row (T,)`` (the log row of each sample);
-* ``inverse_jacobian.npz`` / ``.json`` (a converged fit only): the final
-  refined estimate with ``n``, ``m``, the task axes, the convergence
-  iteration, sample counts and units;
+* ``inverse_jacobian.npz`` / ``.json`` (a converged fit only, and with
+  ``strict`` one with no trust warning): the final refined estimate with
+  ``n``, ``m``, the task axes, the convergence iteration, sample counts,
+  units and its trust record (``trust``: the figures, the warnings and the
+  report of how the log was read,
+  :func:`selfid_jax.robot.quality.trust_record`), which ``selfid-jax online
+  --estimate`` shows and checks;
 * ``summary.json`` (:func:`summary`): options, counts, rejected rows by
   reason, the trust figures (:func:`selfid_jax.robot.quality.trust`), units,
   notes on how the log was read, and a camera tracker's frames, dropouts,
@@ -34,7 +38,8 @@ if TYPE_CHECKING:
     from selfid_jax.robot.offline import FitResult
 
 __all__ = ["ESTIMATES_FILE", "FIGURE", "JINV_JSON", "JINV_NPZ", "SUMMARY_FILE", "UNITS", "default_run_dir", "draw",
-           "draw_convergence", "estimate_units", "fit_to_run", "redraw", "summary", "write_run"]
+           "draw_convergence", "estimate_units", "fit_to_run", "redraw", "report_lines", "summary", "withheld",
+           "write_run"]
 
 ESTIMATES_FILE = "estimates.npz"
 JINV_NPZ = "inverse_jacobian.npz"
@@ -51,8 +56,8 @@ def default_run_dir(log: str | Path | Mapping[str, Any] | Samples) -> Path:
     return Path("runs") / (f"fit_{Path(log).stem}" if isinstance(log, (str, Path)) else "fit_table")
 
 
-def fit_to_run(log: str | Path | Mapping[str, Any] | Samples, out: str | Path, **options: Any
-               ) -> tuple[FitResult, dict[str, Path]]:
+def fit_to_run(log: str | Path | Mapping[str, Any] | Samples, out: str | Path, *, strict: bool = False,
+               **options: Any) -> tuple[FitResult, dict[str, Path]]:
     """Fit ``log`` (:func:`selfid_jax.robot.offline.fit` with ``options``) and write the run directory ``out``:
     ``(result, files)``, ``files`` mapping each written file's name (``figures/convergence.png``, ..) to its path.
 
@@ -60,7 +65,8 @@ def fit_to_run(log: str | Path | Mapping[str, Any] | Samples, out: str | Path, *
     ``eps``, ``eps_rel``, ``method``, ``start``, ``latency``, ``joints``, ...).
     Nothing is written unless the log is read and fitted: bad options, an
     unusable log and a folder that holds a sweep's run directory are refused
-    first. Only a converged fit writes ``inverse_jacobian.*`` (:func:`write_run`).
+    first. Only a converged fit writes ``inverse_jacobian.*`` (:func:`write_run`); with ``strict`` (``--strict``),
+    only one with no trust warning.
 
     Raises:
       RunDirError: ``out`` holds a sweep's run directory (``config.yaml``), or is a file.
@@ -79,7 +85,7 @@ def fit_to_run(log: str | Path | Mapping[str, Any] | Samples, out: str | Path, *
     result = fit(log, **options)
     with hold(out):
         signals.phase("write")
-        files = write_run(result, out, log=result.report.source)
+        files = write_run(result, out, log=result.report.source, strict=strict)
     return result, files
 
 
@@ -130,6 +136,7 @@ def summary(result: FitResult, *, log: Path | str) -> dict[str, Any]:
         # estimate's condition number, each actuator's task motion for the largest sample step, the fraction of
         # rows and samples refused, and a warning per figure outside its bound
         **result.trust.figures(),
+        "actuators": list(result.trust.actuators),  # how the warnings name each actuator (the log's names)
         "warnings": list(result.trust.warnings),
         "units": UNITS,
         "estimate_units": estimate_units(s.axis_names),
@@ -231,14 +238,45 @@ def redraw(run_dir: Path) -> list[Path] | None:
         return save_figure(fig, run_dir / FIGURES_DIR, FIGURE)
 
 
-def write_run(result: FitResult, out: Path, *, log: Path | str) -> dict[str, Path]:
+def withheld(result: FitResult, *, strict: bool = False) -> str | None:
+    """Why a fit writes no estimate file (one line), or None when it writes one: it did not converge, or ``strict``
+    and a trust figure is out of bounds (its warnings)."""
+    if not result.converged:
+        return "not converged"
+    if strict and result.trust.warnings:
+        return f"--strict and {len(result.trust.warnings)} trust warning(s)"
+    return None
+
+
+def report_lines(result: FitResult) -> list[str]:
+    """How a fit's estimate was made, one line each (the estimate file's ``report``): the log, how it was read
+    (``result.notes``), the rows refused and the samples the estimator refused."""
+    s = result.samples
+    lines = [f"{s.source}: {s.rows} rows, {s.layout.replace('_', ' ')}; {result.deltas.shape[0]} samples"]
+    lines += list(result.notes) + [r.line() for r in s.rejected]
+    if s.outside_window:
+        lines.append(f"{s.outside_window} rows outside --start/--stop (ignored)")
+    refused = int((~result.accepted).sum())
+    if refused:
+        lines.append(f"{refused} samples refused by the estimator (all-zero dtheta or V)")
+    return lines
+
+
+def write_run(result: FitResult, out: Path, *, log: Path | str, strict: bool = False) -> dict[str, Path]:
     """Write every output file of a fit into ``out`` (each atomically); returns name -> path.
 
-    Only a converged fit writes ``inverse_jacobian.npz`` / ``.json`` (and one
-    that did not removes those of an earlier fit there, so no file can be
-    taken for its result); ``summary.json`` then holds ``estimate_so_far``."""
+    Only a converged fit writes ``inverse_jacobian.npz`` / ``.json``, and with
+    ``strict`` only one with no trust warning (:func:`withheld`); one that
+    does not removes those of an earlier fit there, so no file can be taken
+    for its result, and ``summary.json`` then holds ``estimate_so_far`` and
+    ``estimate_withheld`` (why). The estimate files carry the fit's
+    :func:`~selfid_jax.robot.quality.trust_record` (``trust``; in the npz a
+    JSON string)."""
+    import json
+
     import numpy as np
 
+    from selfid_jax.robot.quality import TRUST_KEY, trust_record
     from selfid_jax.runner.figures import save_figure
     from selfid_jax.runner.files import atomic_write_bytes, write_json
     from selfid_jax.runner.layout import FIGURES_DIR
@@ -246,25 +284,30 @@ def write_run(result: FitResult, out: Path, *, log: Path | str) -> dict[str, Pat
     out = Path(out)
     s = result.samples
     info = summary(result, log=log)
+    why = withheld(result, strict=strict)
     paths = {name: out / name for name in (ESTIMATES_FILE, SUMMARY_FILE)}
     atomic_write_bytes(paths[ESTIMATES_FILE], _npz(
         estimates=result.estimates, deltas=result.deltas, thresholds=result.thresholds, accepted=result.accepted,
         t=s.t, row=s.row, converged_at=np.int64(result.converged_at)))
-    if result.converged:
+    if why is None:
         paths.update({name: out / name for name in (JINV_NPZ, JINV_JSON)})
         meta = {k: info[k] for k in ("n", "m", "task_axes", "converged_at", "converged", "samples",
                                      "samples_accepted", "rows", "rows_used", "refine", "eps", "eps_rel")}
+        record = trust_record(source="fit", log=str(log), converged=result.converged,
+                              converged_at=result.converged_at, trust=result.trust, report=report_lines(result))
         atomic_write_bytes(paths[JINV_NPZ], _npz(
             inverse_jacobian=result.estimate, initial_guess=result.initial_guess,
             task_axes=np.array(info["task_axes"]), estimate_units=np.array(info["estimate_units"]),
-            **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"}))
+            **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"},
+            **{TRUST_KEY: np.array(json.dumps(record))}))
         write_json(paths[JINV_JSON], {"inverse_jacobian": result.estimate, "initial_guess": result.initial_guess,
                                       **meta, "units": UNITS, "estimate_units": info["estimate_units"],
-                                      "log": str(log)})
+                                      "log": str(log), TRUST_KEY: record})
     else:
         for name in (JINV_NPZ, JINV_JSON):
             (out / name).unlink(missing_ok=True)
         info["estimate_so_far"] = result.estimate
+        info["estimate_withheld"] = why
     write_json(paths[SUMMARY_FILE], info)
     fig_paths = save_figure(draw(result), out / FIGURES_DIR, FIGURE)
     return {**{p.name: p for p in paths.values()}, **{f"figures/{p.name}": p for p in fig_paths}}

@@ -2,14 +2,18 @@
 
 * ``figures/convergence.png`` / ``.pdf``: ``||J_t - J_{t-1}||_F`` per accepted
   sample against the Sec. IV-D threshold, the convergence sample marked: the
-  figure ``selfid-jax fit`` draws (:func:`selfid_jax.sessions.fit_run.draw_convergence`).
+  figure ``selfid-jax fit`` draws (:func:`selfid_jax.sessions.fit_run.draw_convergence`);
+  none for a session that follows a given estimate (``--estimate``: no self-ID
+  here; the summary gives its file's convergence).
 * ``figures/path.png`` / ``.pdf`` (when the session started following): the
   tracked point's positions while following against the target waypoints, in
   the plane of the path's two widest position axes, and the path distance
-  after each following move [m] with its mean and max.
+  after each following move [m] with its mean and max; where a resumed
+  session took up following is marked in both (:func:`resumed_at`).
 * ``figures/estimate.png`` / ``.pdf`` (when the driver gave its model's
-  Jacobian ``J`` where self-ID started, a ``reference`` record, and the
-  session converged): ``J Ĵ`` and ``J Ĵ - I`` with its Frobenius norm
+  Jacobian ``J``, a ``reference`` record: where self-ID started, or with a
+  given estimate where following started, and the session converged or was
+  given its estimate): ``J Ĵ`` and ``J Ĵ - I`` with its Frobenius norm
   (:func:`selfid_jax.runner.figures.right_inverse_panels`).
 
 Everything comes from ``RUN/session.jsonl`` (:mod:`selfid_jax.robot.journal`):
@@ -24,7 +28,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CONVERGENCE", "ESTIMATE", "PATH", "draw_estimate", "draw_path", "redraw", "tracking", "write_figures"]
+__all__ = ["CONVERGENCE", "ESTIMATE", "PATH", "draw_estimate", "draw_path", "redraw", "resumed_at", "tracking",
+           "write_figures"]
 
 CONVERGENCE = "convergence"
 PATH = "path"
@@ -68,6 +73,7 @@ def draw_path(records: list[dict[str, Any]], axes, title: str):
             targets[:, a] += offsets[:, j]
     seen = [floats(r["p"]) for r in records[start:] if r["e"] == "obs" and r["phase"] == "follow" and r["valid"]]
     tracked = np.array(seen).reshape(-1, 3)
+    resumes = resumed_at(records, start)
     both = np.vstack([targets, tracked, anchor[None]])
     plane = sorted(np.argsort(-np.ptp(both, axis=0), kind="stable")[:2].tolist())
     i, j = plane
@@ -87,6 +93,10 @@ def draw_path(records: list[dict[str, Any]], axes, title: str):
         ax.plot(mm * (tracked[:, i] - anchor[i]), mm * (tracked[:, j] - anchor[j]), "o-", color="C0", ms=2.5, lw=1,
                 label="tracked point")
     ax.plot([0], [0], "k+", ms=10, label="start (anchor)")
+    if resumes:
+        at = np.array([p for _, p in resumes if p is not None]).reshape(-1, 3)
+        ax.plot(mm * (at[:, i] - anchor[i]), mm * (at[:, j] - anchor[j]), "D", color="C1", ms=6, mfc="none",
+                gid="resumed", label=f"resumed here ({len(resumes)})")
     names = "xyz"
     ax.set_xlabel(f"{names[i]} - start [mm]")
     ax.set_ylabel(f"{names[j]} - start [mm]")
@@ -99,6 +109,9 @@ def draw_path(records: list[dict[str, Any]], axes, title: str):
         ax_d.plot(k, mm * dist, "o-", ms=2.5, lw=1, color="C0", label="path distance")
         ax_d.axhline(mm * np.nanmean(dist), color="C2", lw=1, ls="--", label=f"mean {mm * np.nanmean(dist):.3g} mm")
         ax_d.axhline(mm * np.nanmax(dist), color="C3", lw=1, ls=":", label=f"max {mm * np.nanmax(dist):.3g} mm")
+        for r, (moves, _) in enumerate(resumes):
+            ax_d.axvline(moves + 0.5, color="C1", lw=1, gid="resumed",
+                         label="a resumed session started" if r == 0 else None)
         ax_d.legend(fontsize=7)
     ax_d.set_xlabel("following move")
     ax_d.set_ylabel("distance of the tracked point from the path [mm]")
@@ -106,6 +119,25 @@ def draw_path(records: list[dict[str, Any]], axes, title: str):
     ax_d.set_title("tracking error", fontsize=10)
     fig.suptitle(title, fontsize=10)
     return fig
+
+
+def resumed_at(records: list[dict[str, Any]], start: int) -> list[tuple[int, Any]]:
+    """Where each resumed session of a log took up following (``session`` records with ``resume`` after the
+    ``follow`` record at index ``start``): ``(following moves before it, the tracked position (3,) m it first read,
+    or None)`` each."""
+    from selfid_jax.robot.journal import floats
+
+    out: list[tuple[int, Any]] = []
+    moves = 0
+    for k in range(start, len(records)):
+        r = records[k]
+        if r["e"] == "track":
+            moves += 1
+        elif r["e"] == "session" and r.get("resume"):
+            first = next((floats(o["p"]) for o in records[k + 1:] if o["e"] == "obs" and o["phase"] == "follow"
+                          and o["valid"]), None)
+            out.append((moves, first))
+    return out
 
 
 def draw_estimate(records: list[dict[str, Any]], axes, title: str):
@@ -116,11 +148,11 @@ def draw_estimate(records: list[dict[str, Any]], axes, title: str):
     from selfid_jax.runner.figures import right_inverse_panels
 
     ref = next((r for r in records if r["e"] == "reference"), None)
-    conv = next((r for r in records if r["e"] == "converged"), None)
+    conv = next((r for r in records if r["e"] in ("converged", "estimate")), None)  # self-ID's, or a given one
     if ref is None or conv is None:
         return None
     J = np.array(ref["jacobian"], np.float64)[list(axes)]
-    est = np.array(conv["estimate"], np.float64)
+    est = np.array(conv["estimate"], np.float64).reshape(J.shape[1], J.shape[0])
     fig = Figure(figsize=(8.5, 3.8), layout="constrained")
     panels = fig.subplots(1, 2)
     im = right_inverse_panels(panels, J, est, _axis_names(axes), "")
@@ -148,16 +180,23 @@ def write_figures(run_dir: str | Path) -> list[Path]:
     thresholds = np.array([np.nan if r["threshold"] is None else r["threshold"] for r in samples], np.float64)
     conv = max([int(r["converged_at"]) for r in samples], default=-1)
     out = run_dir / FIGURES_DIR
-    paths = save_figure(draw_convergence(deltas, thresholds, eps=float(header["eps"]),
-                                         eps_rel=float(header["eps_rel"]), converged_at=conv,
-                                         accepted=[bool(r.get("estimator_accepted", True)) for r in samples],
-                                         title=f"online self-ID of the tracked point ({run_dir.name}): {what}"),
-                        out, CONVERGENCE)
+    paths: list[Path] = []
+    if any(r["e"] == "estimate" for r in records):  # followed with a given estimate: no self-ID here to draw
+        for f in out.glob(f"{CONVERGENCE}.*"):  # nor a figure of one left from before
+            f.unlink()
+    else:
+        paths += save_figure(draw_convergence(deltas, thresholds, eps=float(header["eps"]),
+                                              eps_rel=float(header["eps_rel"]), converged_at=conv,
+                                              accepted=[bool(r.get("estimator_accepted", True)) for r in samples],
+                                              title=f"online self-ID of the tracked point ({run_dir.name}): {what}"),
+                             out, CONVERGENCE)
     fig = draw_path(records, axes, f"following with the estimate ({run_dir.name}): {what}")
     if fig is not None:
         paths += save_figure(fig, out, PATH)
-    fig = draw_estimate(records, axes, f"the estimate against the driver's model Jacobian J where self-ID started "
-                                       f"({run_dir.name}): {what}")
+    at = next((r.get("at", "selfid") for r in records if r["e"] == "reference"), "selfid")
+    fig = draw_estimate(records, axes, f"the estimate against the driver's model Jacobian J where "
+                                       f"{'following' if at == 'follow' else 'self-ID'} started ({run_dir.name}): "
+                                       f"{what}")
     if fig is not None:
         paths += save_figure(fig, out, ESTIMATE)
     return paths

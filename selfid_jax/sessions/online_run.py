@@ -40,8 +40,8 @@ from selfid_jax.sessions.online_config import OnlineConfig, options
 if TYPE_CHECKING:
     from selfid_jax.robot.live import OnlineResult
 
-__all__ = ["CONFIG_JSON", "JINV_JSON", "JINV_NPZ", "SUMMARY_FILE", "connect_robot", "open_camera", "run_session",
-           "summary", "write_run"]
+__all__ = ["CONFIG_JSON", "JINV_JSON", "JINV_NPZ", "SUMMARY_FILE", "check_estimate", "connect_robot", "open_camera",
+           "run_session", "session_lines", "summary", "write_run"]
 
 SUMMARY_FILE = "summary.json"
 CONFIG_JSON = "online_config.json"
@@ -128,7 +128,8 @@ def _axes(task: str) -> tuple[int, ...]:
 
 def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path | None = None, resume: bool = False,
                 estimate: str | Path | None = None, progress: Callable[[dict[str, Any]], None] | None = None,
-                stop_requested: Callable[[], bool] | None = None) -> tuple[OnlineResult, dict[str, Path]]:
+                stop_requested: Callable[[], bool] | None = None, accept_flagged_estimate: bool = False
+                ) -> tuple[OnlineResult, dict[str, Path]]:
     """Run one online session of ``cfg`` in the run directory ``out``; ``(result, files written by name)``.
 
     ``config_path``: the YAML file ``cfg`` came from: a relative driver module
@@ -140,26 +141,31 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
     :func:`selfid_jax.robot.live.run_online` (e.g.
     :class:`~selfid_jax.sessions.online_progress.ProgressLine`).
     ``stop_requested``: polled before every read and command; True stops the
-    session as ``interrupted``.
+    session as ``interrupted``. ``accept_flagged_estimate``
+    (``--accept-flagged-estimate``): follow with an ``estimate`` whose file is
+    flagged (trust warnings, or not converged; :func:`check_estimate`), which
+    is otherwise refused before connecting.
 
     The estimator runs in JAX's default float (float64 once
     ``jax_enable_x64`` is on, as ``selfid-jax online`` sets it); the session
     log records it and a resume in the other precision is refused.
 
     Raises:
-      ConfigError: a bad estimate or path, per-actuator values of the wrong
-        length for the robot, unusable robot limits, options ``run_online``
+      ConfigError: a bad estimate (not an estimate file, another task's, a flagged one unless accepted) or
+        path, per-actuator values of the wrong length for the robot, options ``run_online``
         refuses, a log that disagrees; a driver that cannot be imported or a
         robot that cannot be reached (``robot.driver`` / ``robot.host``); a camera that cannot be opened or
         sends no frame of its intrinsics' size (``tracker.camera``), unusable intrinsics (``tracker.camera_info``).
+      DriverFailure: the driver failed while connecting or in ``limits()`` (an exception of its own, or limits
+        that cannot be used; :class:`selfid_jax.robot.drivers.load.DriverFailure`, exit 3).
       RunDirError: ``out`` holds a sweep, a log without ``resume``, or no log
         with ``resume``; RunDirBusy: another process holds its lock.
     """
     import threading
 
     from selfid_jax.robot import live
+    from selfid_jax.robot.drivers.load import checked_limits
     from selfid_jax.robot.log import parse_task
-    from selfid_jax.robot.protocol import RobotError, check_limits
     from selfid_jax.runner import signals
     from selfid_jax.runner.config import dump_config
     from selfid_jax.runner.errors import ConfigError, RunDirError
@@ -172,8 +178,8 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
     if estimate is not None and cfg.path is None:
         raise ConfigError(f"{label}: --estimate {estimate}: following with a given estimate needs a path "
                           "section in the config")
-    if estimate is not None and not Path(estimate).is_file():
-        raise ConfigError(f"--estimate {estimate}: no such file")
+    if estimate is not None:
+        check_estimate(estimate, cfg.selfid.task, accept_flagged=accept_flagged_estimate)
     opts = options(cfg, config_dir, estimate)
     if opts.path is not None:
         try:
@@ -210,10 +216,7 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
 
             robot = tracked = CameraTracked(robot, *camera, wait_s=cfg.tracker.wait_s)
         try:  # run_online closes the robot however it ends; close (idempotent) here too if it never starts
-            try:
-                n = check_limits(robot.limits()).lower.shape[0]
-            except (RobotError, ValueError) as err:
-                raise ConfigError(f"robot: its limits cannot be used: {err}") from None
+            n = checked_limits(robot, cfg.robot.driver or f"{cfg.robot.host}:{cfg.robot.port}").lower.shape[0]
             _check_sizes(cfg, n, label)
             write_json(out / CONFIG_JSON, dump_config(cfg))
             signals.phase("online")
@@ -232,6 +235,53 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
     return result, files
 
 
+def check_estimate(path: str | Path, task: str, *, accept_flagged: bool = False) -> list[str]:
+    """Check an estimate file for ``--estimate`` before connecting; the lines that show its trust figures.
+
+    The file must be an estimate (:func:`selfid_jax.robot.live.read_estimate`)
+    for the config's ``task``. One whose trust record is flagged
+    (:func:`selfid_jax.robot.quality.record_flags`: trust warnings, or not
+    converged) is refused unless ``accept_flagged``; one written before
+    estimate files carried a trust record is accepted, and its lines say so.
+
+    Raises:
+      ConfigError: naming ``--estimate FILE`` and what is wrong (exit 2, before any motion).
+    """
+    from selfid_jax.robot.live import read_estimate
+    from selfid_jax.robot.quality import record_flags, record_lines
+    from selfid_jax.runner.errors import ConfigError
+
+    try:
+        read = read_estimate(path)
+    except ValueError as err:
+        raise ConfigError(f"--estimate {' '.join(str(err).split())}") from None
+    axes = _axes(task)
+    names = [_axis_names(axes)[i] for i in range(len(axes))]
+    if axes and read.task_axes != names:
+        raise ConfigError(f"--estimate {path}: its task axes are {','.join(read.task_axes)}, the task is "
+                          f"{','.join(names)} (selfid.task); an estimate serves only the task it was identified for")
+    record = read.trust
+    if record is None:
+        return [f"estimate {path}: carries no trust figures (written before estimate files carried them); "
+                "followed unchecked"]
+    made = f"{record.get('source', '?')} of {record.get('log', '?')}"
+    lines = [f"estimate {path} ({made}): {record_lines(record)[0]}", *(f"  {x}" for x in record_lines(record)[1:])]
+    flags = record_flags(record)
+    if flags and not accept_flagged:
+        raise ConfigError(f"--estimate {path}: flagged, not followed ({made}: {record_lines(record)[0]}): "
+                          f"{'; '.join(flags)}. Self-identify again, or follow with it anyway with "
+                          "--accept-flagged-estimate")
+    if flags:
+        lines.append(f"  --accept-flagged-estimate: following with it despite {len(flags)} flag(s)")
+    return lines
+
+
+def _axis_names(axes) -> list[str]:
+    from selfid_jax.systems.validation import AXIS_NAMES
+
+    return [AXIS_NAMES[a] for a in axes]
+
+
 def summary(result: OnlineResult, cfg: OnlineConfig, tracker: dict[str, Any] | None = None) -> dict[str, Any]:
     """``summary.json`` of a session: its stop, counts, convergence, tracking error [m], wall times [s] and the
     estimator step's latency [ms]; ``tracker``: a camera tracker's counts
@@ -243,6 +293,8 @@ def summary(result: OnlineResult, cfg: OnlineConfig, tracker: dict[str, Any] | N
 
     ms = result.step_ms
     n, m = result.estimate.shape
+    own = {} if result.trust is None else {**result.trust.figures(), "actuators": list(result.trust.actuators)}
+    given = None if result.estimate_source is None else (result.given_trust or {})
     info = {
         "command": "online",
         "status": result.status.value,
@@ -250,19 +302,27 @@ def summary(result: OnlineResult, cfg: OnlineConfig, tracker: dict[str, Any] | N
         "n": n,
         "m": m,
         "task_axes": [AXIS_NAMES[a] for a in result.axes],
-        "converged": result.converged,
-        "converged_at": result.converged_at,
+        # with a given estimate (no self-ID here): its file's convergence (None where the file does not say)
+        "converged": result.converged if given is None else _given_converged(result),
+        "converged_at": result.converged_at if given is None else result.given_converged_at,
         "samples": result.samples,
         "rejected": result.rejected,
         "moves": result.moves,
         "follow_steps": result.follow_steps,
         "follow_rejected": result.follow_rejected,
-        "heldout_error": None if result.quality is None else result.quality.heldout_error,
-        # ||J Ĵ - I||_F against the driver's model Jacobian where self-ID started (a driver with jacobian())
+        "heldout_error": own.get("heldout_error", (given or {}).get("heldout_error")),
+        # ||J Ĵ - I||_F against the driver's model Jacobian (a driver with jacobian()) where self-ID started, or with a
+        # given estimate where following started (reference_at)
         "reference_error": result.reference_error,
-        "actuator_effect": None if result.quality is None else result.quality.effect,
+        "reference_at": None if result.reference is None else ("follow" if given is not None else "selfid"),
+        "actuator_effect": own.get("actuator_effect", (given or {}).get("actuator_effect")),
         # the estimate's condition number s_max / s_min (selfid_jax.robot.quality.condition), as selfid-jax fit reports
-        "condition": condition(result.estimate) if result.converged else None,
+        "condition": condition(result.estimate) if result.converged or given is not None else None,
+        "actuators": own.get("actuators", (given or {}).get("actuators")),
+        # the trust warnings: this session's samples', or with a given estimate its file's
+        "warnings": list(result.trust.warnings) if result.trust is not None else list((given or {}).get("warnings")
+                                                                                        or []),
+        "estimate_trust": result.given_trust,  # --estimate: the file's trust record (None: it carries none)
         "waypoints": result.waypoints,
         "waypoints_total": result.waypoints_total,
         "replayed": result.replayed,
@@ -313,15 +373,35 @@ def _log_killed(log: Path) -> None:
                         "robot's connection closes with it (continue with --resume)"})
 
 
+def _given_converged(result: OnlineResult) -> bool | None:
+    """Whether a given estimate's self-ID converged, as its file says (None where it does not)."""
+    record = result.given_trust
+    if record is not None and "converged" in record:
+        return bool(record["converged"])
+    return None if result.given_converged_at is None else result.given_converged_at > 0
+
+
+def session_lines(result: OnlineResult) -> list[str]:
+    """How a session's estimate was made, one line each (the estimate file's ``report``): samples, moves, rejected
+    draws, convergence and the session's stop."""
+    rejected = ", ".join(f"{v} {k}" for k, v in result.rejected.items()) or "none"
+    return [f"online self-ID: {result.samples} samples, {result.moves} random moves, rejected: {rejected}",
+            f"converged at sample {result.converged_at}" if result.converged else "not converged",
+            f"stopped: {result.status.value}: {result.detail}"]
+
+
 def write_run(result: OnlineResult, cfg: OnlineConfig, out: str | Path, *,
               tracker: dict[str, Any] | None = None) -> dict[str, Path]:
     """Write ``summary.json`` and, for a converged session only, ``inverse_jacobian.npz``/``.json`` into ``out`` (each
     atomically), then the figures from the session log; the files written by name. A session that did not converge
     has its estimate so far in the summary (``estimate_so_far``), not in a file that could be taken for a result.
     ``tracker``: a camera tracker's counts for the summary (:func:`summary`)."""
+    import json
+
     import numpy as np
 
     from selfid_jax.identify import estimator
+    from selfid_jax.robot.quality import TRUST_KEY, trust_record
     from selfid_jax.runner.files import atomic_write_bytes, write_json
     from selfid_jax.sessions.online_figures import write_figures
 
@@ -333,11 +413,15 @@ def write_run(result: OnlineResult, cfg: OnlineConfig, out: str | Path, *,
     paths = {SUMMARY_FILE: out / SUMMARY_FILE}
     if result.converged:  # a session that never converged writes no file that could be taken for a result
         paths.update({name: out / name for name in (JINV_NPZ, JINV_JSON)})
+        record = trust_record(source="online", log=str(result.log), converged=True,
+                              converged_at=result.converged_at, trust=result.trust,
+                              reference_error=result.reference_error, report=session_lines(result))
         atomic_write_bytes(paths[JINV_NPZ], _npz(
             inverse_jacobian=result.estimate, initial_guess=guess, task_axes=np.array(info["task_axes"]),
-            **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"}))
+            **{k: np.asarray(v) for k, v in meta.items() if k != "task_axes"},
+            **{TRUST_KEY: np.array(json.dumps(record))}))
         write_json(paths[JINV_JSON], {"inverse_jacobian": result.estimate, "initial_guess": guess, **meta,
-                                      "log": str(result.log)})
+                                      "log": str(result.log), TRUST_KEY: record})
     else:
         info["estimate_so_far"] = result.estimate if result.samples else None  # not converged: not a result
     write_json(paths[SUMMARY_FILE], info)
