@@ -133,6 +133,57 @@ def test_the_newest_frame_on_the_runners_clock_and_never_one_from_before_a_move(
         assert arm.closed
 
 
+class _Webcam:
+    """Stands in for ``cv2.VideoCapture`` of a device index (no webcam on the test machines): what the runner asked
+    of it (``opened``, ``asked``), and the tag picture at 30 frames per second."""
+
+    opened: list = []
+
+    def __init__(self, *args):
+        type(self).opened.append(args)
+        self.asked: dict[int, int] = {}
+        self.k = 0
+        _Webcam.last = self
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        self.asked[prop] = value
+        return True
+
+    def grab(self):
+        time.sleep(1 / 30)
+        self.k += 1
+        return True
+
+    def retrieve(self):
+        return True, _picture(self.k)[:, :, ::-1]
+
+    def release(self):
+        pass
+
+
+def test_a_webcam_by_device_index(monkeypatch):
+    """A device index goes to cv2.VideoCapture as the int OpenCV opens webcams by (no FFmpeg URL options), is asked
+    for the intrinsics' resolution, and its frames become poses; an index with no device is one error naming it."""
+    with pytest.raises(CameraError, match=r"^camera 7: OpenCV cannot open it \(cv2\.VideoCapture\); is it connected, "
+                       r"and not in use by another program\?$"):
+        LiveCamera(7, open_timeout_s=1.0)
+    monkeypatch.setattr(cv2, "VideoCapture", _Webcam)
+    _Webcam.opened.clear()
+    camera = LiveCamera(0, size=(W, H), open_timeout_s=2.0)
+    robot = CameraTracked(FakeArm(), camera, TagTracker(INTRINSICS, TAG), wait_s=0.5)
+    try:
+        assert _Webcam.opened == [(0,)]
+        assert _Webcam.last.asked == {cv2.CAP_PROP_FRAME_WIDTH: W, cv2.CAP_PROP_FRAME_HEIGHT: H}
+        camera.wait_newer(camera.latest().seq, 2.0)
+        obs = robot.read()
+        assert obs.valid and 0.2 < obs.position[2] < 2.0 and obs.tracker_t <= obs.t
+    finally:
+        robot.close()
+
+
 def _session_config(tmp_path: Path, camera, *, info: str = "camera.yaml", tag: str = "tag36h11:3:0.05",
                     extra: str = "") -> Path:
     cfg = tmp_path / "online.yaml"
