@@ -225,20 +225,23 @@ def joint_message(stamp, q, store=STORE):
 
 
 def write_bag(path: Path, rec: Recording, *, encoding="mono8", camera_info=True, image_topic="/camera/image_raw",
-              frames=None, storage="mcap") -> Path:
+              frames=None, storage="mcap", stamp_offset=None) -> Path:
     """``rec`` as a bag: /joint_states, ``image_topic`` (sensor_msgs/Image in ``encoding``, or CompressedImage for
     ``encoding="png"``) and, with ``camera_info``, /camera/camera_info (one message per frame). ``storage``: "mcap"
     or "sqlite3" (ROS 2), or "ros1" (a ROS 1 ``.bag``: give ``path`` that suffix). Stamps are ``T0`` + the
     recording's times; each frame is received 30 ms after its capture. ``frames`` replaces the recording's frames (a
-    frozen or darkened camera)."""
+    frozen or darkened camera); ``stamp_offset`` (s, one per frame) is added to each frame's header stamp, not to its
+    receive time (a camera clock that stepped)."""
     frames = rec.frames if frames is None else frames
     store = ROS1_STORE if storage == "ros1" else STORE
     items = [(T0 + int(round(t * NS)), "/joint_states", joint_message(T0 + int(round(t * NS)), q, store))
              for t, q in zip(rec.joint_t, rec.joint_q)]
-    for t, frame in zip(rec.frame_t, frames):
+    offsets = np.zeros(len(frames)) if stamp_offset is None else stamp_offset
+    for t, frame, offset in zip(rec.frame_t, frames, offsets):
         stamp = T0 + int(round(t * NS))
-        image = (compressed_message(stamp, frame, store) if encoding == "png"
-                 else image_message(stamp, frame, encoding, store))
+        header = stamp + int(round(offset * NS))
+        image = (compressed_message(header, frame, store) if encoding == "png"
+                 else image_message(header, frame, encoding, store))
         items.append((stamp + 30_000_000, image_topic, image))
         if camera_info:
             items.append((stamp + 30_000_000, "/camera/camera_info", camera_info_message(stamp, rec.intrinsics, store)))

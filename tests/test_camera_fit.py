@@ -234,6 +234,25 @@ def test_a_frozen_camera(rec, files, tmp_path):
         sj.fit(files["csv"], **_folder_log(files, tmp_path / "b", frozen))
 
 
+@pytest.mark.slow
+def test_a_camera_clock_that_steps_back_in_a_bag(rec, files, tmp_path):
+    """Five frames whose header stamps step back 2 s (the camera's clock; their receive times keep pace) are dropped
+    and reported as a CSV's backwards rows are, not re-sorted onto joints 2 s earlier: the estimate is the one of
+    the same bag without those frames."""
+    offset = np.zeros(len(rec.frames))
+    offset[10:15] = -2.0
+    stepped = write_bag(tmp_path / "stepped", rec, stamp_offset=offset)
+    keep = np.r_[0:10, 15:len(rec.frames)]
+    without = write_bag(tmp_path / "without", rec._replace(frame_t=rec.frame_t[keep],
+                                                           frames=[rec.frames[k] for k in keep]))
+    result, reference = (sj.fit(bag, joints="/joint_states", camera="/camera/image_raw", tag=TAG_SPEC)
+                         for bag in (stepped, without))
+    assert any(re.search(r"dropped: 5 poses whose stamps step off the bag's clock by more than .* first: "
+                         r"/camera/image_raw stamp 1700000003\.", note) for note in result.notes), result.notes
+    np.testing.assert_array_equal(result.estimate, reference.estimate)
+    assert result.samples.rows == 26 and _error(rec, result.estimate) <= FIT_TOL
+
+
 def test_a_dark_and_a_blurred_stretch(rec, files, tmp_path):
     """Four dark frames (exposure 4 %) and three blurred ones drop out with their reasons; the fit is still good."""
     frames = list(rec.frames)

@@ -46,7 +46,7 @@ from selfid_jax.robot.log import LogError
 
 __all__ = ["BagInfo", "DEFAULT_SKEW_FACTOR", "JOINT_TYPE", "STAMP_STEP_S", "TRACKER_TYPES", "JointStates", "Matched",
            "clock_steps", "match_to_joints", "messages", "open_bag", "read_bag", "read_joint_states",
-           "received_messages", "stamp_ns", "topic_type"]
+           "received_messages", "screen_joint_clock", "stamp_ns", "stepped_stamp", "topic_type"]
 
 #: The joint-state message type (rosbags names ROS 1 types the ROS 2 way too).
 JOINT_TYPE = "sensor_msgs/msg/JointState"
@@ -209,19 +209,12 @@ def read_bag(
     finally:
         reader.close()
     columns = ("p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z")
-    first = []
-    joint_steps = 0
-    if states.received is not None:
-        ok = clock_steps(states.stamps, states.received)
-        joint_steps = int((~ok).sum())
-        if joint_steps:
-            first.append(f"{joints} stamp {_seconds(int(states.stamps[np.argmin(ok)]))}")
-            states = states._replace(stamps=states.stamps[ok], positions=states.positions[ok],
-                                     received=states.received[ok])
+    first: list[str] = []
+    states, joint_steps = screen_joint_clock(states, joints, first)
     ok = clock_steps(t_stamps, received)
     pose_steps = int((~ok).sum())
     if pose_steps:
-        first.append(f"{tracker} stamp {_seconds(int(t_stamps[np.argmin(ok)]))}")
+        first.append(stepped_stamp(t_stamps, ok, tracker))
         t_stamps, poses = t_stamps[ok], poses[ok]
     table, m = match_to_joints(source, joints, tracker, states, t_stamps,
                                {c: poses[:, k] for k, c in enumerate(columns)}, max_skew=max_skew)
@@ -232,6 +225,25 @@ def read_bag(
                    tracker_period=m.tracker_period, clock_steps=pose_steps, joint_clock_steps=joint_steps,
                    clock_step_first="; ".join(first))
     return table, info
+
+
+def screen_joint_clock(states: JointStates, topic: str, first: list[str]) -> tuple[JointStates, int]:
+    """``states`` without the messages whose stamps step off the bag's clock (:func:`clock_steps`), and how many
+    were dropped; the first such stamp is appended to ``first`` as ``"TOPIC stamp S"``."""
+    if states.received is None:
+        return states, 0
+    ok = clock_steps(states.stamps, states.received)
+    dropped = int((~ok).sum())
+    if dropped:
+        first.append(f"{topic} stamp {_seconds(int(states.stamps[np.argmin(ok)]))}")
+        states = states._replace(stamps=states.stamps[ok], positions=states.positions[ok],
+                                 received=states.received[ok])
+    return states, dropped
+
+
+def stepped_stamp(stamps: np.ndarray, ok: np.ndarray, topic: str) -> str:
+    """``"TOPIC stamp S"`` of the first stamp :func:`clock_steps` flagged (``ok`` False)."""
+    return f"{topic} stamp {_seconds(int(stamps[np.argmin(ok)]))}"
 
 
 def clock_steps(stamps: np.ndarray, received: np.ndarray) -> np.ndarray:

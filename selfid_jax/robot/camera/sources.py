@@ -109,6 +109,7 @@ class Tracked(NamedTuple):
     stamps: np.ndarray  # (T,) int64 capture times of the valid poses, ns (round(t * 1e9))
     columns: dict[str, np.ndarray]  # p_x, p_y, p_z (m, camera frame) and, for a rotation task, q_w, q_x, q_y, q_z
     report: CameraReport
+    frame_index: np.ndarray  # (T,) int64 each pose's frame, 0-based in the source's order
 
 def open_video(path: Path, flag: str = "") -> cv2.VideoCapture:
     """An opened ``cv2.VideoCapture`` of the video file ``path``; LogError naming the file (and ``flag``, e.g.
@@ -285,8 +286,8 @@ def camera_info_topic(image_topic: str) -> str:
     return "/".join(parts[:-1] + ["camera_info"])
 
 
-def bag_source(bag: str | Path, topic: str, *, camera_info: str | Path | None = None
-               ) -> tuple[FrameSource, Intrinsics, str]:
+def bag_source(bag: str | Path, topic: str, *, camera_info: str | Path | None = None,
+               received: list[tuple[int, int]] | None = None) -> tuple[FrameSource, Intrinsics, str]:
     """The frames of a bag's image topic (``sensor_msgs/Image`` or ``CompressedImage``, stamped by ``header.stamp``)
     and the camera's intrinsics: ``(source, intrinsics, where they came from)``.
 
@@ -295,6 +296,9 @@ def bag_source(bag: str | Path, topic: str, *, camera_info: str | Path | None = 
     the image topic (:func:`camera_info_topic`). Raises :class:`LogError`
     naming the bag and topic: no such topic, another message type, no
     ``camera_info`` topic and no file, an uncalibrated ``camera_info``.
+    ``received``: where given, each frame read appends ``(header stamp ns,
+    the bag's receive time ns)`` to it (:func:`bag_camera_table` screens the
+    camera's clock with them).
     """
     from selfid_jax.robot import bags
 
@@ -327,7 +331,8 @@ def bag_source(bag: str | Path, topic: str, *, camera_info: str | Path | None = 
             where = f"{source} topic {info}"
     finally:
         reader.close()
-    return FrameSource(f"{source} topic {topic}", msgtype, count, _bag_frames(bag, topic, msgtype)), intrinsics, where
+    return FrameSource(f"{source} topic {topic}", msgtype, count, _bag_frames(bag, topic, msgtype, received)), \
+        intrinsics, where
 
 
 def _intrinsics_file(path: str | Path) -> Intrinsics:
@@ -337,17 +342,21 @@ def _intrinsics_file(path: str | Path) -> Intrinsics:
         raise LogError(f"camera_info (--camera-info): {err}") from None
 
 
-def _bag_frames(bag: str | Path, topic: str, msgtype: str) -> Iterator[tuple[np.ndarray, float]]:
+def _bag_frames(bag: str | Path, topic: str, msgtype: str, received: list[tuple[int, int]] | None
+                ) -> Iterator[tuple[np.ndarray, float]]:
     from selfid_jax.robot import bags
 
     source = str(bag)
     reader = bags.open_bag(bag)
     try:
-        stream = bags.messages(reader, dict(reader.topics)[topic].connections, source, topic)
-        for k, msg in enumerate(stream, start=1):
+        stream = bags.received_messages(reader, dict(reader.topics)[topic].connections, source, topic)
+        for k, (recv, msg) in enumerate(stream, start=1):
             where = f"{source}: topic {topic}: message {k}"
             image = _decode(msg, where) if msgtype == IMAGE_TYPE else _decompress(msg, where)
-            yield image, bags.stamp_ns(msg) / _NS
+            stamp = bags.stamp_ns(msg)
+            if received is not None:
+                received.append((stamp, recv))
+            yield image, stamp / _NS
     finally:
         reader.close()
 
@@ -390,10 +399,11 @@ def track_frames(source: FrameSource, intrinsics: Intrinsics, settings: TrackerS
     """
     tracker = TagTracker(intrinsics, settings)
     stamps: list[int] = []
+    index: list[int] = []
     rows: list[tuple[float, ...]] = []
     frames = source.frames
     try:
-        for frame, t in frames:
+        for k, (frame, t) in enumerate(frames):
             try:
                 pose = tracker.track(frame, t)
             except ValueError as err:
@@ -401,6 +411,7 @@ def track_frames(source: FrameSource, intrinsics: Intrinsics, settings: TrackerS
                                ) from None
             if pose.valid:
                 stamps.append(int(round(t * _NS)))
+                index.append(k)
                 rows.append((*pose.position, *pose.quaternion))
     finally:
         close = getattr(frames, "close", None)  # a generator holding a video or a bag open
@@ -414,7 +425,8 @@ def track_frames(source: FrameSource, intrinsics: Intrinsics, settings: TrackerS
     _check_poses(report)
     values = np.array(rows, np.float64).reshape(-1, 7)
     names = ("p_x", "p_y", "p_z", "q_w", "q_x", "q_y", "q_z")[:7 if settings.rotation else 3]
-    return Tracked(np.array(stamps, np.int64), {c: values[:, k].copy() for k, c in enumerate(names)}, report)
+    return Tracked(np.array(stamps, np.int64), {c: values[:, k].copy() for k, c in enumerate(names)}, report,
+                   np.array(index, np.int64))
 
 
 def _check_poses(report: CameraReport) -> None:
@@ -454,16 +466,30 @@ def bag_camera_table(bag: str | Path, options: ReadOptions) -> tuple[dict[str, n
         states = bags.read_joint_states(reader, source, options.joints, options.joint_names)
     finally:
         reader.close()
-    frames, intrinsics, where = bag_source(bag, options.camera, camera_info=options.camera_info)
+    received: list[tuple[int, int]] = []
+    frames, intrinsics, where = bag_source(bag, options.camera, camera_info=options.camera_info, received=received)
     tracked = track_frames(frames, intrinsics, settings, intrinsics_source=where)
+    first: list[str] = []  # as bags.read_bag screens its topics: messages whose clock stepped are dropped
+    states, joint_steps = bags.screen_joint_clock(states, options.joints, first)
+    pose_steps = 0
+    if received:
+        stamps, recv = (np.array(x, np.int64) for x in zip(*received))
+        ok = bags.clock_steps(stamps, recv)
+        if not ok.all():
+            keep = ok[tracked.frame_index]  # received holds every frame read, in the source's order
+            pose_steps = int((~ok).sum())
+            first.append(bags.stepped_stamp(stamps, ok, options.camera))
+            tracked = tracked._replace(stamps=tracked.stamps[keep], frame_index=tracked.frame_index[keep],
+                                       columns={c: v[keep] for c, v in tracked.columns.items()})
     table, m = bags.match_to_joints(source, options.joints, options.camera, states, tracked.stamps, tracked.columns,
                                     what="frame")
     info = bags.BagInfo(source=source, joint_names=states.names, tracker_type=f"{frames.kind} tag",
                         frame="the camera frame", child_frame=None, joint_messages=int(states.stamps.size),
                         duplicate_joint_stamps=m.duplicate_joint_stamps, other_joint_messages=states.other,
-                        tracker_messages=tracked.report.poses, rows=m.rows, outside_span=m.outside_span,
+                        tracker_messages=int(tracked.stamps.size), rows=m.rows, outside_span=m.outside_span,
                         skewed=m.skewed, max_skew=m.max_skew, joint_period=m.joint_period,
-                        tracker_period=m.tracker_period)
+                        tracker_period=m.tracker_period, clock_steps=pose_steps, joint_clock_steps=joint_steps,
+                        clock_step_first="; ".join(first))
     return table, info, tracked.report
 
 
