@@ -9,18 +9,18 @@
 ``--json`` writes the numbers the tables are made of (the run's per arm x controller and per kind statistics, its
 time ratios, its population and how long it ran); ``--from-json`` renders from such a file; ``--page`` rewrites the
 page's generated blocks (between ``<!-- articulated:NAME -->`` and ``<!-- /articulated:NAME -->``), which
-``tests/test_results_pages.py`` checks against the JSON: the page cannot drift from the JSON, but that the JSON is
-what the run gave is not checked (the run is not in the repository). Success is over every rollout; time,
-efficiency and jerk are mean +- sd over the successful ones, as the paper counts them.
+``tests/test_results_pages.py`` checks against the JSON: the page cannot drift from the JSON. The JSON
+names its runs with their fingerprints (``"provenance"``); with ``--keep-rows`` the runs' rows are copied to
+``docs/results/data/runs/`` and the test recomputes every number from them (``from_rows``). Success is over every
+rollout; time, efficiency and jerk are mean +- sd over the successful ones, as the paper counts them.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import yaml
-from page_blocks import cli  # scripts/page_blocks.py (run as python scripts/NAME.py)
+from page_blocks import ROWS, cli, provenance_block, run_summary  # scripts/page_blocks.py (python scripts/NAME.py)
 
 CONFIG = "configs/articulated/articulated_full.yaml"
 ARMS = {"true": "true", "selfid": "self-ID"}
@@ -33,11 +33,24 @@ PAPER_ROWS = (
 )
 
 
+NAME = "articulated_full"
+
+
+def runs(where: Path) -> dict[str, tuple[Path, str]]:
+    """The run behind the page: ``{name: (run directory, config)}``."""
+    return {NAME: (where, CONFIG)}
+
+
+def from_rows(rows: Path = ROWS) -> dict:
+    """The numbers recomputed from the run's kept rows (``rows/articulated_full``), without provenance."""
+    return extract(rows / NAME)
+
+
 def extract(run: Path) -> dict:
     """The run's statistics per arm x controller (``overall``) and per kind, its time ratios and population."""
-    if not (run / "summary.json").exists():
-        raise SystemExit(f"{run}: no summary.json; run: selfid-jax sweep {CONFIG}")
-    summary = json.loads((run / "summary.json").read_text())
+    if not (run / "results.parquet").exists():
+        raise SystemExit(f"{run}: no results.parquet; run: selfid-jax sweep {CONFIG}")
+    summary = run_summary(run)
     cfg = yaml.safe_load((run / "config.yaml").read_text())
 
     def keep(stats: dict) -> dict:
@@ -131,12 +144,14 @@ def ratios_text(data: dict) -> str:
 
 
 def blocks(data: dict) -> dict[str, str]:
-    """The generated blocks of the page: ``{"full": ..., "kinds": ...}``."""
-    return {"full": overall_table(data), "kinds": kinds_table(data)}
+    """The generated blocks of the page: ``{"full": ..., "kinds": ..., "provenance": ...}``."""
+    return {"full": overall_table(data), "kinds": kinds_table(data),
+            "provenance": provenance_block(data.get("provenance", []))}
 
 
 def main():
-    cli(__doc__, "articulated", extract, blocks, run_flag="--run", run_default="runs/articulated_full")
+    cli(__doc__, "articulated", extract, blocks, run_flag="--run", run_default="runs/articulated_full",
+        runs=runs, from_rows=from_rows)
 
 
 if __name__ == "__main__":

@@ -14,20 +14,27 @@ control period; the values and their sources are in each config's header). Per r
 Nothing here is tuned toward the paper's numbers: the rows are what the sweeps gave. Each robot's realism
 profile (:data:`PROFILE`) is one level of each sweep; :func:`profile_table` sets that level beside the paper, column
 by column, with completion beside every error and the paper's protocol beside ours (:data:`PAPER_SOURCE`,
-:data:`PROTOCOL`). The other levels are a sensitivity study. The order matters for the profile: the values the
-sweeps take were committed in the configs before any of their results (04f84b7), the 12-level results were
-published first (9ca7c31, 2026-12-02), and the profile, which level stands for each robot, was picked three days
-later (393447c, 2026-12-05), with those results read.
+:data:`PROTOCOL`). The other levels are a sensitivity study. The order, as it happened: the values the sweeps take
+were committed in the configs before any of their results (04f84b7; the tracker noise then from a stereo camera's
+manual), the 12-level results were published first (9ca7c31, 2026-12-02), and the profile, which level stands for
+each robot, was picked three days later (393447c, 2026-12-05), with those results read. On 2026-12-06 (issue 53)
+the tracker noise became a measurement: ``scripts/gap_camera_noise.py`` tracks a tag on rendered frames of a
+simulated camera per robot's scale (assumptions stated there and in each config's header) and the configs' noise
+level is its result (:data:`gap_camera_noise.NOISE_POS`); the sweeps were rerun with it. The choice of level
+(latency 0 with noise and lag) was not revisited.
 
-    python scripts/gap_study.py [--runs runs] [--figure docs/figures/gap_study.png] [--json F] [--page PAGE]
+    python scripts/gap_study.py [--runs runs] [--figure docs/figures/gap_study.png] [--json F]
+                                [--keep-rows] [--page PAGE]
     python scripts/gap_study.py --from-json docs/results/data/gap_study.json --page docs/results/gap.md
 
 with the runs made by ``selfid-jax sweep gap_<name>`` (``configs/studies/gap/gap_<name>.yaml``; default run
 directories ``runs/gap_<name>``). ``--json`` writes the per-level numbers the tables are made of;
 ``--from-json`` renders from such a file instead of the runs; ``--page`` rewrites the generated blocks of a
 results page (between ``<!-- gap_study:NAME -->`` and ``<!-- /gap_study:NAME -->``), which
-``tests/test_results_pages.py`` checks against the JSON: the page cannot drift from the JSON. That the JSON is what
-the runs gave is not checked (the runs are not in the repository).
+``tests/test_results_pages.py`` checks against the JSON: the page cannot drift from the JSON. The JSON names its
+runs with their fingerprints (``"provenance"``, :func:`page_blocks.provenance`); ``--keep-rows`` copies the runs'
+rows into ``docs/results/data/runs/``, from which the test recomputes every number (:func:`from_rows`), so the JSON
+cannot drift from the runs either.
 """
 
 from __future__ import annotations
@@ -38,7 +45,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from page_blocks import write_blocks  # scripts/page_blocks.py (run as python scripts/NAME.py)
+from gap_camera_noise import NOISE_POS, camera_table  # scripts/gap_camera_noise.py: the measured noise
+from page_blocks import ROWS, from_runs, provenance_block, run_summary, write_blocks  # scripts/page_blocks.py
 
 PAPER = {
     "valid_region": (0.33, 1.88),
@@ -85,23 +93,29 @@ PROTOCOL = {
 #: One realism profile per robot (a level of each gap sweep): latency 0 (a loop that waits for the next frame after
 #: each move; the paper states neither its loop's latency nor its camera's rate: latency 0 is our inference from
 #: this sweep's latency rows, where one step of latency puts our full-gain step at its stability limit), tracker
-#: noise from a stereo camera's manual (0.4 mm lateral, 0.9 mm depth) at the arm's distance, less for the hands'
-#: closer camera, servo lag by actuator (UR5e joints, Dynamixel tendon servos, the Stewart Hand's geared linear
-#: actuators). The noise and lag values were committed in the configs before any result (04f84b7); this choice of
-#: level, latency 0 with both, was made after the 12-level results had been read (9ca7c31, then 393447c).
+#: noise measured on a simulated camera per robot's scale (:data:`gap_camera_noise.NOISE_POS`: 0.37 mm per axis for
+#: the arm's camera, 0.15 mm for the hands'; until 2026-12-06 it was 0.5 and 0.2 mm, taken from a stereo camera's
+#: manual), servo lag by actuator (UR5e joints, Dynamixel tendon servos, the Stewart Hand's geared linear
+#: actuators). The lag values were committed in the configs before any result (04f84b7); this choice of level,
+#: latency 0 with noise and lag, was made after the 12-level results had been read (9ca7c31, then 393447c).
 PROFILE = {
-    "valid_region": dict(latency=0, noise_pos=0.0005, servo_tau=0.02),
-    "cube": dict(latency=0, noise_pos=0.0005, servo_tau=0.02),
-    "grablab": dict(latency=0, noise_pos=0.0002, servo_tau=0.05),
-    "stewart_e": dict(latency=0, noise_pos=0.0002, servo_tau=0.1),
-    "peg_in_hole": dict(latency=0, noise_pos=0.0005, servo_tau=0.05),
+    "valid_region": dict(latency=0, noise_pos=NOISE_POS["ur5e"], servo_tau=0.02),
+    "cube": dict(latency=0, noise_pos=NOISE_POS["ur5e"], servo_tau=0.02),
+    "grablab": dict(latency=0, noise_pos=NOISE_POS["hand"], servo_tau=0.05),
+    "stewart_e": dict(latency=0, noise_pos=NOISE_POS["hand"], servo_tau=0.1),
+    "peg_in_hole": dict(latency=0, noise_pos=NOISE_POS["ur5e"], servo_tau=0.05),
 }
+#: Run directory name -> the config that makes it.
+RUNS = {name: f"configs/studies/gap/{name}.yaml" for name in (
+    "gap_valid_region_ur5e", "gap_tracking_ur5e_cube", "gap_tracking_model_o_grablab", "gap_tracking_stewart_e",
+    "gap_peg_in_hole")}
 LEVEL_KEYS = ("latency", "noise_pos", "servo_tau")
 
 
 def valid_region(run: Path) -> pd.DataFrame:
-    """Per realism level: latency, noise, lag, and the valid region's lower / upper bound (NaN: none around 1)."""
-    systems = json.loads((run / "summary.json").read_text())["systems"]
+    """Per realism level: latency, noise, lag, and the valid region's lower / upper bound (NaN: none around 1), from
+    the run's summary recomputed from its rows (:func:`page_blocks.run_summary`)."""
+    systems = run_summary(run)["systems"]
     rows = []
     for entry in systems.values():
         r = entry["realism"]
@@ -276,9 +290,25 @@ def blocks(frames: dict) -> dict[str, str]:
     return {"profile": profile_table(frames), "levels": table(frames)}
 
 
-def write_page(page: Path, frames: dict) -> None:
+def runs(where: Path) -> dict[str, tuple[Path, str]]:
+    """The runs behind the page: ``{name: (run directory, config)}``."""
+    return {name: (where / name, config) for name, config in RUNS.items()}
+
+
+def from_rows(rows: Path = ROWS) -> dict:
+    """The per-level numbers recomputed from the runs' kept rows (``rows/<run>``), as :func:`to_json` writes them,
+    without provenance."""
+    return to_json(load(rows))
+
+
+def page_blocks_of(data: dict) -> dict[str, str]:
+    """Every generated block of the page from a data file's contents: the tables and the provenance."""
+    return {**blocks(from_json(data)), "camera": camera_table(), "provenance": provenance_block(data["provenance"])}
+
+
+def write_page(page: Path, data: dict) -> None:
     """Replace each ``<!-- gap_study:NAME -->`` ... ``<!-- /gap_study:NAME -->`` block of ``page``."""
-    write_blocks(page, "gap_study", blocks(frames))
+    write_blocks(page, "gap_study", page_blocks_of(data))
 
 
 def figure(frames: dict, path: Path) -> None:
@@ -355,21 +385,24 @@ def main():
     ap.add_argument("--runs", default="runs", help="folder holding the gap_* run directories")
     ap.add_argument("--figure", default=None, help="write the figure here (PNG)")
     ap.add_argument("--json", default=None, help="write the per-level numbers here")
+    ap.add_argument("--keep-rows", action="store_true", help="copy the runs' rows to docs/results/data/runs")
     ap.add_argument("--from-json", default=None, help="read the per-level numbers from here, not from the runs")
     ap.add_argument("--page", default=None, help="rewrite this page's generated blocks")
     args = ap.parse_args()
     if args.from_json:
-        frames = from_json(json.loads(Path(args.from_json).read_text()))
+        data = json.loads(Path(args.from_json).read_text())
     else:
-        frames = load(Path(args.runs))
+        data = from_runs(lambda where: to_json(load(where)), runs, Path(args.runs),
+                         keep=from_rows if args.keep_rows else None)
+    frames = from_json(data)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(to_json(frames), indent=1) + "\n")
+        Path(args.json).write_text(json.dumps(data, indent=1) + "\n")
     print(profile_table(frames))
     print()
     print(table(frames))
     if args.page:
-        write_page(Path(args.page), frames)
+        write_page(Path(args.page), data)
         print(f"\nrewrote the generated blocks of {args.page}")
     if args.figure:
         figure(frames, Path(args.figure))

@@ -9,7 +9,8 @@ with the runs made by ``selfid-jax sweep CONFIG`` for each config in :data:`RUNS
 per-letter entries, and the size of its protocol); ``--from-json`` renders from such a file instead of the runs;
 ``--page`` rewrites the page's generated blocks (between ``<!-- tracking:NAME -->`` and
 ``<!-- /tracking:NAME -->``), which ``tests/test_results_pages.py`` checks against the JSON: the page cannot drift
-from the JSON, but that the JSON is what the runs gave is not checked (the runs are not in the repository).
+from the JSON. The JSON names its runs with their fingerprints (``"provenance"``); with ``--keep-rows`` the runs'
+rows are copied to ``docs/results/data/runs/`` and the test recomputes every number from them (``from_rows``).
 
 Every row is one tracker-noise level and inverse Jacobian of a run: nothing is picked out. The paper's numbers
 (:data:`PAPER`) sit on the noise-free rows, as the paper gives no tracker noise.
@@ -17,11 +18,10 @@ Every row is one tracker-noise level and inverse Jacobian of a run: nothing is p
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import yaml
-from page_blocks import cli  # scripts/page_blocks.py (run as python scripts/NAME.py)
+from page_blocks import ROWS, cli, provenance_block, run_summary  # scripts/page_blocks.py (python scripts/NAME.py)
 
 #: Run directory name -> the config that makes it.
 RUNS = {
@@ -47,15 +47,26 @@ PEG_PAPER = ("| paper (real robots, 5 objects) | 0.97-1.54 per object (sd 0.61-0
 PAPER_SIZES = {"tracking_model_o_grablab": "2 mm letters", "tracking_stewart_e": "12 mm"}
 
 
+def runs(where: Path) -> dict[str, tuple[Path, str]]:
+    """The runs behind the page: ``{name: (run directory, config)}``."""
+    return {name: (where / name, config) for name, config in RUNS.items()}
+
+
+def from_rows(rows: Path = ROWS) -> dict:
+    """The numbers recomputed from the runs' kept rows (``rows/<run>``), without provenance."""
+    return extract(rows)
+
+
 def extract(runs: Path) -> dict:
-    """Per run in :data:`RUNS`: its protocol's size and its summary's numbers (tracking: per system, noise level
+    """Per run in :data:`RUNS`: its protocol's size and its summary's numbers (recomputed from its rows,
+    :func:`page_blocks.run_summary`) (tracking: per system, noise level
     and inverse, and per rotation axis; peg-in-hole: per noise level, inverse and layout)."""
     out = {}
     for name in RUNS:
         run = runs / name
-        if not (run / "summary.json").exists():
-            raise SystemExit(f"{run}: no summary.json; run: selfid-jax sweep {RUNS[name]}")
-        summary = json.loads((run / "summary.json").read_text())
+        if not (run / "results.parquet").exists():
+            raise SystemExit(f"{run}: no results.parquet; run: selfid-jax sweep {RUNS[name]}")
+        summary = run_summary(run)
         cfg = yaml.safe_load((run / "config.yaml").read_text())
         size = {k: cfg[k] for k in ("n_configs", "n_trials") if k in cfg}
         if "layouts" in cfg:
@@ -147,12 +158,13 @@ def peg_table(data: dict) -> str:
 
 
 def blocks(data: dict) -> dict[str, str]:
-    """The generated blocks of the page: ``{"tracking": ..., "peg": ...}``."""
-    return {"tracking": tracking_table(data), "peg": peg_table(data)}
+    """The generated blocks of the page: ``{"tracking": ..., "peg": ..., "provenance": ...}``."""
+    return {"tracking": tracking_table(data), "peg": peg_table(data),
+            "provenance": provenance_block(data["provenance"])}
 
 
 def main():
-    cli(__doc__, "tracking", extract, blocks, run_flag="--runs", run_default="runs")
+    cli(__doc__, "tracking", extract, blocks, run_flag="--runs", run_default="runs", runs=runs, from_rows=from_rows)
 
 
 if __name__ == "__main__":

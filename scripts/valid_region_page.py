@@ -10,17 +10,17 @@ written from it.
 ``--json`` writes what the table is made of (per system: the bounds, the number of rollouts and the protocol
 from the run's config); ``--from-json`` renders from such a file; ``--page`` rewrites the page's generated block
 (between ``<!-- valid_region:bounds -->`` and ``<!-- /valid_region:bounds -->``), which
-``tests/test_results_pages.py`` checks against the JSON: the page cannot drift from the JSON, but that the JSON is
-what the run gave is not checked (the run is not in the repository).
+``tests/test_results_pages.py`` checks against the JSON: the page cannot drift from the JSON. The JSON
+names its runs with their fingerprints (``"provenance"``); with ``--keep-rows`` the runs' rows are copied to
+``docs/results/data/runs/`` and the test recomputes every number from them (``from_rows``).
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import yaml
-from page_blocks import cli  # scripts/page_blocks.py (run as python scripts/NAME.py)
+from page_blocks import ROWS, cli, provenance_block, run_summary  # scripts/page_blocks.py (python scripts/NAME.py)
 
 CONFIG = "configs/valid_region/valid_region_all.yaml"
 #: Fig. 2's valid regions (Sec. III-C: kinematic simulations; the 2-link arm is its planar example).
@@ -30,11 +30,20 @@ LABELS = {"two_link": "2-link arm", "ur5e": "UR5e (position)", "stewart_hand": "
           "model_o": "Model O (POM position)"}
 
 
+NAME = "valid_region_all"
+
+
+def runs(where: Path) -> dict[str, tuple[Path, str]]:
+    """The run behind the page: ``{name: (run directory, config)}``."""
+    return {NAME: (where, CONFIG)}
+
+
 def extract(run: Path) -> dict:
-    """Per system of the run: its bounds (None where no valid region contains 1), rollouts and protocol."""
-    if not (run / "summary.json").exists():
-        raise SystemExit(f"{run}: no summary.json; run: selfid-jax sweep {CONFIG}")
-    summary = json.loads((run / "summary.json").read_text())
+    """Per system of the run (its summary recomputed from its rows, :func:`page_blocks.run_summary`): its bounds
+    (None where no valid region contains 1), rollouts and protocol."""
+    if not (run / "results.parquet").exists():
+        raise SystemExit(f"{run}: no results.parquet; run: selfid-jax sweep {CONFIG}")
+    summary = run_summary(run)
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     protocols = {e["system"]: {"path": e["path"], "controller": e["controller"]} for e in cfg["systems"]}
     systems = {}
@@ -77,12 +86,18 @@ def bounds_table(data: dict) -> str:
 
 
 def blocks(data: dict) -> dict[str, str]:
-    """The generated block of the page: ``{"bounds": ...}``."""
-    return {"bounds": bounds_table(data)}
+    """The generated blocks of the page: ``{"bounds": ..., "provenance": ...}``."""
+    return {"bounds": bounds_table(data), "provenance": provenance_block(data.get("provenance", []))}
+
+
+def from_rows(rows: Path = ROWS) -> dict:
+    """The numbers recomputed from the run's kept rows (``rows/valid_region_all``), without provenance."""
+    return extract(rows / NAME)
 
 
 def main():
-    cli(__doc__, "valid_region", extract, blocks, run_flag="--run", run_default="runs/valid_region_all")
+    cli(__doc__, "valid_region", extract, blocks, run_flag="--run", run_default="runs/valid_region_all",
+        runs=runs, from_rows=from_rows)
 
 
 if __name__ == "__main__":

@@ -56,9 +56,11 @@ def frames():
     return gap_study.from_json(json.loads(DATA.read_text()))
 
 
-def test_gap_page_tables_are_what_the_script_renders_from_its_data(frames):
+def test_gap_page_tables_are_what_the_script_renders_from_its_data():
     text = PAGE.read_text()
-    for name, body in gap_study.blocks(frames).items():
+    blocks = gap_study.page_blocks_of(json.loads(DATA.read_text()))
+    assert set(blocks) == {"profile", "levels", "camera", "provenance"}
+    for name, body in blocks.items():
         assert _block(text, name) == body, (
             f"{PAGE}: the {name!r} table differs from scripts/gap_study.py's rendering of {DATA}; regenerate it: "
             f"python scripts/gap_study.py --from-json {DATA.relative_to(ROOT)} --page {PAGE.relative_to(ROOT)}")
@@ -96,7 +98,7 @@ def test_gap_page_drops_the_claims_the_audit_refuted(claim):
 def test_tracking_page_tables_are_what_the_script_renders_from_its_data():
     data = json.loads(TRACKING_DATA.read_text())
     text = TRACKING_PAGE.read_text()
-    assert set(data) == set(tracking_page.RUNS)
+    assert set(data) == {*tracking_page.RUNS, "provenance"}
     for name, body in tracking_page.blocks(data).items():
         assert _block(text, name, "tracking") == body, (
             f"{TRACKING_PAGE}: the {name!r} table differs from scripts/tracking_page.py's rendering of "
@@ -108,7 +110,7 @@ def test_tracking_data_matches_its_configs():
     """Each run's protocol size in the data is its shipped config's, so a changed config needs a rerun."""
     import yaml
 
-    data = json.loads(TRACKING_DATA.read_text())
+    data = _numbers(json.loads(TRACKING_DATA.read_text()))
     for name, run in data.items():
         cfg = yaml.safe_load((ROOT / run["config"]).read_text())
         for key in ("n_configs", "n_trials"):
@@ -177,3 +179,144 @@ def test_articulated_page_tables_are_the_full_populations_run():
     for arm in cfg["arms"]:
         assert set(data["overall"][arm]) == set(cfg["controllers"])
         assert all(m["n"] == 200 for m in data["overall"][arm].values())
+
+
+# --- provenance and the kept rows (issue 55, items 1 and 2) ------------------------------------------------------
+
+#: Page -> (script, data file) for the pages whose runs' rows are kept in docs/results/data/runs/.
+WITH_ROWS = {
+    "gap": (gap_study, DATA),
+    "tracking": (tracking_page, TRACKING_DATA),
+}
+#: Pages whose runs predate the provenance and were not rerun yet: their pages must say so.
+NOT_ON_RECORD = {"valid_region": "valid_region", "articulated": "articulated"}
+ROWS = page_blocks.ROWS
+
+
+def _numbers(data: dict) -> dict:
+    return {k: v for k, v in data.items() if k != "provenance"}
+
+
+@pytest.mark.parametrize("page", sorted(WITH_ROWS))
+def test_data_names_its_runs_with_the_fingerprint_of_the_kept_rows(page):
+    """Each run the page's script reads is named in the data file's provenance, with the SHA-256 of its kept rows
+    (the run's results.parquet less its per-step traces; the whole file's SHA-256 is stated beside it) and the
+    resolved-config hash of the kept config.yaml, which is the shipped config's: the data is of these rows and of
+    the config as shipped."""
+    from selfid_jax.runner import registry
+    from selfid_jax.runner.config import dump_config
+    from selfid_jax.runner.fingerprint import config_sha256
+
+    script, data_file = WITH_ROWS[page]
+    provenance = json.loads(data_file.read_text())["provenance"]
+    assert [e["run"] for e in provenance] == list(script.runs(ROWS))
+    for entry in provenance:
+        run, config = ROWS / entry["run"], script.runs(ROWS)[entry["run"]][1]
+        assert entry["config"] == config
+        assert entry["rows"] == f"docs/results/data/runs/{entry['run']}/results.parquet"
+        assert page_blocks.sha256_file(run / "results.parquet") == entry["rows_sha256"], (
+            f"{run}/results.parquet is not the file the data was made from")
+        import pandas as pd
+
+        kept = pd.read_parquet(run / "results.parquet")
+        assert len(kept) == entry["n_rows"] and not set(entry["traces_dropped"]) & set(kept.columns)
+        assert page_blocks.resolved_config_sha256(run) == entry["config_sha256"], f"{run}/config.yaml"
+        assert config_sha256(dump_config(registry.load(ROOT / config))) == entry["config_sha256"], (
+            f"{config} changed since its run: rerun it (python scripts/rerun_results.py --page {page} --keep)")
+        for key in ("selfid_jax", "source_sha256", "git_revision", "created_utc", "machine"):
+            assert entry[key], (entry["run"], key)
+        assert len(entry["rows_sha256"]) == 64
+        assert len(entry["source_sha256"]) == 64 and len(entry["results_sha256"]) == 64
+
+
+@pytest.mark.parametrize("page", sorted(WITH_ROWS))
+def test_every_number_of_the_data_is_recomputed_from_the_kept_rows(page):
+    """The data file's numbers are what the page's script computes from the kept rows (the experiments' own
+    summaries of them): an edited number fails, whatever its page says."""
+    script, data_file = WITH_ROWS[page]
+    moved = page_blocks.differences(_numbers(json.loads(data_file.read_text())), script.from_rows())
+    assert not moved, f"{data_file.name} is not what its kept rows give: " + "; ".join(moved[:10])
+
+
+def test_an_edited_number_is_caught():
+    """The check above on one edit: the profile cube's x error in gap_study.json set to 1.40 mm."""
+    data = _numbers(json.loads(DATA.read_text()))
+    edited = json.loads(json.dumps(data))
+    profile = gap_study.PROFILE["cube"]
+    row = next(r for r in edited["cube_est"] if all(math.isclose(r[k], v) for k, v in profile.items()))
+    row["error_x_mm"] = 1.40
+    assert page_blocks.differences(data, data) == []
+    (moved,) = page_blocks.differences(data, edited)
+    assert moved.startswith("/cube_est/") and moved.endswith("-> 1.4")
+
+
+@pytest.mark.parametrize("page", sorted(WITH_ROWS))
+def test_page_shows_its_provenance(page):
+    """The page's provenance block is the data file's provenance rendered."""
+    script, data_file = WITH_ROWS[page]
+    prefix = {"gap": "gap_study"}.get(page, page)
+    text = (ROOT / "docs" / "results" / f"{page}.md").read_text()
+    body = _block(text, "provenance", prefix)
+    entries = json.loads(data_file.read_text())["provenance"]
+    assert body == page_blocks.provenance_block(entries)
+    for e in entries:
+        assert e["rows_sha256"][:12] in body and e["results_sha256"][:12] in body and e["config_sha256"][:12] in body
+
+
+def test_kept_rows_are_small():
+    """The kept rows stay small enough to commit: a few MB in all."""
+    total = sum(p.stat().st_size for p in ROWS.rglob("*") if p.is_file())
+    assert total < 4e6, f"{ROWS} holds {total / 1e6:.1f} MB"
+
+
+@pytest.mark.parametrize("page", sorted(NOT_ON_RECORD))
+def test_pages_without_kept_rows_say_their_run_is_not_on_record(page):
+    """The valid-region and articulated data predate the provenance and their runs (3.5 and 57 min on free cores)
+    were not rerun: each page must say that no run is on record, not show a provenance it does not have; once
+    rerun with ``scripts/rerun_results.py --keep`` a page joins WITH_ROWS."""
+    data = json.loads((ROOT / "docs" / "results" / "data" / f"{page}.json").read_text())
+    body = _block((ROOT / "docs" / "results" / f"{page}.md").read_text(), "provenance", NOT_ON_RECORD[page])
+    assert body == page_blocks.provenance_block(data.get("provenance", []))
+    assert not data.get("provenance"), f"{page} now has a provenance: move it to WITH_ROWS"
+    assert body.startswith("No run of these numbers is on record")
+
+
+# --- the gap study's tracker noise is measured (issue 53 item 3) --------------------------------------------------
+
+gap_camera_noise = _script("gap_camera_noise")
+
+
+def test_gap_configs_and_profile_take_the_measured_tracker_noise():
+    """Each gap config's nonzero noise level, and the profile's, is its robot's camera's measured value."""
+    import yaml
+
+    assert set(gap_camera_noise.ROBOTS) == set(gap_study.RUNS)
+    for run, camera in gap_camera_noise.ROBOTS.items():
+        cfg = yaml.safe_load((ROOT / gap_study.RUNS[run]).read_text())
+        assert cfg["realism"]["noise_pos"] == [0.0, gap_camera_noise.NOISE_POS[camera]], run
+        assert "scripts/gap_camera_noise.py" in (ROOT / gap_study.RUNS[run]).read_text(), run
+    for key, camera in (("valid_region", "ur5e"), ("cube", "ur5e"), ("peg_in_hole", "ur5e"), ("grablab", "hand"),
+                        ("stewart_e", "hand")):
+        assert gap_study.PROFILE[key]["noise_pos"] == gap_camera_noise.NOISE_POS[camera], key
+
+
+def test_per_axis_sd_keeps_the_total_variance():
+    """sqrt((rms^2 - |bias|^2) / 3): an error of norm-RMS 3 mm about a 0-mean is 3 / sqrt(3) per axis; a pure bias
+    has no spread."""
+    assert gap_camera_noise.per_axis_sd(3.0, (0.0, 0.0, 0.0)) == pytest.approx(3.0 / math.sqrt(3.0))
+    assert gap_camera_noise.per_axis_sd(5.0, (3.0, 4.0, 0.0)) == pytest.approx(0.0)
+    assert gap_camera_noise.per_axis_sd(5.0, (0.0, 3.0, 0.0)) == pytest.approx(4.0 / math.sqrt(3.0))
+
+
+@pytest.mark.slow
+def test_gap_tracker_noise_is_what_the_simulated_camera_gives():
+    """Rendering each robot's camera again gives the configs' noise level (to the 0.01 mm it is rounded to)."""
+    from selfid_jax.robot.camera.render import RenderUnavailable
+
+    for name, camera in gap_camera_noise.CAMERAS.items():
+        try:
+            sd_mm, rows = gap_camera_noise.measure(camera)
+        except RenderUnavailable as err:
+            pytest.skip(f"no OpenGL backend for headless rendering: {err}")
+        assert all(r.dropout_rate == 0 for r in rows), name
+        assert round(sd_mm * 1e-3, 5) == pytest.approx(gap_camera_noise.NOISE_POS[name], abs=1e-9), (name, sd_mm)
