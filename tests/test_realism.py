@@ -181,13 +181,13 @@ def test_self_id_sampler_servo_lag_dropouts_and_no_nan():
     q0 = jnp.array([0.4, 0.9])
     r = R.Realism(period=0.01, servo_tau=0.02)
     observe, env = R.self_id_sampler(ARM, r, q0, settle=3, max_settle=4)
-    env1, V = observe(env, jax.random.key(0), jnp.array([0.02, -0.01]))
+    env1, V = jax.jit(observe)(env, jax.random.key(0), jnp.array([0.02, -0.01]))  # one program, not op by op
     np.testing.assert_allclose(env1.q, q0 + (1 - np.exp(-3 * 0.01 / 0.02)) * np.array([0.02, -0.01]), atol=1e-14)
     assert int(env1.tracker.t) == 3 and np.all(np.isfinite(V))  # three control steps, each pose recorded
     # dropouts: the sample is rejected and counted, the estimate stays finite
-    res, drops = realistic.self_identify(ARM, jax.random.key(1), q0, iters=40, eps=1e-12, eps_rel=0.0, m_a=0.02,
-                                         pose_noise=0.0, rot_noise=0.0, realism=R.Realism(dropout=0.3, noise_pos=1e-5),
-                                         max_latency=0)
+    res, drops = jax.jit(lambda k, q, r: realistic.self_identify(
+        ARM, k, q, iters=40, eps=1e-12, eps_rel=0.0, m_a=0.02, pose_noise=0.0, rot_noise=0.0, realism=r,
+        max_latency=0))(jax.random.key(1), q0, R.Realism(dropout=0.3, noise_pos=1e-5))
     lost = np.isnan(np.asarray(res.V)).any(axis=1)
     assert 0 < lost.sum() < 40 and int(res.state.rejected) == lost.sum() and int(res.state.count) == 40 - lost.sum()
     assert int(drops) >= lost.sum() and np.all(np.isfinite(res.estimate)) and np.all(np.isfinite(res.deltas))

@@ -77,6 +77,28 @@ def test_an_execution_lock_gates_every_chunk_and_changes_no_result(tmp_path):
     assert_matches_reference(out["df"], reference(params))
 
 
+HANG_REPRO = TESTS.parent / "scripts" / "hang_repro.py"
+
+
+def test_hang_reproducer_refuses_bad_arguments_with_exit_2():
+    """``scripts/hang_repro.py`` (the two-thread reproducer the execution lock names) checks its arguments before
+    it starts any child."""
+    out = subprocess.run([sys.executable, str(HANG_REPRO), "--trials", "0"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 2 and "must be positive" in out.stderr, out.stderr
+
+
+@pytest.mark.slow
+def test_hang_reproducer_runs_two_parts_without_the_lock_and_each_switch():
+    """Tiny trials of the reproducer finish in every mode (two ``run_chunked`` parts, float32 and float64, in two
+    threads): exit 0 and one ``finished`` line each."""
+    for mode in ("none", "no-async", "no-eigen"):
+        out = subprocess.run([sys.executable, str(HANG_REPRO), "--mode", mode, "--trials", "1", "--timeout", "120",
+                              "--rows", "48", "--chunk", "16", "--steps", "4", "--width", "8"],
+                             capture_output=True, text=True, timeout=600, env=subprocess_env(JAX_ENABLE_X64="0"))
+        assert out.returncode == 0 and f"mode {mode}: 0 of 1 hung" in out.stdout, (mode, out.stdout, out.stderr)
+
+
 def test_row_keys_depend_only_on_seed_and_row():
     np.testing.assert_array_equal(row_keys(7, 10)[3:6], row_keys(7, np.arange(3, 6)))
     assert not np.array_equal(row_keys(7, 4), row_keys(8, 4))

@@ -229,8 +229,12 @@ def run_chunked(
       position: the progress bar's line (for sweeps run side by side in threads).
       execution_lock: for sweeps run side by side in threads, a lock they share: each chunk's program runs
         to completion while holding it, so one program executes at a time (compilation, placement and
-        writing still overlap). XLA's CPU client can hang forever with two programs in flight from two
-        threads (seen with jaxlib 0.10.2 on 2 cores: every worker idle, both results never ready).
+        writing still overlap). A workaround for jaxlib 0.10.2 on 2 cores: with two programs in flight from
+        two threads XLA's CPU client hung for good (``valid_region_all.yaml``: 3 of 3 runs before the lock,
+        1 of 1 without it since), both threads of XLA's intra-op pool inside jaxlib's batched LAPACK LU, each
+        waiting for the share of its batch it queued on that same pool. ``scripts/hang_repro.py --config
+        configs/valid_region/valid_region_all.yaml`` reproduces it; neither switch upstream reports name
+        (``jax_cpu_enable_async_dispatch=False``, ``--xla_cpu_multi_thread_eigen=false``) ended it.
         None (one sweep alone): a chunk computes while the one before it is written.
 
     Returns:
