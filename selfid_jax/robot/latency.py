@@ -121,22 +121,11 @@ def latency_estimate(t: Any, q: Any, p: Any, *, max_lag_s: float = LATENCY_MAX_S
       ValueError: too few rows, joints or tracker that never move, or a peak at
         the edge of the search (the lag may exceed ``max_lag_s``).
     """
-    t = _time(t)
-    q = _as_2d("q", q, t.shape[0])
-    p = _as_2d("p", p, t.shape[0])
-    keep = _usable(t, q, p)
-    t, q, p = t[keep], q[keep], p[keep]
-    if t.shape[0] < 8:
-        raise ValueError(f"latency: {t.shape[0]} usable rows; need at least 8")
+    q_rate, p_rate, dt = _grid_rates(t, q, p)
     if not (np.isfinite(max_lag_s) and max_lag_s > 0):
         raise ValueError(f"max_lag_s must be a positive number of seconds, got {max_lag_s!r}")
-    dt = float(np.median(np.diff(t)))
-    n = int(np.floor((t[-1] - t[0]) / dt + 1e-9)) + 1
-    grid = t[0] + dt * np.arange(n)
-    uniform = np.abs(np.diff(t) - dt).max() <= 1e-6 * dt
-    qg, pg = (q, p) if uniform and n == t.shape[0] else (_uniform(t, q, grid), _uniform(t, p, grid))
-    a = np.linalg.norm(np.diff(qg, axis=0), axis=1) / dt
-    b = np.linalg.norm(np.diff(pg, axis=0), axis=1) / dt
+    a = np.linalg.norm(q_rate, axis=1)
+    b = np.linalg.norm(p_rate, axis=1)
     a, b = a - a.mean(), b - b.mean()
     if not (np.abs(a).max() > 0):
         raise ValueError("latency: the joints never move (constant speed), nothing to correlate")
