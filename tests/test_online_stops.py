@@ -137,17 +137,24 @@ def _limited(q, i, up, room):
     return lower.tolist(), upper.tolist()
 
 
+def _follow_with_room(tmp_path, converged_run, fraction):
+    """Resume a copy of the converged run to follow a 20 mm star with the user's limit leaving the joint the star
+    needs most ``fraction`` of the room it needs: ``(joint, up, lower, upper, arm, result)``."""
+    run, ref_fake, ref = converged_run
+    shutil.copytree(run, tmp_path / "r")
+    i, up, need = _tightest(ref, ref_fake.q)
+    lower, upper = _limited(ref_fake.q, i, up, fraction * need)
+    fake = FakeArm(q0=ref_fake.q, joint_names=NAMES)
+    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.02), lower=lower, upper=upper),
+                          tmp_path / "r", resume=True)
+    return i, up, lower, upper, fake, res
+
+
 def test_a_joint_held_at_the_users_limit_stops_as_unreachable_naming_it(tmp_path, converged_run):
     """The user's limit leaves the joint the star needs most 60 % of the way (within twice the room, so following
     starts): the joint is held there, the waypoint comes no nearer, and the session stops after STALL_MOVES such
     moves naming the joint and whose limit, every target inside the envelope."""
-    run, ref_fake, ref = converged_run
-    shutil.copytree(run, tmp_path / "r")
-    i, up, need = _tightest(ref, ref_fake.q)
-    lower, upper = _limited(ref_fake.q, i, up, 0.6 * need)
-    fake = FakeArm(q0=ref_fake.q, joint_names=NAMES)
-    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.02), lower=lower, upper=upper),
-                          tmp_path / "r", resume=True)
+    i, up, lower, upper, fake, res = _follow_with_room(tmp_path, converged_run, 0.6)
     assert res.status == live.Stop.UNREACHABLE, res.detail
     side, value = ("upper", upper[i]) if up else ("lower", lower[i])
     assert f"{_label(i)} is held at its {side} limit {value:.4g} (the user's safety.limits_{side})" in res.detail
@@ -165,13 +172,7 @@ def _label(i):
 
 def test_a_waypoint_far_beyond_the_limits_is_refused_before_following(tmp_path, converged_run):
     """The same joint with a fifth of the room it needs: refused before any following move, naming it."""
-    run, ref_fake, ref = converged_run
-    shutil.copytree(run, tmp_path / "r")
-    i, up, need = _tightest(ref, ref_fake.q)
-    lower, upper = _limited(ref_fake.q, i, up, 0.2 * need)
-    fake = FakeArm(q0=ref_fake.q, joint_names=NAMES)
-    res = live.run_online(fake, opts(path=options.FollowOptions(size=0.02), lower=lower, upper=upper),
-                          tmp_path / "r", resume=True)
+    i, up, _, _, fake, res = _follow_with_room(tmp_path, converged_run, 0.2)
     assert res.status == live.Stop.UNREACHABLE and fake.moves == [], res.detail
     side = "upper" if up else "lower"
     assert "No following move was made" in res.detail and f"estimate moves {_label(i)} from" in res.detail
