@@ -238,7 +238,8 @@ def read_estimate(path: str | Path) -> EstimateFile:
     return EstimateFile(est, axes, record, conv)
 
 
-def given_estimate(value, n: int, axes: tuple[int, ...]) -> tuple[np.ndarray, str]:
+def given_estimate(value, n: int, axes: tuple[int, ...], *, read: EstimateFile | None = None
+                   ) -> tuple[np.ndarray, str]:
     """``(estimate (n, m), source)`` of ``OnlineOptions.estimate``: an ``.npz`` file of ``selfid-jax fit`` or
     ``selfid-jax online`` (``inverse_jacobian`` and ``task_axes``; :func:`read_estimate`) or an ``(n, m)`` array
     (source ``"array"``).
@@ -246,17 +247,16 @@ def given_estimate(value, n: int, axes: tuple[int, ...]) -> tuple[np.ndarray, st
     Raises ValueError naming the file (or ``estimate``) and what differs: no
     such file, not an npz, a missing key, task axes other than ``axes``, a
     shape other than ``(n, m)`` (``n`` the robot's actuators, ``m`` the
-    task's axes), a value that is not finite.
+    task's axes), a value that is not finite. ``read``: the file's
+    :func:`read_estimate`, where the caller has already read it.
     """
     m = len(axes)
     names = ",".join(AXIS_NAMES[a] for a in axes)
     if isinstance(value, (str, Path)):
         path = Path(value)
         where, source = f"estimate: {path}", str(path)
-        try:
-            read = read_estimate(path)
-        except ValueError as err:
-            raise ValueError(f"estimate: {err}") from None
+        if read is None:
+            read = _read_given(path)
         est, logged = read.estimate, read.task_axes
         if logged != [AXIS_NAMES[a] for a in axes]:
             raise ValueError(f"{where}: its task axes are {','.join(logged)}, the task is {names} (selfid.task); "
@@ -273,6 +273,14 @@ def given_estimate(value, n: int, axes: tuple[int, ...]) -> tuple[np.ndarray, st
     if not np.all(np.isfinite(est)):
         raise ValueError(f"{where}: the inverse Jacobian has values that are not finite")
     return est, source
+
+
+def _read_given(path: str | Path) -> EstimateFile:
+    """:func:`read_estimate` of the given estimate, its errors prefixed ``estimate:``."""
+    try:
+        return read_estimate(path)
+    except ValueError as err:
+        raise ValueError(f"estimate: {err}") from None
 
 
 def _check_estimate(path: Path, session: Session, given: tuple[np.ndarray, str] | None
@@ -406,8 +414,8 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
             check_room(env, m_a, joint_labels(robot, n))
         if options.path is not None:
             options.path.offsets(axes)
-        given = None if options.estimate is None else given_estimate(options.estimate, n, axes)
-        given_file = read_estimate(options.estimate) if isinstance(options.estimate, (str, Path)) else None
+        given_file = _read_given(options.estimate) if isinstance(options.estimate, (str, Path)) else None
+        given = None if options.estimate is None else given_estimate(options.estimate, n, axes, read=given_file)
         if given is not None and options.path is None:
             raise ValueError("estimate: following with a given estimate needs a path (path); without one there "
                              "is nothing to do")
