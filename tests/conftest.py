@@ -53,6 +53,19 @@ def pytest_configure(config):
     _use_test_cache()
 
 
+_SLOW_MODULE = re.compile(r"^pytestmark = \[?pytest\.mark\.slow\b", re.M)
+
+
+def pytest_ignore_collect(collection_path, config):
+    """Under ``-m "not slow"`` (the fast tier) a module marked slow as a whole is not imported: every test in it
+    would be deselected, and importing it (and rewriting its asserts) in each worker costs the tier seconds."""
+    if config.getoption("markexpr", "") != "not slow" or collection_path.suffix != ".py":
+        return None
+    if not collection_path.name.startswith("test_"):
+        return None
+    return True if _SLOW_MODULE.search(collection_path.read_text(encoding="utf-8")) else None
+
+
 def pytest_pyfunc_call(pyfuncitem):
     """A test marked ``shipped_xla`` runs at XLA's shipped optimisation level: in a subprocess when this one is at 0."""
     if not (_LEVEL_0 and pyfuncitem.get_closest_marker("shipped_xla")):

@@ -64,6 +64,7 @@ def test_constant_velocity_prediction_is_exact_on_a_screw_motion():
         np.testing.assert_allclose(np.asarray(pred.as_matrix()), np.asarray(T(t0 + 2 * h).as_matrix()), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_keep_speed_stays_on_the_screw_at_the_base_speed():
     xi = jnp.array([0.02, 0.0, 0.01, 0.0, 0.0, 0.4])
     T_u = jaxlie.SE3.exp(0.05 * xi)

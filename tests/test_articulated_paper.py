@@ -73,6 +73,7 @@ def _shift(x, y=0.0):
     return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.identity(), jnp.array([x, y, 0.0]))
 
 
+@pytest.mark.slow
 def test_stop_and_go_tacman_explores_one_step_then_recovers_without_driving_the_object():
     speed, dt, gain = 0.03, 0.02, 0.5
     p = tacman.TacManParams(speed, dt, 1e-4, 2e-5, gain, 2 * speed, False)
@@ -94,6 +95,7 @@ def test_stop_and_go_tacman_explores_one_step_then_recovers_without_driving_the_
     np.testing.assert_allclose(np.asarray(st.direction), [1, 0, 0], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_reaim_turns_the_exploration_direction_and_the_paper_tacman_does_not():
     """After a recovery, tacman_reaim aims along the handle's net motion over the cycle; tacman keeps u0's."""
     speed, dt = 0.03, 0.02
@@ -248,6 +250,7 @@ def _overlaps(boxes):
     return [(i, j) for i in range(len(boxes)) for j in range(i + 1, len(boxes)) if boxes[i].overlaps(boxes[j])]
 
 
+@pytest.mark.slow
 def test_metrics_figure_tick_labels_do_not_overlap():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from selfid_jax.experiments.articulated import METRICS
@@ -266,6 +269,7 @@ def test_metrics_figure_tick_labels_do_not_overlap():
         assert _overlaps([t.get_window_extent(r) for t in labels]) == []
 
 
+@pytest.mark.slow
 def test_plane_figure_shows_every_cell():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from selfid_jax.experiments.figures.articulated import plane_figure

@@ -87,6 +87,7 @@ def test_paper_threshold_is_the_smallest_eps_leaving_exactly_n_points():
     assert not bool(fn(pads.delta0, 9)[1])
 
 
+@pytest.mark.slow
 def test_initial_contact_applies_the_rule_to_the_noisy_first_reading_or_keeps_the_fixed_eps():
     pads = tactile.pads()
     key = jax.random.key(3)

@@ -100,6 +100,7 @@ def test_table_columns_order_counts_and_interpolation(bags):
     assert info.lines()[0] == f"{bags['ros1']}: {T} rows" and len(info.lines()) == 7
 
 
+@pytest.mark.slow
 def test_default_joint_order_is_the_first_messages(bags):
     by_model, _ = _read(bags["mcap"], joint_names=ARM)
     by_message, info = _read(bags["mcap"])
@@ -127,6 +128,7 @@ def test_every_format_gives_the_same_table(bags):
         assert info._replace(source="") == ref_info._replace(source=""), fmt
 
 
+@pytest.mark.slow
 def test_fit_recovers_the_inverse_jacobian(bags):
     """``A J_hat = I``: the pose is exactly linear in the joints, and the joints ramp linearly between samples, so
     every pair (dtheta, V) satisfies V = A dtheta up to float64 rounding of ~1 m positions (~1e-16 m against steps
@@ -246,6 +248,7 @@ def test_paths_that_are_not_bags(tmp_path, monkeypatch, tiny):
         _read(tiny["ros1"])
 
 
+@pytest.mark.slow
 def test_selfid_jax_fit_reads_every_format_like_the_csv_of_the_same_data(bags, tmp_path, capsys):
     """selfid-jax fit BAG --joints --tracker: ROS 1, ROS 2 sqlite3, ROS 2 mcap and the bare .mcap give the estimate
     of the CSV of the same table, to 1e-9, and A Ĵ = I to 1e-6; without the topics the bag is refused by name."""
@@ -270,6 +273,7 @@ def test_selfid_jax_fit_reads_every_format_like_the_csv_of_the_same_data(bags, t
     assert "a bag needs --joints TOPIC" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("step_s, kind", [(-2.0, "pose"), (2.0, "pose"), (-2.0, "tf")])
 def test_a_tracker_clock_that_steps_is_reported_and_dropped_not_resorted(tmp_path, step_s, kind):
     """Issue 54: the tracker's clock steps back (or jumps ahead) 2 s inside a bag. Sorted by stamp, its later poses

@@ -90,6 +90,7 @@ def test_make_validates_names_and_options():
     assert B.options("rls") == ("lam", "delta")
 
 
+@pytest.mark.slow
 def test_states_are_namedtuples_of_arrays_and_shapes_are_checked():
     for name in METHOD_NAMES:
         est = make(name, **_options(name))
@@ -120,6 +121,7 @@ def test_states_are_namedtuples_of_arrays_and_shapes_are_checked():
         ("kalman", {}),
     ],
 )
+@pytest.mark.slow
 def test_exact_recovery_of_linear_system(name, options):
     n, T = 3, 8
     d, V, truth = linear_stream(1, n, T)
@@ -129,6 +131,7 @@ def test_exact_recovery_of_linear_system(name, options):
     assert err.max() < 1e-6, err
 
 
+@pytest.mark.slow
 def test_broyden_recovers_linear_system():
     n, m = 4, 3
     rng = np.random.default_rng(2)

@@ -52,6 +52,7 @@ def _configurations(n, seed=0, spread=0.25):
     return [Q0 + rng.uniform(-spread, spread, size=3) for _ in range(n)]
 
 
+@pytest.mark.slow
 def test_tracker_recovers_the_pose(sim):
     tracker = TagTracker(sim.intrinsics, TAG)
     h = TAG.edge / 2
@@ -75,6 +76,7 @@ def test_tracker_recovers_the_pose(sim):
     assert tracker.frames == 8 and sum(tracker.dropouts.values()) == 0
 
 
+@pytest.mark.slow
 def test_pose_rows_feed_the_log_reader(sim):
     from selfid_jax.robot.log import samples_from_table
 
@@ -184,6 +186,7 @@ def test_position_selfid_from_camera(sim):
     assert error <= SELFID_TOL, error
 
 
+@pytest.mark.slow
 def test_calibration_recovers_the_focal_length():
     camera = CAMERA._replace(fovy=50.0, position=(0.0, 0.0, 1.0), look_at=(1.0, 0.0, 1.0), noise=1.0)
     board = (8, 6, 0.03)

@@ -95,6 +95,7 @@ def _error(rec, estimate):
     return float(np.linalg.norm(rec.jacobian @ np.asarray(estimate) - np.eye(3)))
 
 
+@pytest.mark.slow
 def test_bag_form_command_and_sj_fit(rec, files, tmp_path, no_figures, capsys):
     """/joint_states, /camera/image_raw (mono8) and /camera/camera_info in a ROS 2 bag: the camera's tag poses are
     the tracker, matched to the joints by stamp; the intrinsics come from the camera_info topic."""
@@ -130,6 +131,7 @@ def test_a_ros1_bag_with_images_and_compressed_images(rec, tmp_path):
         np.testing.assert_array_equal(ros1.estimate, ros2.estimate)
 
 
+@pytest.mark.slow
 def test_video_form_folder_command_and_sj_fit(rec, files, tmp_path, no_figures, capsys):
     """A joint CSV (50 Hz, ROS-like joint names), a folder of PNGs, their frame times and an OpenCV YAML; a wrong
     tag edge scales the estimate by true / given, as the report says."""
@@ -150,6 +152,7 @@ def test_video_form_folder_command_and_sj_fit(rec, files, tmp_path, no_figures, 
     np.testing.assert_allclose(doubled.estimate, 0.5 * result.estimate, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_video_form_avi(rec, files, tmp_path):
     """The same frames as an MJPG .avi (cv2.VideoWriter): JPEG's blocks move the corners a little."""
     avi = write_video(tmp_path / "frames.avi", rec.frames)
@@ -163,6 +166,7 @@ def test_video_form_avi(rec, files, tmp_path):
                  joint_names=NAMES)
 
 
+@pytest.mark.slow
 def test_image_encodings_and_compressed_images(rec, tmp_path):
     """mono8, rgb8, bgr8, rgba8, bgra8 (rows padded) and PNG CompressedImage decode to the same grey frame."""
     short = rec._replace(frame_t=rec.frame_t[:2], frames=rec.frames[:2])
@@ -186,6 +190,7 @@ def test_image_encodings_and_compressed_images(rec, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- bad inputs
+@pytest.mark.slow
 def test_a_tag_never_seen_names_family_and_id(files, tmp_path, capsys):
     code = main(["fit", str(files["bag"]), "--out", str(tmp_path / "o"), *BAG[:-1], "tag36h11:3:0.05"])
     err = capsys.readouterr().err
@@ -199,6 +204,7 @@ def test_a_tag_never_seen_names_family_and_id(files, tmp_path, capsys):
     assert not (tmp_path / "o").exists()  # a failed fit writes nothing
 
 
+@pytest.mark.slow
 def test_a_bag_without_camera_info(rec, files, tmp_path, capsys):
     bag = write_bag(tmp_path / "no_info", rec, camera_info=False)
     code = main(["fit", str(bag), "--out", str(tmp_path / "o"), *BAG])
@@ -217,6 +223,7 @@ def _folder_log(files, tmp_path, frames):
     return dict(video=folder, frame_times=files["times"], camera_info=files["yaml"], tag=TAG_SPEC, joint_names=NAMES)
 
 
+@pytest.mark.slow
 def test_a_frozen_camera(rec, files, tmp_path):
     """Repeated frames are stale dropouts; a camera frozen for a few frames still fits, one frozen from the start
     is an error that says so."""
@@ -253,6 +260,7 @@ def test_a_camera_clock_that_steps_back_in_a_bag(rec, files, tmp_path):
     assert result.samples.rows == 26 and _error(rec, result.estimate) <= FIT_TOL
 
 
+@pytest.mark.slow
 def test_a_dark_and_a_blurred_stretch(rec, files, tmp_path):
     """Four dark frames (exposure 4 %) and three blurred ones drop out with their reasons; the fit is still good."""
     frames = list(rec.frames)
@@ -283,6 +291,7 @@ BAD_OPTIONS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("flags, message", BAD_OPTIONS, ids=[" ".join(f[:2]) + f" {i}" for i, (f, _) in
                                                              enumerate(BAD_OPTIONS)])
 def test_camera_options_are_refused_by_keyword_and_flag(files, tmp_path, capsys, flags, message):
@@ -323,6 +332,7 @@ def test_camera_inputs_that_cannot_be_used(rec, files, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- calibration
+@pytest.mark.slow
 def test_calibrate_command_recovers_the_focal_length(tmp_path, capsys):
     """``selfid-jax calibrate FOLDER --board checkerboard:8x6:0.03 --out camera.yaml`` on rendered board views, and
     the same views as a video; the YAML it writes is what ``fit --camera-info`` reads."""

@@ -196,6 +196,7 @@ def _session_config(tmp_path: Path, camera, *, info: str = "camera.yaml", tag: s
     return cfg
 
 
+@pytest.mark.slow
 def test_a_frozen_camera_stops_the_session_as_stale_before_any_motion(tmp_path):
     """The camera streams, its picture does not change (robot-sim's freeze_camera_at_s: 0): every frame after the
     first is stale, no pose is ever reported, the runner's watchdog stops the session and the arm is never moved."""

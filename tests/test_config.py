@@ -195,6 +195,7 @@ def test_systems_entries_may_carry_their_own_protocol(cfg_file):
     assert "controller.tol" in msg and "path.size" in msg
 
 
+@pytest.mark.slow
 def test_strict_yaml_refuses_duplicates_bad_encodings_and_bombs(tmp_path):
     """Duplicate keys at any depth (with both lines), non-UTF-8 files and alias bombs: one bounded ConfigError."""
     cases = {

@@ -40,6 +40,7 @@ def test_configs_are_installed_and_names_resolve_local_first(tmp_path, monkeypat
     assert find_config(Path("sub/nonesuch"), dirs) == Path("sub/nonesuch")  # a path is reported as that path
 
 
+@pytest.mark.slow
 def test_list_names_where_configs_live_and_a_named_config_runs_from_an_empty_directory(tmp_path, monkeypatch,
                                                                                         capsys):
     monkeypatch.chdir(tmp_path)
@@ -76,6 +77,7 @@ def test_a_name_twice_under_one_folder_is_refused_naming_both(tmp_path, monkeypa
     assert find_config(Path("valid_region_ur5e"), dirs) == Path("configs/a/valid_region_ur5e.yaml")
 
 
+@pytest.mark.slow
 def test_every_config_is_in_its_experiments_folder_and_names_are_unique():
     """configs/<experiment>/NAME.yaml, NAME unique over the tree (so that every bare name resolves); the robot
     commands' configs (no experiment key) in configs/robot/, the gap study in configs/studies/gap/."""

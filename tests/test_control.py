@@ -104,6 +104,7 @@ def test_steps_and_errors_match_closed_form_on_identity_system():
     assert max_err > 1e-3
 
 
+@pytest.mark.slow
 def test_estimate_or_true_lanes_are_fixed_and_true_inverse_and_the_result_holds_its_poses():
     """vmapped over ``use_true``, one program gives the fixed-estimate rollout and the true-inverse rollout (each
     equal to its own source's to round-off); ``start_pose``/``final_pose`` are the pose map at ``q0``/``final_q``."""
@@ -206,6 +207,7 @@ def test_rollout_metrics_are_differentiable_in_the_inverse_jacobian_scale():
     np.testing.assert_allclose(g[0, 0], fd, rtol=0.2, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_controller_params_are_traced_one_compilation_for_a_sweep():
     """Every ControllerParams field is traced: sweeping step, tolerance and gain compiles follow once."""
     arm = two_link()
@@ -239,6 +241,7 @@ def test_follow_defaults_are_the_shipped_protocol():
                        {"tol": 0.1})
 
 
+@pytest.mark.slow
 def test_bad_follow_inputs_raise_or_fail_with_finite_metrics():
     arm = two_link()
     path = paths.star(size=0.2, dim=2)
@@ -264,6 +267,7 @@ def test_bad_follow_inputs_raise_or_fail_with_finite_metrics():
             assert np.isfinite(float(x))
 
 
+@pytest.mark.slow
 def test_a_pose_map_that_returns_nan_fails_the_rollout():
     """A closed-chain hand returns NaN where its solve fails: the rollout stops there, flagged, metrics finite."""
     def fk(params, q):  # a planar identity arm whose "solve" fails beyond x = 0.05

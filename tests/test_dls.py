@@ -52,6 +52,7 @@ def test_box_qp_matches_scipy_bvls():
 
 
 # ------------------------------------------------------------------ one step
+@pytest.mark.slow
 def test_dls_step_matches_normal_equations_and_projection(arm):
     J = np.asarray(arm.jacobian(jnp.asarray(ARM5_HOME)))  # 6x5, rank 5
     e = np.random.default_rng(1).normal(size=6) * 0.01

@@ -190,6 +190,7 @@ def test_one_compilation_serves_new_values(batched):
     assert np.all(np.isfinite(np.asarray(out.q)))
 
 
+@pytest.mark.slow
 def test_step_fn_shape_for_the_control_loop(arm):
     """``step_fn(state, target) -> (state, q (6,), (p (3,), R (3, 3)))``, checked abstractly (no compilation)."""
     step = arm.step_fn(substeps=substeps_for(arm, 0.02))
@@ -201,6 +202,7 @@ def test_step_fn_shape_for_the_control_loop(arm):
     assert q.shape == (6,) and p.shape == (3,) and R.shape == (3, 3)
 
 
+@pytest.mark.slow
 def test_arm_is_a_pytree(arm):
     leaves, tree = jax.tree.flatten(arm)
     rebuilt = jax.tree.unflatten(tree, leaves)
@@ -208,6 +210,7 @@ def test_arm_is_a_pytree(arm):
     assert arm.n_act == 6 and arm.site_id == 0 and arm.timestep == 0.002
 
 
+@pytest.mark.slow
 def test_substeps_for(arm):
     assert substeps_for(arm, 0.02) == 10
     assert substeps_for(arm, 0.0021) == 1
@@ -218,6 +221,7 @@ def test_substeps_for(arm):
         arm.step_fn(substeps=0)
 
 
+@pytest.mark.slow
 def test_with_servo_needs_gravcomp_compiled_in():
     plain = dynamic_ur5e()
     assert not plain.model.flg_gravcomp

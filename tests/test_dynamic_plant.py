@@ -48,6 +48,7 @@ class ExactArm:
         return state
 
 
+@pytest.mark.slow
 def test_exact_plant_reproduces_the_ideal_loop():
     system = two_link()
     q0 = jnp.asarray([0.3, 1.2])
@@ -60,6 +61,7 @@ def test_exact_plant_reproduces_the_ideal_loop():
         np.testing.assert_array_equal(np.asarray(getattr(hooked, name)), np.asarray(getattr(ideal, name)), err_msg=name)
 
 
+@pytest.mark.slow
 def test_exact_plant_reproduces_ideal_self_id_samples():
     system = two_link()
     q0 = jnp.asarray([0.3, 1.2])
@@ -159,6 +161,7 @@ def test_dynamic_follow_agrees_with_native_mujoco():
 BASE = dict(experiment="tracking", system="ur5e", path={"kind": "star", "size": 0.02}, n_configs=1)
 
 
+@pytest.mark.slow
 def test_dynamic_section_validated_before_compute():
     ok = TrackingConfig(**BASE, realism={"plant": "dynamic", "period": 0.008, "kp": 2000.0})
     assert ok.realism.plant == "dynamic" and ok.realism.kp == 2000.0

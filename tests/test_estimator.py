@@ -41,6 +41,7 @@ def fold(state, dthetas, Vs, update=E.update):
 jit_update = jax.jit(E.update)
 
 
+@pytest.mark.slow
 def test_matches_numpy_reference():
     rng = np.random.default_rng(0)
     n, m, K = 4, 3, 25
@@ -144,6 +145,7 @@ def test_convergence_test_needs_two_consecutive_small_changes():
     np.testing.assert_allclose(state.last_deltas, [0.05, 0.02], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_min_count_holds_the_test_back_until_that_many_samples_jit_and_vmap():
     """record(min_count=k): converged at the first record with both last changes small and >= k samples accepted;
     the deltas [1, .05, .95, .05, .05, .02, .01]: 5 for k <= 5, 6 for k = 6, 7 for k = 7, never for k = 8."""
@@ -198,6 +200,7 @@ def test_convergence_iteration_matches_numpy_and_record():
         E.convergence_iteration(jnp.zeros((3, 2)), 0.1)
 
 
+@pytest.mark.slow
 def test_guarded_update_is_the_one_sample_screen():
     """update == guarded_update(accumulate): valid samples are folded and counted, invalid ones only counted."""
     state = E.init(3, 2, capacity=4)
@@ -217,6 +220,7 @@ def test_guarded_update_is_the_one_sample_screen():
 
 class JitVmapTest(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_update_and_estimates_jit_equals_eager(self):
         rng = np.random.default_rng(3)
         d, V = rng.normal(size=(6, 3)), rng.normal(size=(6, 2))
@@ -229,6 +233,7 @@ class JitVmapTest(chex.TestCase):
         chex.assert_trees_all_close(self.variant(sj.initial_guess)(state), sj.initial_guess(ref), rtol=1e-12)
 
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_record_with_a_given_delta_equals_record(self):
         """``delta=`` (the caller's ``||J - estimate||_F``, e.g. a rank-one update's ``||e|| ||k||``) records what
         ``record`` computes itself, convergence included; a wrong shape names the argument."""
@@ -246,6 +251,7 @@ class JitVmapTest(chex.TestCase):
         with pytest.raises(ValueError, match="delta"):
             E.record(state, J, 0.5, delta=np.ones(2))
 
+    @pytest.mark.slow
     def test_vmap_equals_loop(self):
         rng = np.random.default_rng(4)
         B, K, n, m = 3, 5, 3, 2
@@ -289,6 +295,7 @@ def test_no_new_data_never_converges_and_eps_inf_needs_two_records():
     assert int(E.convergence_iteration(jnp.ones((3, 1, 1)), jnp.inf)) == 2
 
 
+@pytest.mark.slow
 def test_relative_threshold_scales_with_the_estimate():
     """eps_rel: ||J_t - J_{t-1}||_F <= eps + eps_rel ||J_t||_F; a 40x larger system converges at the same step."""
     seq = jnp.asarray([1.0, 1.5, 1.52, 1.53, 1.531])[:, None, None]  # deltas 1, .5, .02, .01, .001

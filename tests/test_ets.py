@@ -105,6 +105,7 @@ def _random_q(system, seed):
     return np.random.default_rng(seed).uniform(system.q_low, system.q_high, size=(B, system.n_act))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SEQUENCES))
 def test_pose_and_jacobian_match_numpy_product_rule(name, evaluate):
     s = build(name)
@@ -144,6 +145,7 @@ def _rtb_ets(rtb, seq):
     return rtb.ETS(out)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SEQUENCES))
 def test_pose_and_jacobian_match_roboticstoolbox(name, evaluate):
     rtb = pytest.importorskip("roboticstoolbox")
@@ -158,6 +160,7 @@ def test_pose_and_jacobian_match_roboticstoolbox(name, evaluate):
         np.testing.assert_allclose(J[b], np.asarray(ets.jacob0(qs[b])), atol=JAC_TOL)
 
 
+@pytest.mark.slow
 def test_roboticstoolbox_ets_object_is_accepted(evaluate):
     """An rtb ETS with flip, offset, jindex order, qlim and a general SE3 constant builds the same kinematics."""
     rtb = pytest.importorskip("roboticstoolbox")
@@ -185,6 +188,7 @@ def test_roboticstoolbox_ets_object_is_accepted(evaluate):
 
 
 # ------------------------------------------------------------------ the seed's arm, forms, errors, tracing
+@pytest.mark.slow
 def test_arm5_geometry_and_limits():
     s = arm5(task_dim=6)
     assert (s.n_act, s.name) == (5, "arm5")
@@ -198,6 +202,7 @@ def test_arm5_geometry_and_limits():
     np.testing.assert_allclose(J[:3, 4], 0.0, atol=1e-15)  # wrist roll about the tool axis never moves the tip
 
 
+@pytest.mark.slow
 def test_string_forms_agree():
     q = jnp.array([0.3, -0.7, 1.1, 0.4, 0.2])
     ref = arm5(task_dim=6).pose_and_jacobian(q)

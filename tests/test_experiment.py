@@ -39,6 +39,7 @@ def test_shipped_experiments_come_from_entry_points():
         experiment.get("nope")
 
 
+@pytest.mark.slow
 def test_layer_contracts_hold():
     """import-linter's contracts of pyproject.toml: layers, a domain-free runner, a lean API, no import cycle."""
     lint = shutil.which("lint-imports", path=os.pathsep.join([str(Path(sys.executable).parent), os.environ["PATH"]]))
@@ -48,6 +49,7 @@ def test_layer_contracts_hold():
     assert " kept, 0 broken" in out.stdout
 
 
+@pytest.mark.slow
 def test_experiments_install_under_the_package_namespace(tmp_path):
     """An ``experiments`` folder in the user's working directory does not shadow the registered experiments."""
     (tmp_path / "experiments").mkdir()
@@ -139,6 +141,7 @@ USER = experiment.Experiment(
 )
 
 
+@pytest.mark.slow
 def test_user_registered_experiment_runs_through_the_cli(tmp_path, capsys):
     experiment.register(USER)
     cfg = tmp_path / "user.yaml"
@@ -182,6 +185,7 @@ def test_demo_takes_any_system_from_a_config(tmp_path, capsys):
     assert (out / "figures" / "demo.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_demo_law_is_the_inverse_jacobian_law_and_keeps_the_start_jacobian():
     """The demo's step law moves as control.follow with estimate_or_true does, and its state is the Jacobian at
     the start (MuJoCo-free closed form: the two-link arm's), read by the loop's first step."""

@@ -108,6 +108,7 @@ def _demo_table(rng):
     return pd.DataFrame(rows)
 
 
+@pytest.mark.slow
 def test_demo_labels_do_not_overlap_and_each_convergence_panel_has_its_threshold(monkeypatch, tmp_path):
     table = _demo_table(np.random.default_rng(0))
     cfg = demo.DemoConfig()
@@ -165,6 +166,7 @@ def _ablation_summary(table, config):
     return ablation.summarize(table, cfg), cfg
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("n_methods", [14, 25])
 def test_ablation_every_method_has_its_own_style(monkeypatch, tmp_path, n_methods):
     methods = [f"method {i}" for i in range(n_methods)]
@@ -189,6 +191,7 @@ def test_method_styles_rejects_repeated_names():
     assert len(set(figures.method_styles([str(i) for i in range(280)]).values())) == 280
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("config", ["ablation_ekm_two_link.yaml", "ablation_ekm_ur5e.yaml"])
 def test_ekm_ablation_has_a_path_error_panel_equal_to_the_error_column(monkeypatch, tmp_path, config):
     cfg = registry.load(shipped(config))
@@ -228,6 +231,7 @@ def _valid_region_table(systems, eps=(0.0, 0.5, 1.0, 1.5, 2.0)):
     return pd.DataFrame(rows)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("config", ["valid_region_all.yaml", "valid_region_two_link.yaml"])
 def test_valid_region_suptitle_names_only_controllers_the_systems_ran(monkeypatch, tmp_path, config):
     cfg = registry.load(shipped(config))
@@ -301,6 +305,7 @@ def _tracking_figure(monkeypatch, tmp_path, config, tracked, steps=None):
     return fig, cfg, table
 
 
+@pytest.mark.slow
 def test_grablab_letters_are_drawn_side_by_side(monkeypatch, tmp_path):
     fig, cfg, _ = _tracking_figure(monkeypatch, tmp_path, "tracking_model_o_grablab.yaml", [0, 1, 2])
     _assert_no_overlap(fig)
@@ -319,6 +324,7 @@ def test_grablab_letters_are_drawn_side_by_side(monkeypatch, tmp_path):
             assert y.min() == pytest.approx(0.0, abs=1e-9) and y.max() <= height + 1e-9
 
 
+@pytest.mark.slow
 def test_rotation_tracking_draws_no_zeros_for_untracked_axes(monkeypatch, tmp_path):
     fig, cfg, table = _tracking_figure(monkeypatch, tmp_path, "tracking_model_o_rotation.yaml", [2])
     _assert_no_overlap(fig)
@@ -341,6 +347,7 @@ def test_tracked_axes_without_task_axes_come_from_the_traces():
     assert tracking_figures.tracked_position_axes(table, ["z", "rx"]) == [2]
 
 
+@pytest.mark.slow
 def test_cube_figure_draws_the_commanded_path(monkeypatch, tmp_path):
     fig, cfg, _ = _tracking_figure(monkeypatch, tmp_path, "tracking_ur5e_cube.yaml", [0, 1, 2], steps=80)
     _assert_no_overlap(fig)
@@ -366,6 +373,7 @@ def _ekm_study_module():
     return module
 
 
+@pytest.mark.slow
 def test_ekm_study_figure_shows_completion_and_path_error(monkeypatch, tmp_path):
     study = _ekm_study_module()
     methods = ["true", "ours", "nominal"] + [f"ekm {m} ({f})" for m in ("fixed", "online")
@@ -388,6 +396,7 @@ def test_ekm_study_figure_shows_completion_and_path_error(monkeypatch, tmp_path)
         study.study_figure(completion, error.iloc[:-1], tmp_path, "x")
 
 
+@pytest.mark.slow
 def test_peg_in_hole_bars_have_one_tick_per_layout(monkeypatch, tmp_path):
     from selfid_jax.experiments import peg_in_hole
     from selfid_jax.experiments.figures import peg_in_hole as peg_figures
@@ -406,6 +415,7 @@ def test_peg_in_hole_bars_have_one_tick_per_layout(monkeypatch, tmp_path):
         assert [t.get_text() for t in ax.get_xticklabels()] == ["0", "1", "2"]
 
 
+@pytest.mark.slow
 def test_valid_region_workspace_cells_are_centred_and_the_threshold_outlined(monkeypatch, tmp_path):
     from selfid_jax.experiments import valid_region_workspace as vrw
     from selfid_jax.experiments.figures import valid_region_workspace as vrw_figures

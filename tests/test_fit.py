@@ -61,6 +61,7 @@ def _time_series(Jinv, V, seed=1):
 
 
 # ------------------------------------------------------------------ recovery on linear systems
+@pytest.mark.slow
 def test_pairs_recover_the_inverse_jacobian():
     Jinv, V, dtheta = _linear()
     result = sj.fit(_pairs_table(dtheta, V))
@@ -70,6 +71,7 @@ def test_pairs_recover_the_inverse_jacobian():
     assert 3 < result.converged_at <= 6  # exact once V spans the task (3 samples), twice in a row
 
 
+@pytest.mark.slow
 def test_time_series_recovers_it_and_quaternion_equals_rotation_vector():
     rng = np.random.default_rng(2)
     Jinv = rng.normal(size=(7, 6))
@@ -90,6 +92,7 @@ def test_time_series_recovers_it_and_quaternion_equals_rotation_vector():
     np.testing.assert_allclose(fp.estimates, fa.estimates, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_time_series_task_axes_select_components():
     rng = np.random.default_rng(3)
     Jinv = rng.normal(size=(4, 6))
@@ -107,6 +110,7 @@ _update, _record = jax.jit(estimator.update), jax.jit(estimator.record)
 _guess = jax.jit(lambda s: refine(s, estimator.initial_guess(s), method="closed_form"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("eps,eps_rel", [(0.0, 0.05), (0.5, 0.0), (0.1, 0.02)])
 def test_convergence_iteration_equals_a_python_loop(eps, eps_rel):
     Jinv, V, dtheta = _linear(n=6, m=3, T=60, seed=4)
@@ -127,6 +131,7 @@ def test_convergence_iteration_equals_a_python_loop(eps, eps_rel):
 
 
 # ------------------------------------------------------------------ bad rows
+@pytest.mark.slow
 def test_each_kind_of_bad_row_is_rejected_and_counted():
     Jinv, V, dtheta = _linear(T=40, seed=6)
     quat, _ = _time_series(np.pad(Jinv, ((0, 0), (0, 3))), np.pad(V, ((0, 0), (0, 3))))
@@ -149,6 +154,7 @@ def test_each_kind_of_bad_row_is_rejected_and_counted():
     assert samples_from_table(table, task_dim=3, max_gap=float("inf")).dtheta.shape[0] == 36
 
 
+@pytest.mark.slow
 def test_zero_quaternion_window_and_pairs_with_time():
     rng = np.random.default_rng(7)
     quat, _ = _time_series(rng.normal(size=(3, 6)), rng.normal(scale=0.01, size=(20, 6)))
@@ -186,6 +192,7 @@ def _write_csv(path, table):
     return path
 
 
+@pytest.mark.slow
 def test_csv_parquet_and_npz_give_the_same_fit(tmp_path):
     import pandas as pd
 
@@ -270,6 +277,7 @@ def test_unusable_logs_exit_2_with_one_line(tmp_path, capsys):
     assert not (tmp_path / "o" / "summary.json").exists()
 
 
+@pytest.mark.slow
 def test_example_converges_and_writes_every_file(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["fit", "--example", "--out", str(out)]) == 0
@@ -299,6 +307,7 @@ def test_example_converges_and_writes_every_file(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------ jit / vmap
+@pytest.mark.slow
 def test_step_is_traced_once_across_thresholds_and_data(monkeypatch):
     chex.clear_trace_counter()
     monkeypatch.setattr(fit_mod, "sample_step", chex.assert_max_traces(fit_mod.sample_step, n=1))
@@ -310,6 +319,7 @@ def test_step_is_traced_once_across_thresholds_and_data(monkeypatch):
     fit_mod._scan.clear_cache()
 
 
+@pytest.mark.slow
 def test_vmap_over_logs_equals_a_loop():
     data = [_linear(seed=s) for s in range(3)]
     rng = np.random.default_rng(0)
@@ -323,6 +333,7 @@ def test_vmap_over_logs_equals_a_loop():
         assert int(batched.converged_at[k]) == int(one.converged_at)
 
 
+@pytest.mark.slow
 def test_refine_methods():
     Jinv, V, dtheta = _linear(seed=11)
     table = _pairs_table(dtheta, V)
@@ -349,6 +360,7 @@ def test_held_out_error_is_exact_leave_one_out_and_sees_samples_that_do_not_expl
     assert np.isnan(held_out(D[:4], V[:4], 0.03).heldout_error)  # no more samples than actuators: nothing held out
 
 
+@pytest.mark.slow
 def test_plot_redraws_a_fit_run_directory(tmp_path, capsys):
     from selfid_jax.cli import main
     from selfid_jax.sessions.fit_run import draw_convergence

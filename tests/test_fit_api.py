@@ -72,6 +72,7 @@ def test_options_defaults_and_flags_have_one_source():
     assert ReadOptions().check() == ReadOptions(latency="auto").check()
 
 
+@pytest.mark.slow
 def test_per_move_csv(tmp_path, no_figures):
     """The shipped example (65 rows of a UR5e, one per move, three bad rows): one answer both ways, and through
     fit_to_run (the command's library call), which writes the same files."""
@@ -92,6 +93,7 @@ def stream():
     return _stream(seed=1)
 
 
+@pytest.mark.slow
 def test_a_continuous_stream_gives_the_settled_answer_both_ways(stream, tmp_path, no_figures):
     """The CSV through the command and the table through sj.fit: the same reduced fit (40 settled samples, the
     tracker latency taken out), whose error against the UR5e's Jacobian is the settled rows' (0.053)."""
@@ -111,6 +113,7 @@ def test_a_continuous_stream_gives_the_settled_answer_both_ways(stream, tmp_path
     assert _error(result) < 0.1
 
 
+@pytest.mark.slow
 def test_a_stream_paired_row_by_row_is_what_sj_fit_no_longer_does(stream):
     """mode="moves" reads the stream as sj.fit read every table before: 2,049 pairs of consecutive rows, an error
     ~10x the settled fit's, which the held-out error flags."""
@@ -125,6 +128,7 @@ def test_a_stream_paired_row_by_row_is_what_sj_fit_no_longer_does(stream):
     assert any("held-out error" in w for w in raw.warnings)
 
 
+@pytest.mark.slow
 def test_a_ros2_bag(tmp_path, no_figures):
     """A ROS 2 sqlite3 bag of a linear arm (A q + p0): the command's flags and sj.fit's keywords give one fit,
     with the bag's lines among the notes, and A Ĵ = I."""
@@ -142,6 +146,7 @@ def test_a_ros2_bag(tmp_path, no_figures):
         sj.fit(bag)
 
 
+@pytest.mark.slow
 def test_bad_options_are_refused_by_keyword_and_flag_before_the_log_is_read(tmp_path, capsys):
     """Each message names the keyword and the flag; the log (which does not exist) is never opened."""
     missing = tmp_path / "missing.csv"

@@ -117,6 +117,7 @@ def _reference_qp_follow(system, linearise, model_state, path, q0, ctrl, *, obse
 
 
 # ------------------------------------------------------------------ inverse-Jacobian law == control.follow
+@pytest.mark.slow
 @pytest.mark.parametrize("source", ["true", "fixed", "scaled", "function"])
 def test_inverse_jacobian_law_in_the_loop_is_control_follow(source):
     J0 = 1.3 * ARM.true_inverse_jacobian(jnp.array([0.3, 1.4]))
@@ -137,6 +138,7 @@ def test_inverse_jacobian_law_in_the_loop_is_control_follow(source):
 
 
 # ------------------------------------------------------------------ QP law == qp.follow == the old QP loop
+@pytest.mark.slow
 @pytest.mark.parametrize("online", [False, True])
 def test_constrained_qp_law_in_the_loop_is_qp_follow_and_the_old_qp_loop(online):
     q0s = _q0s()
@@ -159,6 +161,7 @@ def test_constrained_qp_law_in_the_loop_is_qp_follow_and_the_old_qp_loop(online)
         assert np.all(np.abs(np.asarray(a[1]) - np.asarray(model)).max(axis=(1, 2)) > 1e-3)
 
 
+@pytest.mark.slow
 def test_qp_loop_fails_like_the_old_loop_on_a_divergent_model():
     """A model with the wrong sign: the rollout diverges and is frozen at the same step in both loops."""
     def wrong(_, q):
@@ -171,6 +174,7 @@ def test_qp_loop_fails_like_the_old_loop_on_a_divergent_model():
     assert np.all(a[0].failed)
 
 
+@pytest.mark.slow
 def test_a_stateful_law_updates_its_state_only_on_steps_that_move():
     """A law counting its moves (state = count): the count equals the steps used on a completed rollout and stops
     at the failing step on a failed one, because the loop keeps a law's new state only where the arm moves."""
@@ -205,6 +209,7 @@ def _old_clip_norm(v, limit):
     return v * jnp.minimum(1.0, limit / jnp.where(norm > 0, norm, 1.0))
 
 
+@pytest.mark.slow
 def test_clip_norm_and_norm_forward_values_are_unchanged():
     rng = np.random.default_rng(0)
     vs = np.concatenate([rng.normal(size=(50, 3)) * 10.0 ** rng.uniform(-8, 1, (50, 1)), np.zeros((1, 3)),
@@ -216,6 +221,7 @@ def test_clip_norm_and_norm_forward_values_are_unchanged():
     assert control.clip_norm(jnp.zeros((0,)), 1.0).shape == (0,)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("wrap", ["eager", "jit", "vmap", "jit_vmap"])
 def test_clip_norm_and_norm_gradients_at_zero_are_finite(wrap):
     fns = {
@@ -240,6 +246,7 @@ def test_clip_norm_and_norm_gradients_at_zero_are_finite(wrap):
     np.testing.assert_allclose(jax.jacobian(lambda v: control.clip_norm(v, 10.0))(v), np.eye(3), rtol=1e-15)
 
 
+@pytest.mark.slow
 def test_follow_gradient_is_finite_where_the_rotation_error_is_exactly_zero():
     """A 6-D task whose path holds the start orientation: the rotation error at the first step is exactly 0, the
     point where the clip's norm has an infinite derivative; reverse mode through follow is now finite (the design
@@ -274,6 +281,7 @@ def test_feasible_indices_selects_the_first_k_and_names_the_shortfall():
                                   [True, False, True, False, True, True])
 
 
+@pytest.mark.slow
 def test_a_path_of_the_wrong_width_names_the_task_and_the_fix():
     import jax
 

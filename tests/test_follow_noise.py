@@ -62,6 +62,7 @@ def assert_same(a, b, fields):
 
 # ------------------------------------------------------------------ (1) realism off is the exact-pose loop
 
+@pytest.mark.slow
 def test_realism_off_is_the_exact_pose_loop_bit_for_bit(starts):
     exact = jax.jit(jax.vmap(lambda q: control.follow(ARM, control.true_inverse(ARM), PATH, q, CTRL, steps=STEPS,
                                                       return_trajectory=True)))(starts)
@@ -105,6 +106,7 @@ def test_noise_free_rows_of_a_noisy_sweep_equal_the_noise_free_sweep():
 
 # ------------------------------------------------------------------ (2) the readings' noise and its cost
 
+@pytest.mark.slow
 def test_readings_differ_from_the_pose_by_the_configured_sd(starts):
     sd = np.array([1e-4, 1e-4, 5e-4, 5e-4])
     res = follow_batch(starts, sd, np.zeros(4, np.int32), keys(4, 3))
@@ -155,6 +157,7 @@ def test_analytical_cube_error_with_half_a_millimetre_of_noise_is_well_above_the
 
 # ------------------------------------------------------------------ (3) latency
 
+@pytest.mark.slow
 def test_latency_the_follow_loop_sees_the_pose_of_L_steps_ago(starts):
     lat = np.array([0, 1, 2, 3], np.int32)
     res = follow_batch(starts, np.zeros(4), lat, keys(4, 7))
@@ -170,6 +173,7 @@ def test_latency_the_follow_loop_sees_the_pose_of_L_steps_ago(starts):
 
 class TestTransforms(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_jit_and_eager_agree_and_vmap_is_the_loop(self):
         q0 = jnp.asarray(start_configs()[0])
         ks = keys(2, 11)

@@ -35,6 +35,7 @@ def _rotvecs(shape, rng, max_angle=np.pi):
     return axis * rng.uniform(0.0, max_angle, size=shape + (1,))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [(), (4,), (2, 3)])
 def test_exp_log_match_scipy_with_batch_axes(shape):
     rng = np.random.default_rng(0)
@@ -48,6 +49,7 @@ def test_exp_log_match_scipy_with_batch_axes(shape):
     np.testing.assert_allclose(w_back, w, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_log_of_random_rotations_matches_scipy():
     R = Rotation.random(200, random_state=1)
     np.testing.assert_allclose(log(R.as_matrix()), R.as_rotvec(), atol=1e-10)
@@ -62,6 +64,7 @@ def test_round_trip_small_and_near_pi(angle):
     np.testing.assert_allclose(exp(w), Rotation.from_rotvec(w).as_matrix(), atol=TOL)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-4, np.pi - 1e-6])
 def test_gradients_finite(angle):
     w = np.array([0.6, 0.0, -0.8]) * angle
@@ -72,6 +75,7 @@ def test_gradients_finite(angle):
         np.testing.assert_allclose(g_rt, np.eye(3), atol=1e-8)
 
 
+@pytest.mark.slow
 def test_exp_and_log_derivatives_at_identity():
     # d exp(w)/dw at 0 is the hat map; d log(R)/dR at I is vee of the skew part.
     g = _derivatives(np.zeros(3))[0]
@@ -95,6 +99,7 @@ def test_pose_difference_values_and_batch():
     np.testing.assert_allclose(V[:, 3:], w, atol=1e-10)  # world-frame rotation vector
 
 
+@pytest.mark.slow
 def test_pose_difference_rotational_derivative_is_world_angular_velocity():
     # R(t) = exp(t w) R0: d/dt log(R(t) R0^T) at 0 = w (world frame), compared
     # with a central finite difference of the scipy rotation vector too.

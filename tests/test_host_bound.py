@@ -12,6 +12,7 @@ from selfid_jax.math.checks import HostBoundWarning, warn_if_host_bound
 from selfid_jax.systems.hands import model_o
 
 
+@pytest.mark.slow
 def test_native_hand_settling_warns_on_an_accelerator_only(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error", HostBoundWarning)
@@ -24,6 +25,7 @@ def test_native_hand_settling_warns_on_an_accelerator_only(monkeypatch):
         model_o(backend="mjx")  # on the device: no warning
 
 
+@pytest.mark.slow
 def test_the_articulated_native_backend_warns_on_an_accelerator(monkeypatch):
     """sim.make_static('native') on a GPU default warns; 'mjx' does not (a door scene, the test arm)."""
     from helpers_articulated import PADS

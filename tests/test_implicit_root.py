@@ -36,6 +36,7 @@ def _numpy_root_jacobian(M, b):
 
 class TestImplicitRoot(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_value_and_derivatives_match_the_closed_form(self):
         b = jnp.array([1.0, 2.0, 3.0])
         y_ref, dy_db = _numpy_root_jacobian(A, np.asarray(b))
@@ -47,6 +48,7 @@ class TestImplicitRoot(chex.TestCase):
                                    rtol=1e-10)
 
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_vmap_and_derivative_in_the_matrix(self):
         bs = jnp.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]])
         J = self.variant(jax.vmap(jax.jacfwd(lambda b_: _root(jnp.asarray(A), b_))))(bs)
@@ -63,6 +65,7 @@ class TestImplicitRoot(chex.TestCase):
         out = jax.jit(lambda y_: implicit_root(_residual, y_, (jnp.asarray(A), jnp.ones(3))))(y)
         np.testing.assert_array_equal(out, y)
 
+    @pytest.mark.slow
     def test_singular_operator_gives_non_finite_derivatives_not_an_error(self):
         f = lambda b_: implicit_root(lambda y, b: 0.0 * y - b, jnp.zeros(2), b_)  # F_y = 0
         assert not np.all(np.isfinite(jax.jacfwd(f)(jnp.ones(2))))
@@ -89,6 +92,7 @@ class TestNewtonRoot(chex.TestCase):
         np.testing.assert_allclose(F_y, A + 0.1 * np.diag(np.cos(np.asarray(y))), rtol=1e-14)  # at the returned y
 
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_stops_at_the_cauchy_test_and_reports_max_steps(self):
         b = np.array([1.0, 2.0, 3.0])
         solve = self.variant(lambda b_, k: newton_root(_residual, jnp.zeros(3), (jnp.asarray(A), b_), rtol=1e-12,
@@ -108,6 +112,7 @@ class TestNewtonRoot(chex.TestCase):
         np.testing.assert_allclose(F_y, A + 0.1 * np.diag(np.cos(y2)), rtol=1e-14)
 
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_vmap_and_a_singular_jacobian_is_not_converged_not_an_error(self):
         bs = jnp.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]])
         y, _, ok = self.variant(jax.vmap(lambda b_: newton_root(_residual, jnp.zeros(3), (jnp.asarray(A), b_),

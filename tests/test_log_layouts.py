@@ -62,6 +62,7 @@ def _deg(df):
     return df
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rewrite, guess, flag", [(_mm, "look like mm", ["--length", "mm"]),
                                                    (_ros_ns, "look like ns", ["--time", "ns"]),
                                                    (_deg, "look like degrees", ["--angle", "deg"])])
@@ -80,6 +81,7 @@ def test_other_units_are_refused_naming_the_unit_and_read_with_its_flag(base, tm
     assert flag[1] in info["converted_from"].values() and info["estimate_units"] == ["rad/m"] * 3
 
 
+@pytest.mark.slow
 def test_joint_numbering_names_quaternion_spelling_and_column_maps(base, tmp_path, capsys):
     df, want = base
     one = df.rename(columns={f"q_{i}": f"q_{i + 1}" for i in range(6)})  # joints numbered from 1
@@ -114,6 +116,7 @@ def test_joint_numbering_names_quaternion_spelling_and_column_maps(base, tmp_pat
     assert "--columns names 'nope', which is not a column" in _error(capsys, path, tmp_path, "--columns", "nope=t")
 
 
+@pytest.mark.slow
 def test_iso_times_units_row_and_semicolon_decimal_comma(base, tmp_path, capsys):
     df, want = base
     iso = df.copy()
@@ -144,6 +147,7 @@ def test_iso_times_units_row_and_semicolon_decimal_comma(base, tmp_path, capsys)
     _same(out, want)
 
 
+@pytest.mark.slow
 def test_a_fit_that_did_not_converge_exits_1_and_writes_no_estimate(base, tmp_path, capsys):
     df, _ = base
     short = tmp_path / "short.csv"
@@ -158,6 +162,7 @@ def test_a_fit_that_did_not_converge_exits_1_and_writes_no_estimate(base, tmp_pa
     assert "no inverse Jacobian written" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_trust_figures_are_reported_and_strict_fails_on_a_warning(base, tmp_path, capsys):
     """The example's figures against independent numbers (the estimate's singular values); a log whose tracker
     is one row late (an unexplained motion) warns, and --strict turns the warning into exit 1."""

@@ -98,6 +98,7 @@ def test_variants_match_numpy(capacity):
         assert np.all(np.isfinite(out)) and np.all(np.asarray(out) >= 0)
 
 
+@pytest.mark.slow
 def test_median_even_and_odd_counts():
     # column 0: ratios [1, 2, 10] (odd), column 1: [1, 2, 3, 100] (even)
     d = np.ones((4, 3))  # the shape of the degenerate states below: one compiled median and update
@@ -106,6 +107,7 @@ def test_median_even_and_odd_counts():
     np.testing.assert_allclose(median(state), [[2.0, 2.5]] * 3, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_degenerate_states_are_finite_and_zero():
     variants = (M.mean, median, weighted, kalman)
     empty = E.init(3, 2, capacity=5)
@@ -147,6 +149,7 @@ def _sorts(x, batch):
     return M.sort_axis0(x), jax.vmap(M.sort_axis0)(batch)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("K", [1, 2, 3, 7, 8, 37, 100])
 def test_sort_axis0_matches_numpy(K):
     rng = np.random.default_rng(K)

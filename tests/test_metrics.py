@@ -31,6 +31,7 @@ def test_axis_errors_match_numpy_on_a_letter_path():
     np.testing.assert_allclose(on_path, 0.0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_rotation_error_matches_scipy_and_batches():
     rng = np.random.default_rng(1)
     A = Rotation.random(8, random_state=rng)
@@ -43,6 +44,7 @@ def test_rotation_error_matches_scipy_and_batches():
 
 class MetricsJitVmap(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_jit_equals_eager_and_vmap_equals_loop(self):
         rng = np.random.default_rng(2)
         vertices = jnp.asarray(rng.normal(size=(6, 2)))

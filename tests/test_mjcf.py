@@ -83,6 +83,7 @@ def test_loads_and_has_the_chosen_actuators(arm):
     np.testing.assert_allclose(arm.sample_high, [0.5, 0.7, 0.5, 0.5], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_pose_and_jacobian_match_mujoco(arm):
     M = vel_map()
     for u in U:
@@ -144,6 +145,7 @@ def test_selfid_converges_and_star_completes(arm):
     np.testing.assert_allclose(dtheta_big[0], np.asarray(dtheta)[0] * [1, 1, 1, 2], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_default_actuators_skip_unsupported_ones_with_a_warning():
     with pytest.warns(UserWarning, match="'a_site' has a site transmission"):
         s = from_mjcf(TENDON_ARM_XML, "tip", task_dim=3, m_a=0.02)

@@ -31,6 +31,7 @@ from selfid_jax.robot.journal import Journal, JournalError, read_journal
 # --------------------------------------------------------------------------- self-ID
 
 
+@pytest.mark.slow
 def test_selfid_with_dropouts_matches_offline_fit(tmp_path):
     lower = (START[0] - 0.01, -3.0, -3.0)  # joint 0 has 1 cm of room below: draws there are reflected
     fake = FakeArm(lower=lower, dropouts={3, 5})  # reads 3 and 5 follow moves 2 and 3
@@ -68,6 +69,7 @@ def test_actuation_target_reflects_then_clips():
                                   safety.actuation_target(7, 5, q, m_a, lower, upper))
 
 
+@pytest.mark.slow
 def test_stale_tracker_stops_within_stale_s(tmp_path):
     fake = FakeArm(freeze_at=4)  # read 4 follows move 3: from then on the tracker stops advancing
     result = live.run_online(fake, opts(stale_s=0.15), tmp_path)
@@ -77,6 +79,7 @@ def test_stale_tracker_stops_within_stale_s(tmp_path):
     assert fake.closed_at - fake.frozen_since <= 0.15 + 0.0 + 0.1  # stale_s + settle_s + slack
 
 
+@pytest.mark.slow
 def test_box_stops_without_further_motion(tmp_path):
     p0, _ = arm_pose(START)
     fake = FakeArm(noise=0.0)
@@ -149,6 +152,7 @@ def test_resume_refuses_a_disagreeing_header(tmp_path, converged_run):
         live.run_online(FakeArm(), opts(), tmp_path / "none", resume=True)
 
 
+@pytest.mark.slow
 def test_resume_with_the_robot_moved_stops_as_moved_before_any_move(tmp_path, converged_run):
     """Self-ID resumed with an actuator beyond (wander + 1) m_a of where self-ID started, and following resumed
     with the tracked point beyond diverge_dist of the logged path: a `moved` stop naming why, no command."""
@@ -174,6 +178,7 @@ def test_resume_with_the_robot_moved_stops_as_moved_before_any_move(tmp_path, co
     assert away.moves == [] and away.closed
 
 
+@pytest.mark.slow
 def test_self_id_stays_within_wander_of_its_start(tmp_path):
     """Every self-ID target within wander m_a of the first reading (reflected draws keep |dtheta| <= m_a); with
     wander None the same draws walk farther."""
@@ -188,6 +193,7 @@ def test_self_id_stays_within_wander_of_its_start(tmp_path):
     assert np.max(np.abs(np.array([t for _, t in free.moves]) - START)) > 0.06
 
 
+@pytest.mark.slow
 def test_convergence_counts_from_min_samples(tmp_path):
     """The default floor is 5 samples per task axis (15 for x,y,z); the estimator's test is the paper's after it:
     the same samples offline with min_samples give the same iteration, and 0 gives the paper's earlier one."""
@@ -205,6 +211,7 @@ def test_convergence_counts_from_min_samples(tmp_path):
         live.run_online(FakeArm(), opts(wander=0.1), tmp_path / "bad")
 
 
+@pytest.mark.slow
 def test_resume_with_another_path_after_following_started_is_refused(tmp_path, converged_run):
     run, ref_fake, _ = converged_run
     shutil.copytree(run, tmp_path / "r")
@@ -276,6 +283,7 @@ def test_a_tracker_frozen_while_the_arm_moves_stops_self_id(tmp_path):
     assert len(fake.moves) <= 12 and moved <= 3 * 0.03 + 0.03 and fake.closed
 
 
+@pytest.mark.slow
 def test_a_tracker_frozen_while_following_stops_within_frozen_dist(tmp_path, converged_run):
     run, ref_fake, _ = converged_run
     shutil.copytree(run, tmp_path / "r")
@@ -321,6 +329,7 @@ def test_an_actuator_that_does_not_follow_its_commands_stops_self_id(tmp_path, k
     assert len(fake.moves) == 5 and not res.converged
 
 
+@pytest.mark.slow
 def test_a_stick_slip_band_that_swallows_small_commands_is_not_a_stuck_actuator(tmp_path, converged_run):
     """Joint 2 ignores steps under 1.5 mrad (a stick-slip band): following completes, as on franky-sim's FR3; the
     shortfall stays under half of m_a. A joint that ignores every command still stops (the test above)."""
@@ -337,6 +346,7 @@ def test_a_stick_slip_band_that_swallows_small_commands_is_not_a_stuck_actuator(
 # --------------------------------------------------------------------------- following
 
 
+@pytest.mark.slow
 def test_follow_after_resume_completes_within_the_envelope(tmp_path, converged_run):
     run, ref_fake, ref = converged_run
     shutil.copytree(run, tmp_path / "r")
@@ -365,6 +375,7 @@ def _arm_system():
     return from_pose_fn(pose, 3, task_dim=3, q_low=-3.0, q_high=3.0, dq_max=10.0, m_a=0.03, name="fake_arm")
 
 
+@pytest.mark.slow
 def test_simulated_follow_commands_what_the_live_runner_commands(tmp_path, converged_run):
     """One follow law: control.follow on a model of the arm, with FollowOptions.controller(envelope), moves the arm
     to the very targets the live runner commands the (noise-free) fake arm, step by step, to float64 round-off;
@@ -402,6 +413,7 @@ def test_simulated_follow_commands_what_the_live_runner_commands(tmp_path, conve
     assert live_steps == sim_steps and len(live_steps) == 10
 
 
+@pytest.mark.slow
 def test_an_estimate_that_no_longer_predicts_the_motion_stops_following(tmp_path, converged_run):
     """Each following move is a held-out sample: with the Jacobian flipped after self-ID (a changed grasp) the
     predicted motion misses the tracked one and the session stops at the 5th move, before any divergence stop."""

@@ -21,6 +21,7 @@ from selfid_jax.robot.protocol import Observation, Robot, RobotLimits
 # --------------------------------------------------------------------------- the command
 
 
+@pytest.mark.slow
 def test_cli_runs_resumes_and_writes_the_estimate(tmp_path, driver_module, capsys):
     from selfid_jax.cli import main
 
@@ -45,6 +46,7 @@ def test_cli_runs_resumes_and_writes_the_estimate(tmp_path, driver_module, capsy
     assert "seed" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_driver_exception_exits_3_and_writes_no_estimate(tmp_path, driver_module, capsys):
     """A vendor's ValueError mid-session: exit 3 (the robot's class, not 2), a summary, no estimate file."""
     from selfid_jax.cli import main
@@ -223,6 +225,7 @@ def test_scalar_limits_broadcast_beside_a_vector_and_are_refused_alone():
         check_limits(RobotLimits(np.full(3, -3.0), np.full(2, 3.0), 0.2))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", ["config_folder", "cwd"])
 def test_a_driver_module_beside_the_config_or_in_the_current_directory_is_found(tmp_path, monkeypatch, where):
     from selfid_jax.cli import main

@@ -73,6 +73,7 @@ def _follow_config(tmp_path):
     """)
 
 
+@pytest.mark.slow
 def test_cli_prints_progress_and_quiet_prints_only_the_report(tmp_path, driver_module, capsys):
     from selfid_jax.cli import main
 
@@ -112,6 +113,7 @@ def test_progress_line_on_a_terminal_rewrites_one_line_per_phase():
     assert "rejected (dropout)" in text and "0.100 mm" in text
 
 
+@pytest.mark.slow
 def test_online_run_writes_figures_and_plot_redraws_them(tmp_path, driver_module, capsys):
     from selfid_jax.cli import main
 
@@ -128,6 +130,7 @@ def test_online_run_writes_figures_and_plot_redraws_them(tmp_path, driver_module
     assert "figure: " in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_online_run_without_a_path_has_only_the_convergence_figure(tmp_path, converged_run, capsys):
     from selfid_jax.cli import main
 
@@ -303,6 +306,7 @@ def test_an_estimate_of_the_wrong_shape_or_axes_is_refused_before_any_move(tmp_p
     assert fake.moves == [] and fake.closed
 
 
+@pytest.mark.slow
 def test_cli_follows_a_csv_beside_the_config_with_the_estimate_of_an_earlier_session(tmp_path, driver_module, capsys):
     from selfid_jax.cli import main
 
@@ -358,6 +362,7 @@ class ModelArm(FakeArm):
         return np.vstack([np.array(cols).T, np.zeros((3, 3))])
 
 
+@pytest.mark.slow
 def test_a_driver_model_jacobian_is_the_estimate_s_reference(tmp_path):
     """jacobian() is asked once, at the first reading; summary-level reference_error equals numpy's ||J Ĵ - I||_F
     (a few % here: the estimate averages J over the moves around the start) and figures/estimate is drawn from

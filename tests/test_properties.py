@@ -17,6 +17,7 @@ finite = st.floats(-1e3, 1e3, allow_nan=False, width=64)
 anything = st.one_of(finite, st.just(0.0), st.just(np.nan), st.just(np.inf), st.just(-np.inf))
 
 
+@pytest.mark.slow
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.tuples(st.lists(anything, min_size=3, max_size=3), st.lists(anything, min_size=2, max_size=2)),
                 min_size=1, max_size=6))

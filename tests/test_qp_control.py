@@ -69,6 +69,7 @@ def test_unreachable_steps_give_the_box_least_squares_step(n, m):
         np.testing.assert_allclose(out.da, ref, atol=2e-5)
 
 
+@pytest.mark.slow
 def test_vmap_equals_one_by_one_and_checks():
     J, v, lo, hi, w = problems(7, 3, 3, 2, reachable=True)
     out = solve(J, v, lo, hi, w)

@@ -75,6 +75,7 @@ def test_readme_cli_subcommands_exist():
     assert commands and commands <= known, commands - known
 
 
+@pytest.mark.slow
 def test_readme_layout_is_the_tree():
     """docs/layout.md equals what scripts/readme_layout.py generates from the tree (every module, no stale path)."""
     sys.path.insert(0, str(ROOT / "scripts"))

@@ -76,6 +76,7 @@ def test_deadband_commands_below_it_never_move():
     np.testing.assert_array_equal(R.servo(q, q + jnp.array([0.0501, 0.01]), r), q + jnp.array([0.0501, 0.0]))
 
 
+@pytest.mark.slow
 def test_deadband_in_the_loop_every_step_below_it_never_moves(starts):
     """Each step is clipped to dq_max = 0.1 rad, below a deadband of 0.2 rad: the arm never moves (the controller
     commands from the measured q, so the small steps do not add up)."""
@@ -86,6 +87,7 @@ def test_deadband_in_the_loop_every_step_below_it_never_moves(starts):
     assert not np.any(res.failed) and np.all(res.completion[2:] == 1.0)
 
 
+@pytest.mark.slow
 def test_latency_the_reading_at_step_k_is_the_true_pose_at_k_minus_L(starts):
     lat = np.array([0, 1, 2, 3])
     res = follow_batch(starts, batch({"latency": lat}, 4), keys(4))
@@ -97,6 +99,7 @@ def test_latency_the_reading_at_step_k_is_the_true_pose_at_k_minus_L(starts):
     assert int(res.dropouts.sum()) == 0
 
 
+@pytest.mark.slow
 def test_noise_the_empirical_sd_of_the_readings_matches(starts):
     sd = np.array([1e-4, 1e-4, 3e-4, 3e-4])
     res = follow_batch(starts, batch({"noise_pos": sd}, 4), keys(4))
@@ -113,6 +116,7 @@ def test_noise_the_empirical_sd_of_the_readings_matches(starts):
     np.testing.assert_allclose(w.std(axis=0), 0.02, rtol=0.06)
 
 
+@pytest.mark.slow
 def test_dropout_rate_within_binomial_bounds_and_every_metric_finite(starts):
     p = np.array([0.0, 0.1, 0.3, 0.6])
     res = follow_batch(starts, batch({"dropout": p, "noise_pos": 1e-4}, 4), keys(4))
@@ -124,6 +128,7 @@ def test_dropout_rate_within_binomial_bounds_and_every_metric_finite(starts):
     assert res.completion[0] == 1.0 and not np.any(res.failed)
 
 
+@pytest.mark.slow
 def test_a_dropped_reading_makes_no_command_that_step(starts):
     """The live runner's rule in the simulation: a step whose reading dropped out does not move the arm (no latency,
     no noise: a reading that differs from the pose is a held, dropped one)."""
@@ -140,6 +145,7 @@ def test_a_dropped_reading_makes_no_command_that_step(starts):
 
 # ------------------------------------------------------------------ IDEAL is the ideal loop
 
+@pytest.mark.slow
 def test_ideal_follow_equals_the_loop_without_realism_bit_for_bit(starts):
     plain = jax.jit(jax.vmap(lambda q: control.follow(ARM, control.true_inverse(ARM), PATH, q, CTRL, steps=STEPS,
                                                       return_trajectory=True)))(starts)
@@ -151,6 +157,7 @@ def test_ideal_follow_equals_the_loop_without_realism_bit_for_bit(starts):
     np.testing.assert_array_equal(ideal.readings, ideal.positions)
 
 
+@pytest.mark.slow
 def test_ideal_self_id_samples_equal_run_bit_for_bit():
     """The samples (actuations, pose changes, where self-ID ended, the estimator's sums) are ``run``'s bit for bit;
     the refined estimate to rounding: XLA's CPU backend contracts multiply-adds into FMAs where it fuses them, and
@@ -177,6 +184,7 @@ def test_ideal_self_id_samples_equal_run_bit_for_bit():
     np.testing.assert_array_equal(dropouts, 0)
 
 
+@pytest.mark.slow
 def test_self_id_sampler_servo_lag_dropouts_and_no_nan():
     q0 = jnp.array([0.4, 0.9])
     r = R.Realism(period=0.01, servo_tau=0.02)

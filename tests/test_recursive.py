@@ -96,6 +96,7 @@ def rel(a, b):
     return float(np.max(np.abs(np.asarray(a) - b)) / np.max(np.abs(b)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("forget", [1.0, 0.9])
 def test_step_equals_numpy_least_squares_from_the_rank_deficient_start(forget):
     d, V = data(T)
@@ -110,6 +111,7 @@ def test_step_equals_numpy_least_squares_from_the_rank_deficient_start(forget):
     np.testing.assert_allclose(s.last_deltas, sb.last_deltas, rtol=1e-7)
 
 
+@pytest.mark.slow
 def test_rank_deficient_forever_keeps_the_batch_form():
     d, V = data(T, dead=2)
     _, _, Js, full = step_loop(d, V)
@@ -117,6 +119,7 @@ def test_rank_deficient_forever_keeps_the_batch_form():
     assert rel(Js, numpy_estimates(d, V)) < 1e-9
 
 
+@pytest.mark.slow
 def test_sample_screen_rejects_and_keeps_the_estimate():
     d, V = data(T)
     d[7], V[12] = np.nan, 0.0  # a non-finite actuation and an all-zero pose change
@@ -130,6 +133,7 @@ def test_sample_screen_rejects_and_keeps_the_estimate():
     assert rel(np.asarray(Js)[keep], ref) < 1e-9
 
 
+@pytest.mark.slow
 def test_resolve_every_and_run_equal_the_per_sample_step():
     d, V = data(T, seed=3)
     _, _, Js, _ = step_loop(d, V)
@@ -144,6 +148,7 @@ def test_resolve_every_and_run_equal_the_per_sample_step():
     assert rel(Jc, np.asarray(Js)) < 1e-9
 
 
+@pytest.mark.slow
 def test_vmap_nested_vmap_and_one_trace():
     d, V = data(30, seed=4)
     dB = np.stack([d * (1 + 0.1 * b) for b in range(3)], 1)  # (T, 3, n)
@@ -201,6 +206,7 @@ def float32_error(T: int, B: int = 4) -> float:
     return max(float(np.linalg.norm(J[b] - ref) / np.linalg.norm(ref)) for b, ref in enumerate(refs))
 
 
+@pytest.mark.slow
 def test_float32_within_1e_4_of_float64_least_squares():
     # the fast tier's float32 check (the suite's optimisation level); the 10,000 samples are the slow test below
     assert float32_error(500) < 1e-4
@@ -212,6 +218,7 @@ def test_float32_over_10000_samples_within_1e_4_of_float64_least_squares():
     assert float32_error(10_000) < 1e-4
 
 
+@pytest.mark.slow
 def test_cond_any_is_lax_cond_per_member():
     x = jnp.arange(6.0)
     t, f = (lambda o: o * 10.0), (lambda o: o - 1.0)
@@ -227,6 +234,7 @@ def test_cond_any_is_lax_cond_per_member():
     np.testing.assert_allclose(jax.grad(lambda o: R.cond_any(o > 1.0, lambda y: y**2, f, o))(3.0), 6.0)
 
 
+@pytest.mark.slow
 def test_packed_step_equals_step():
     d, V = data(8, seed=7)
     s, r = E.init(N, M, capacity=0), R.init(M)
@@ -258,6 +266,7 @@ def test_bad_input_names_the_problem():
         R.run(s, r, np.ones((3, N)), np.ones((2, M)), 1e-3)
 
 
+@pytest.mark.slow
 def test_self_identify_closed_form_equals_the_batch_path():
     J_true = jnp.array([[1.0, 0.5, 0.0], [-0.3, 2.0, 0.4], [0.2, -0.1, 1.5], [0.3, 0.0, -0.7]]).T  # (m, n)
     obs = sj.stateless(lambda key, dt: J_true @ dt + 1e-4 * jax.random.normal(key, (3,)))
@@ -271,6 +280,7 @@ def test_self_identify_closed_form_equals_the_batch_path():
     assert int(res.converged_at) == int(sb.converged_at)
 
 
+@pytest.mark.slow
 def test_run_without_history_ends_in_the_same_state():
     d, V = data(T, seed=8)
     s, r, Js, deltas = run_from_empty()(d, V)
@@ -282,6 +292,7 @@ def test_run_without_history_ends_in_the_same_state():
 
 class TestVariants(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_step_equals_exact_step(self):
         # 6 samples: the batch form for the first M = 3 (S_vv reaches full rank), rank-one steps for the rest
         # (eagerly each step traces its branches, so the sequence is kept short)
@@ -300,6 +311,7 @@ class TestVariants(chex.TestCase):
         assert bool(r.full) and int(s.count) == T
 
 
+@pytest.mark.slow
 def test_self_identify_defaults_to_the_rank_one_form_for_long_runs_only():
     from selfid_jax.identify import algorithm as A
 

@@ -30,6 +30,7 @@ def rel_objective_gap(state, J, J_ref):
     return abs(f - f_ref) / max(f_ref, floor)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["closed_form", "optax"])
 @pytest.mark.parametrize("n", [2, 6])
 def test_exact_recovery_of_linear_system(method, n):
@@ -65,6 +66,7 @@ def test_optax_and_slsqp_agree_with_closed_form(K):
         assert rel_objective_gap(state, Jn, Jc) <= 1e-3
 
 
+@pytest.mark.slow
 def test_closed_form_is_minimum_norm_correction():
     rng = np.random.default_rng(7)
     state, d, V = make_state(rng, rng.normal(size=(4, 4)), K=2)
@@ -76,6 +78,7 @@ def test_closed_form_is_minimum_norm_correction():
     np.testing.assert_allclose(A @ V, J - J0, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_ridge_closed_form_matches_optax_and_normal_equations():
     rng = np.random.default_rng(8)
     state, d, V = make_state(rng, rng.normal(size=(3, 3)), K=10, noise=1e-2)
@@ -86,6 +89,7 @@ def test_ridge_closed_form_matches_optax_and_normal_equations():
     np.testing.assert_allclose(sj.refine(state, J0, method="optax", ridge=ridge), expected, rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_huber_resists_outliers():
     rng = np.random.default_rng(9)
     J = rng.normal(size=(3, 3)) + 2 * np.eye(3)
@@ -100,6 +104,7 @@ def test_huber_resists_outliers():
     assert err_hub < 0.1 * err_l2
 
 
+@pytest.mark.slow
 def test_sign_projection_respects_signed_inverse_jacobian():
     rng = np.random.default_rng(10)
     state, _, _ = make_state(rng, rng.normal(size=(4, 4)), K=3, noise=1e-2)
@@ -136,6 +141,7 @@ def test_grad_through_refinement_wrt_samples_is_finite():
 
 class RefineJitVmapTest(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_jit_equals_eager(self):
         rng = np.random.default_rng(12)
         state, _, _ = make_state(rng, rng.normal(size=(3, 3)), K=6, noise=1e-3)
@@ -144,6 +150,7 @@ class RefineJitVmapTest(chex.TestCase):
             got = self.variant(lambda s, j, method=method: sj.refine(s, j, method=method))(state, J0)
             np.testing.assert_allclose(got, sj.refine(state, J0, method=method), rtol=1e-9, atol=1e-12)
 
+    @pytest.mark.slow
     def test_vmap_equals_loop_and_no_retrace_over_ridge(self):
         rng = np.random.default_rng(13)
         states = [make_state(rng, rng.normal(size=(3, 2)), K=5, noise=1e-3)[0] for _ in range(3)]
@@ -162,6 +169,7 @@ class RefineJitVmapTest(chex.TestCase):
                 np.testing.assert_allclose(out[b], one(s, ridge=ridge), rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_negative_huber_delta_and_ridge_raise():
     state = E.update(E.init(2, 2), jnp.array([0.1, 0.2]), jnp.array([0.3, -0.1]))
     J0 = E.initial_guess(state)

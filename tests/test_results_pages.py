@@ -198,6 +198,7 @@ def _numbers(data: dict) -> dict:
     return {k: v for k, v in data.items() if k != "provenance"}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page", sorted(WITH_ROWS))
 def test_data_names_its_runs_with_the_fingerprint_of_the_kept_rows(page):
     """Each run the page's script reads is named in the data file's provenance, with the SHA-256 of its kept rows
@@ -230,6 +231,7 @@ def test_data_names_its_runs_with_the_fingerprint_of_the_kept_rows(page):
         assert len(entry["source_sha256"]) == 64 and len(entry["results_sha256"]) == 64
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("page", sorted(WITH_ROWS))
 def test_every_number_of_the_data_is_recomputed_from_the_kept_rows(page):
     """The data file's numbers are what the page's script computes from the kept rows (the experiments' own

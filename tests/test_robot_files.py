@@ -41,6 +41,7 @@ SITELESS = textwrap.dedent("""\
 
 
 
+@pytest.mark.slow
 def test_urdf_loads_with_its_tool_link_and_matches_mujocos_jacobian(tmp_path):
     path = tmp_path / "arm3.urdf"
     path.write_text(URDF)
@@ -63,6 +64,7 @@ def test_urdf_loads_with_its_tool_link_and_matches_mujocos_jacobian(tmp_path):
     np.testing.assert_allclose(np.asarray(s2.pose(q)[0]), np.asarray(system.pose(q)[0]), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_body_and_offset_replace_a_missing_site_and_errors_name_the_way_forward():
     offset = (0.05, 0.0, 0.01)
     with warnings.catch_warnings():

@@ -138,6 +138,7 @@ def test_second_process_is_refused_and_fresh_deletes_nothing(tmp_path, capsys):
     assert load_results(out)["final"].notna().all()
 
 
+@pytest.mark.slow
 def test_lock_is_reentrant_in_one_process_and_released_on_exit(tmp_path):
     run = tmp_path / "run"
     with hold(run), hold(run):
@@ -203,6 +204,7 @@ PLOTTING = experiment.register(experiment.Experiment(
 ))
 
 
+@pytest.mark.slow
 def test_lock_is_held_while_the_figures_are_drawn(tmp_path, capsys):
     """sweep and demo draw the figures under the run's lock: a second process asking for it then is refused."""
     cfg, out = _config(tmp_path, "plotting_cli_test"), tmp_path / "run"
@@ -221,6 +223,7 @@ def _run(out: Path, seed: int = 0, **kw) -> pd.DataFrame:
     return run_chunked(synthetic_fn, params, chunk_size=5, out_dir=out, meta=meta, progress=False, **kw)
 
 
+@pytest.mark.slow
 def test_manifest_records_row_range_and_hash_of_each_chunk(tmp_path):
     _run(tmp_path)
     manifest = json.loads((tmp_path / "manifest.json").read_text())
@@ -230,6 +233,7 @@ def test_manifest_records_row_range_and_hash_of_each_chunk(tmp_path):
         assert manifest["chunks"][str(i)] == {"rows": [start, stop], "sha256": hashlib.sha256(data).hexdigest()}
 
 
+@pytest.mark.slow
 def test_truncated_and_empty_chunks_are_recomputed(tmp_path, capsys):
     _run(tmp_path)
     chunk = tmp_path / "chunks"
@@ -246,6 +250,7 @@ def test_truncated_and_empty_chunks_are_recomputed(tmp_path, capsys):
     np.testing.assert_allclose(df["final"].to_numpy(), reference(make_inputs()[1])["final"], rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_chunk_copied_from_another_run_is_recomputed(tmp_path, capsys):
     mine, other = tmp_path / "seed0", tmp_path / "seed1"
     _run(mine, seed=0)
@@ -272,6 +277,7 @@ def test_chunk_changed_during_the_run_is_never_assembled(tmp_path, monkeypatch):
         _run(tmp_path)
 
 
+@pytest.mark.slow
 def test_old_manifest_format_is_refused(tmp_path):
     _run(tmp_path)
     path = tmp_path / "manifest.json"
@@ -294,6 +300,7 @@ def _x64(enabled: bool):
         jax.config.update("jax_enable_x64", was)
 
 
+@pytest.mark.slow
 def test_float_width_mismatch_is_named(tmp_path):
     _run(tmp_path)
     with _x64(False), pytest.raises(
@@ -353,6 +360,7 @@ def _read_only(monkeypatch, root: Path):
             p.chmod(mode)
 
 
+@pytest.mark.slow
 def test_read_only_run_directory_exits_2(tmp_path, capsys, monkeypatch):
     cfg, out = _config(tmp_path, "synthetic_cli_test"), tmp_path / "run"  # one that draws a figure
     assert _sweep(cfg, out) == 0
@@ -367,6 +375,7 @@ def test_read_only_run_directory_exits_2(tmp_path, capsys, monkeypatch):
         assert f"Permission denied; make {out / 'figures'} writable" in _one_line_error(capsys)
 
 
+@pytest.mark.slow
 def test_corrupt_files_in_plot_exit_2(tmp_path, capsys):
     cfg, out = _config(tmp_path, "synthetic_cli_test"), tmp_path / "run"
     assert _sweep(cfg, out) == 0
@@ -414,6 +423,7 @@ def test_full_disk_exits_2_and_resumes(tmp_path, capsys, monkeypatch):
 # --------------------------------------------------------------------------- 4. minor
 
 
+@pytest.mark.slow
 def test_refused_resume_is_recorded_and_nothing_else_changes(tmp_path, capsys):
     cfg, out = _config(tmp_path), tmp_path / "run"
     assert _sweep(cfg, out) == 0

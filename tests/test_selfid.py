@@ -23,6 +23,7 @@ def identify_batch(keys, m_a, eps):
     return jax.vmap(run)(keys, m_a, eps)
 
 
+@pytest.mark.slow
 def test_recovers_linear_system_and_converges():
     res = sj.self_identify(OBSERVE, jax.random.key(0), 0.05, 1e-6, n_act=3, task_dim=3, iters=12)
     np.testing.assert_allclose(res.estimate, jnp.linalg.inv(J_TRUE), rtol=1e-6, atol=1e-8)
@@ -48,6 +49,7 @@ def test_vmap_over_keys_m_a_and_eps_equals_loop_without_retracing():
         assert np.all(np.abs(batched.dtheta[b]) <= m_a[b])
 
 
+@pytest.mark.slow
 def test_noise_and_optax_refinement_stay_finite_and_close():
     res = jax.jit(
         lambda k: sj.self_identify(noisy(1e-4), k, 0.05, 1e-3, n_act=3, task_dim=3, iters=40, method="optax",
@@ -58,6 +60,7 @@ def test_noise_and_optax_refinement_stay_finite_and_close():
     assert err < 0.05
 
 
+@pytest.mark.slow
 def test_environment_state_is_threaded_through():
     # observe integrates actuations: env = theta, V = (J @ theta_new) - (J @ theta_old)
     def observe(theta, key, d):
@@ -81,12 +84,14 @@ def test_bad_arguments():
     sj.stateless(lambda key, d: jnp.full((3,), jnp.nan)),  # a tracker that lost the tag
     sj.stateless(lambda key, d: jnp.zeros(3)),  # no motion seen
 ])
+@pytest.mark.slow
 def test_no_accepted_sample_never_converges(observe):
     res = jax.jit(lambda k: sj.self_identify(observe, k, 0.05, 0.5, n_act=3, task_dim=3, iters=8))(jax.random.key(0))
     assert int(res.converged_at) == -1 and int(res.state.rejected) == 8 and int(res.state.count) == 0
     assert np.all(np.isfinite(res.estimates))
 
 
+@pytest.mark.slow
 def test_traced_nan_or_zero_m_a_gives_rejected_samples_not_convergence():
     run = jax.jit(lambda a: sj.self_identify(OBSERVE, jax.random.key(0), a, 0.5, n_act=3, task_dim=3, iters=6))
     for m_a in (0.0, jnp.nan, jnp.inf):

@@ -38,6 +38,7 @@ predict_many = jax.jit(jax.vmap(sogp.predict, in_axes=(None, 0)))
 update = jax.jit(sogp.update)
 
 
+@pytest.mark.slow
 def test_equals_full_gp_while_every_point_is_kept_and_repeats_are_projected_exactly():
     rng = np.random.default_rng(0)
     D, P = 3, 2
@@ -81,6 +82,7 @@ def test_pruning_at_small_capacity_keeps_the_error_bounded(M):
     assert err < (0.5 if M == 3 else 0.1), (M, err)  # sin on [-3, 3] needs ~6 RBF bases of length 1
 
 
+@pytest.mark.slow
 def test_non_finite_samples_are_counted_and_change_nothing_else():
     state = sogp.init(2, 1, capacity=4, noise=0.1)
     state = update(state, np.array([0.1, 0.2]), np.array([1.0]))
@@ -109,6 +111,7 @@ def test_mean_gradient_matches_finite_differences_and_vmap_equals_one_by_one():
     np.testing.assert_allclose(J, fd, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_one_compilation_for_every_hyperparameter_value():
     @jax.jit
     @chex.assert_max_traces(n=1)

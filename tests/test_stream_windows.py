@@ -55,6 +55,7 @@ def test_motion_windows_length_from_the_motion():
         motion_windows(t, np.zeros_like(q))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("lag", [0.035, -0.02, 0.4])
 def test_latency_fit_times_a_smooth_motion(lag):
     """The speed of a smooth motion changes too slowly to time a lag; the velocity map's residual does."""
@@ -96,6 +97,7 @@ def test_a_stream_without_rests_fits_within_1_5x_of_the_same_arms_rest_and_move_
     assert _error(none) > _error(smooth)
 
 
+@pytest.mark.slow
 def test_reduce_stream_by_windows_takes_the_latency_out_and_stays_inside_the_shifted_rows():
     table = _smooth(latency=0.2, seed=3)
     reduced, info = reduce_stream(table, Q_COLS, POS_COLS)

@@ -46,6 +46,7 @@ def stream():
     return _stream(seed=1)
 
 
+@pytest.mark.slow
 def test_reduced_stream_fits_as_well_as_its_settled_rows(stream):
     table, settled = stream
     J = _J()
@@ -159,6 +160,7 @@ def test_long_rests_and_encoder_noise():
     np.testing.assert_allclose(q_red, np.stack([table[c][settled] for c in Q_COLS], axis=1), atol=5e-5)
 
 
+@pytest.mark.slow
 def test_a_stream_that_never_rests_is_read_by_windows():
     table, _ = _stream(moves=100, period=0.03)  # a new command every 3 rows: the servo never settles
     assert is_continuous(*_tq(table))  # its steps follow one smooth motion (coherence), although it never rests
@@ -171,6 +173,7 @@ def test_a_stream_that_never_rests_is_read_by_windows():
         assert info.segments == reduced["t"].shape[0] - 1 > 30 and "without rests" in info.line()
 
 
+@pytest.mark.slow
 def test_jittered_stamps(stream):
     table, settled = _stream(seed=1, jitter=1e-3)  # (g) stamps +-1 ms around the 100 Hz grid
     J = _J()
@@ -183,6 +186,7 @@ def test_jittered_stamps(stream):
     assert abs(info.latency_estimate_s - LATENCY) < 3e-3
 
 
+@pytest.mark.slow
 def test_quaternions_are_averaged_consistently():
     table, settled = _stream(seed=3, quaternion=True, moves=30)
     reduced, info = reduce_stream(table, Q_COLS, POS_COLS + QUAT_COLS)
@@ -228,6 +232,7 @@ def test_bad_rows_other_columns_and_explicit_thresholds(stream):
         settled_intervals(np.arange(10.0), np.zeros((10, 2)))
 
 
+@pytest.mark.slow
 def test_selfid_jax_fit_reads_a_lagged_stream_with_no_hand_editing(stream, tmp_path, capsys):
     """The issue's log: 100 Hz while moving, 20 ms servo lag, the tracker one frame late, 0.1 mm noise, as a CSV.
     selfid-jax fit detects the stream, reduces it, reports it and the latency, and its estimate is within 1.5x the
@@ -259,6 +264,7 @@ def test_selfid_jax_fit_reads_a_lagged_stream_with_no_hand_editing(stream, tmp_p
     assert "a continuous stream" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_a_latency_beyond_the_old_search_is_found_not_aliased():
     """Issue 54: a 400 ms tracker lag, beyond the old +-0.25 s search, was taken for its alias -100 ms (a move every
     0.5 s) and fitted at ||J Jhat - I|| ~2 with exit 0; the search now covers a quarter of the log."""
@@ -272,6 +278,7 @@ def test_a_latency_beyond_the_old_search_is_found_not_aliased():
     assert err(late) < 1.5 * err(base)
 
 
+@pytest.mark.slow
 def test_rests_past_the_latency_shift_are_not_paired_with_a_held_pose():
     """A 2 s tracker lag: the shifted pose is undefined over the log's last 2 s (held at its end value), so the 4
     rests there give no row, not samples whose tracked motion is 0."""
@@ -295,6 +302,7 @@ def test_a_latency_at_the_edge_of_the_search_is_refused(stream, monkeypatch):
         reduce_stream(stream[0], Q_COLS, POS_COLS, max_lag_s=0.005)
 
 
+@pytest.mark.slow
 def test_no_rests_advice_never_points_at_mode_moves():
     """Issue 54: the no-rests message advised --mode moves, which pairs the motion's rows (||J Jhat - I|| 0.78); a
     stream without rests is now read by windows, and one too short for them names windows and rests, never moves."""

@@ -58,6 +58,7 @@ def rel(a, b):
 @pytest.mark.parametrize("K", [1, pytest.param(2, marks=pytest.mark.slow), 3,
                                pytest.param(4, marks=pytest.mark.slow), 40])
 # fewer samples than task dims (m = 3), square, overdetermined
+@pytest.mark.slow
 def test_statistics_closed_form_equals_buffered_and_numpy_float64(K):
     n, m = 4, 3
     d, V = stream(K, n, m, K)
@@ -186,6 +187,7 @@ def test_selfid_run_identical_to_buffered_closed_form(stop):
     assert int(res.converged_at) == conv and conv > 0
 
 
+@pytest.mark.slow
 def test_state_size_is_independent_of_the_number_of_samples():
     def leaves(state):
         return [(x.shape, x.dtype) for x in jax.tree.leaves(state)]
@@ -206,6 +208,7 @@ def test_state_size_is_independent_of_the_number_of_samples():
     assert B.ours(magnitude="median").init(4, 3, capacity=64).dtheta_buf.shape == (64, 4)
 
 
+@pytest.mark.slow
 def test_forgetting_is_weighted_least_squares_and_follows_a_jump():
     """forget < 1: the closed form is numpy's weighted least squares (weights forget^(K-k)); after the
     Jacobian jumps (a grasp that slips) it converges to the new one, forget = 1 stays between the two."""
@@ -225,6 +228,7 @@ def test_forgetting_is_weighted_least_squares_and_follows_a_jump():
     assert rel(J, truth) < 1e-2 < 0.1 < rel(J_never, truth)
 
 
+@pytest.mark.slow
 def test_rejected_and_overflowing_samples_leave_the_state_unchanged():
     f32 = jnp.float32
     update = jax.jit(E.update)
@@ -242,6 +246,7 @@ def test_rejected_and_overflowing_samples_leave_the_state_unchanged():
     assert all(np.all(np.isfinite(x)) for x in jax.tree.leaves(twice._replace(last_deltas=jnp.zeros(2))))
 
 
+@pytest.mark.slow
 def test_buffer_free_state_refuses_sample_based_refinements():
     state = fold(*(jnp.asarray(x) for x in stream(2, 3, 3, 5)), capacity=0)
     J0 = E.initial_guess(state)

@@ -30,6 +30,7 @@ def assert_matches_reference(df: pd.DataFrame, ref: dict[str, np.ndarray]) -> No
     np.testing.assert_array_equal(df["negative"].to_numpy(), ref["negative"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("static_shapes, max_traces", [(True, 1), (False, 2)])
 def test_chunked_equals_unchunked_and_compiles_once(tmp_path, static_shapes, max_traces):
     meta, params = make_inputs()
@@ -46,6 +47,7 @@ def test_chunked_equals_unchunked_and_compiles_once(tmp_path, static_shapes, max
     assert (manifest["n_rows"], manifest["chunk_size"], manifest["n_chunks"]) == (23, 5, 5)
 
 
+@pytest.mark.slow
 def test_an_execution_lock_gates_every_chunk_and_changes_no_result(tmp_path):
     """With ``execution_lock`` each chunk's program runs while holding it (sweeps side by side in threads keep one
     program in flight): held elsewhere, no chunk is computed; released, every chunk is, as without it."""
@@ -104,6 +106,7 @@ def test_row_keys_depend_only_on_seed_and_row():
     assert not np.array_equal(row_keys(7, 4), row_keys(8, 4))
 
 
+@pytest.mark.slow
 def test_resume_after_interrupt(tmp_path, monkeypatch):
     meta, params = make_inputs()
     ref = reference(params)
@@ -140,6 +143,7 @@ def test_resume_after_interrupt(tmp_path, monkeypatch):
     pd.testing.assert_frame_equal(again, df)
 
 
+@pytest.mark.slow
 def test_manifest_mismatch_errors_unless_fresh(tmp_path):
     meta, params = make_inputs()
     run_chunked(synthetic_fn, params, chunk_size=5, out_dir=tmp_path, meta=meta, progress=False)
@@ -251,6 +255,7 @@ def test_resume_after_kill(tmp_path):
 # --------------------------------------------------------------------------- CLI
 
 
+@pytest.mark.slow
 def test_cli_sweep_resume_plot_and_errors(tmp_path, capsys, monkeypatch):
     cfg = tmp_path / "synthetic.yaml"
     cfg.write_text("experiment: synthetic_cli_test\nchunk_size: 4\ngains: [0.3, 0.9]\nn_trials: 5\n")

@@ -157,6 +157,7 @@ def test_ur5e_fk_matches_dh(ur6, ur_mjx):
     np.testing.assert_allclose(R_c, R_m, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_ur5e_jacobian_matches_mj_jacsite(ur6):
     qs = random_q(6, UR_B, seed=1)
     _, _, jacp, jacr = mj_site_jacobian(UR5E_XML, qs)
@@ -168,6 +169,7 @@ def test_ur5e_jacobian_matches_mj_jacsite(ur6):
             np.testing.assert_allclose(J[:, 3:], jacr, atol=JAC_TOL)  # world-frame angular part
 
 
+@pytest.mark.slow
 def test_ur5e_jacobian_matches_finite_differences(ur6):
     # Independent of MuJoCo and of selfid_jax.math.geometry: central differences of
     # [p - p0, rotvec(R R0^T)] with scipy's rotation vector.
@@ -187,6 +189,7 @@ def test_ur5e_jacobian_matches_finite_differences(ur6):
     np.testing.assert_allclose(J_q0, fd, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_ur5e_inverse_jacobian_and_sampling(ur6, ur_samples):
     q, valid = ur_samples
     assert q.shape == (UR_B, 6) and valid.shape == (UR_B,) and bool(valid.all())
@@ -206,6 +209,7 @@ def test_ur5e_inverse_jacobian_and_sampling(ur6, ur_samples):
 
 
 # ----------------------------------------------------------------- two-link
+@pytest.mark.slow
 def test_two_link_closed_form(arm2):
     qs = random_q(2, TL_B, seed=5, low=-np.pi, high=np.pi)
     p, R, J, _, _ = evaluate(arm2, qs)
@@ -229,6 +233,7 @@ def test_two_link_closed_form(arm2):
     np.testing.assert_allclose(Jq @ Jinv, np.broadcast_to(np.eye(2), (TL_B, 2, 2)), atol=1e-10)
 
 
+@pytest.mark.slow
 def test_two_link_sample_configs_and_mask(arm2):
     q = sample(arm2, jax.random.key(3), k=TL_B)
     assert q.shape == (TL_B, 2)
@@ -256,6 +261,7 @@ def test_apply_clips_steps_and_limits():
 
 
 # ---------------------------------------------------------------- from_pose_fn
+@pytest.mark.slow
 def test_three_link_from_pose_fn_closed_form(arm3):
     s = arm3
     assert (s.n_act, s.task_dim, s.has_rotation) == (3, 2, False)
@@ -272,6 +278,7 @@ def test_three_link_from_pose_fn_closed_form(arm3):
     np.testing.assert_allclose(Jinv, np.linalg.pinv(J), atol=1e-10)
 
 
+@pytest.mark.slow
 def test_position_only_3d_and_full_pose_fns():
     def p3(params, q):
         return jnp.stack([q[0], q[1], q[0] * q[1]])
@@ -431,6 +438,7 @@ def test_builtin_registry_is_the_one_list_configs_and_the_cli_read():
 
 
 # ------------------------------------------------------------- jit and vmap
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["ur5e", "two_link", "three_link"])
 def test_vmap_inverse_jacobian_equals_loop(which, ur6, ur_samples, arm2, arm3):
     if which == "ur5e":
@@ -474,6 +482,7 @@ def test_vmap_over_system_fields(arm2):
     np.testing.assert_allclose(tips[:, 0], lengths.sum(axis=1))
 
 
+@pytest.mark.slow
 def test_mjx_model_is_a_traced_pytree(ur_mjx):
     leaves = jax.tree_util.tree_leaves(ur_mjx)
     assert all(isinstance(x, jax.Array) for x in leaves)
@@ -482,6 +491,7 @@ def test_mjx_model_is_a_traced_pytree(ur_mjx):
     np.testing.assert_allclose(pose_one(ur_mjx, q)[0], dh_fk(q)[0], atol=POS_TOL)  # same compiled fn
 
 
+@pytest.mark.slow
 def test_vmap_over_chain_model_field(ur6):
     # A sweep over the flange offset: vmap over one field of the ChainModel in
     # params (the chain FK reads site_pos with the MjModel's indexing).

@@ -25,6 +25,7 @@ def test_axes_names_and_checks():
         check_task_axes(["rx"], has_rotation=False)
 
 
+@pytest.mark.slow
 def test_jacobian_rows_and_difference_are_the_chosen_components():
     full = ur5e(task_dim=6)
     part = full.with_task_axes(("z", "rx", "ry"))

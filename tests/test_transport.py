@@ -143,6 +143,7 @@ GOOD_LIMITS = {"ok": True, "lower": [-1.0] * N, "upper": [1.0] * N, "max_step": 
 # --- the client --------------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_one_deadline_per_call_against_a_server_dripping_bytes(fake):
     """A reply dripped one byte every 0.3 s fails a 1 s call within about 1 s (the old per-recv timeout held it)."""
 

@@ -41,6 +41,7 @@ def _log(still_jitter=None, moves=40, seed=0):
             **{c: p[:, i] for i, c in enumerate(("p_x", "p_y", "p_z"))}}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("jitter", [0.0, 1e-8, 3e-6])
 def test_a_joint_that_never_moved_is_named_and_no_moved_joint_is_blamed(jitter):
     """wrist_3 held (exactly, or with encoder jitter): its fitted effect is noise over noise (up to 1e4 times the

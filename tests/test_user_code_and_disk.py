@@ -47,6 +47,7 @@ def test_pose_fn_module_failing_on_import_is_one_line(tmp_path, capsys, monkeypa
     assert not (tmp_path / "run").exists()  # nothing made before the error
 
 
+@pytest.mark.slow
 def test_full_disk_while_saving_a_figure_names_the_file_and_keeps_the_old_one(tmp_path, monkeypatch):
     fig = Figure()
     fig.add_subplot().plot(np.arange(3))
@@ -65,6 +66,7 @@ def test_full_disk_while_saving_a_figure_names_the_file_and_keeps_the_old_one(tm
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # the old figures, no temporary file
 
 
+@pytest.mark.slow
 def test_plot_beside_a_running_sweep_is_refused(tmp_path):
     """While another process holds the run directory, ``plot`` exits 2 naming it and draws nothing."""
     run = tmp_path / "run"

@@ -17,6 +17,7 @@ from selfid_jax import runner as experiment  # noqa: E402
 from selfid_jax.systems.ets import arm5  # noqa: E402
 
 
+@pytest.mark.slow
 def test_spectral_radius_matches_numpy_eigenvalues():
     rng = np.random.default_rng(0)
     mats = [rng.normal(size=(k, k)) * s for k in (2, 3, 3, 6) for s in (0.1, 1.0, 30.0)]
