@@ -179,6 +179,33 @@ def test_a_waypoint_far_beyond_the_limits_is_refused_before_following(tmp_path, 
     assert f"{side} limit" in res.detail and f"the user's safety.limits_{side}" in res.detail
 
 
+@pytest.mark.parametrize("swap", [None, [0, 2, 1]])
+def test_clipped_moves_are_samples_of_the_following_check(tmp_path, converged_run, swap):
+    """A 20 mm waypoint followed with a given estimate, the user's limit leaving the joint it needs most 51 % of
+    the room (so its moves are clipped from the third on): the correct estimate stops naming the limit; the
+    estimate with its y and z columns swapped is blamed (estimate), from moves most of which were clipped (fewer
+    than follow_min_moves were not: the clipped ones are counted as samples)."""
+    _, ref_fake, ref = converged_run
+    est = ref.estimate if swap is None else ref.estimate[:, swap]
+    path = options.FollowOptions(kind="waypoints", waypoints=[[0.02, 0.0, 0.0]])
+    need = est @ [0.02, 0.0, 0.0]  # (n,) the estimate's linear step to the waypoint
+    i = int(np.argmax(np.abs(need)))
+    lower, upper = _limited(ref_fake.q, i, bool(need[i] > 0), 0.51 * abs(need[i]))
+    fake = FakeArm(q0=ref_fake.q, joint_names=NAMES)
+    res = live.run_online(fake, opts(path=path, estimate=est, lower=lower, upper=upper), tmp_path / "r")
+    limit = upper[i] if need[i] > 0 else lower[i]
+    held = sum(1 for _, t in fake.moves if t[i] == limit)  # moves whose command the limit clipped
+    assert held >= 3, (held, res.detail)
+    assert_in_envelope(fake, np.maximum(fake.lim.lower, lower), np.minimum(fake.lim.upper, upper), 0.2)
+    if swap is None:
+        side = "upper" if need[i] > 0 else "lower"
+        assert res.status == live.Stop.UNREACHABLE, res.detail
+        assert f"{_label(i)} is held at its {side} limit {limit:.4g} (the user's safety.limits_{side})" in res.detail
+    else:
+        assert res.status == live.Stop.ESTIMATE, res.detail
+        assert res.follow_steps - held < opts().follow_min_moves
+
+
 @pytest.mark.slow  # the follow step compiled for 400 waypoints: ~7 s on 2 loaded cores
 def test_densely_sampled_path_is_followed_through_tracker_noise(tmp_path, converged_run):
     """400 waypoints 0.1 mm apart (40 mm) with 0.1 mm of tracker noise: waypoints already within tol are passed

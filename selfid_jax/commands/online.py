@@ -165,6 +165,8 @@ def _report(result: OnlineResult, files: dict[str, Path]) -> None:
         print(f"estimator step: p50 {np.percentile(result.step_ms, 50):.3f} ms, "
               f"p99 {np.percentile(result.step_ms, 99):.3f} ms per sample")
     print(f"stopped: {result.status.value}: {result.detail}")
+    if result.close_error is not None:  # beside the stop, never in its place
+        print(f"note: {result.close_error}")
     if result.estimate_source is not None:
         print(f"followed with the estimate from {result.estimate_source} (no self-ID); log: {result.log}")
     elif JINV_NPZ in files:

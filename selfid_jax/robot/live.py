@@ -87,12 +87,13 @@ from selfid_jax.robot.journal import Journal, read_journal
 from selfid_jax.robot.log import parse_task
 from selfid_jax.robot.options import AXIS_NAMES, MIN_SAMPLES_PER_AXIS, ONLINE_METHODS, FollowOptions, OnlineOptions
 from selfid_jax.robot.protocol import Robot, RobotConnectionError, RobotError, check_limits, joint_labels
-from selfid_jax.robot.quality import Quality, Trust, read_trust, trust
-from selfid_jax.robot.safety import check_room, envelope
+from selfid_jax.robot.quality import Quality, Trust, read_trust, record_flags, record_lines, trust
+from selfid_jax.robot.safety import check_path_reach, check_room, envelope, reach_bound
 from selfid_jax.robot.session import DriverFault, ResumeError, Session, Stop, Stopped
 from selfid_jax.robot.steps import init_state, sample_step
 
-__all__ = ["LOG_FILE", "EstimateFile", "OnlineResult", "given_estimate", "read_estimate", "run_online"]
+__all__ = ["ACCEPT_FLAGGED", "LOG_FILE", "EstimateFile", "OnlineResult", "close_robot", "given_estimate",
+           "read_estimate", "run_online", "trust_lines"]
 
 LOG_FILE = "session.jsonl"
 LOG_VERSION = 2  # 2: following logs rejected readings; the follow law is control.law.command
@@ -128,6 +129,7 @@ class OnlineResult(NamedTuple):
     trust: Trust | None = None  # the converged samples' trust figures and warnings (quality.trust); None before
     given_trust: dict | None = None  # a given estimate's file: its quality.trust_record; None for a file without one
     given_converged_at: int | None = None  # a given estimate's file: its convergence sample (None: not recorded)
+    close_error: str | None = None  # closing the driver after the stop failed: that failure, one line (None: closed)
 
     @property
     def reference_error(self) -> float | None:
@@ -238,6 +240,34 @@ def read_estimate(path: str | Path) -> EstimateFile:
     return EstimateFile(est, axes, record, conv)
 
 
+ACCEPT_FLAGGED = "accept_flagged_estimate=True"
+"""How :func:`run_online`'s caller follows with a flagged estimate file (the command line's is
+``--accept-flagged-estimate``)."""
+
+
+def trust_lines(path: str | Path, read: EstimateFile, *, accept_flagged: bool = False,
+                accept: str = ACCEPT_FLAGGED) -> list[str]:
+    """The lines that show an estimate file's trust figures (``read``: its :func:`read_estimate`), or a refusal.
+
+    A file whose trust record is flagged (:func:`selfid_jax.robot.quality.record_flags`: trust warnings, or not
+    converged) raises ValueError starting with ``path`` and naming each flag and ``accept`` (how to follow with it
+    anyway), unless ``accept_flagged``; then a last line says it is followed despite them. A file written before
+    estimate files carried a trust record is accepted, and its line says so.
+    """
+    record = read.trust
+    if record is None:
+        return [f"estimate {path}: carries no trust figures (written before estimate files carried them); "
+                "followed unchecked"]
+    made = f"{record.get('source', '?')} of {record.get('log', '?')}"
+    head, *rest = record_lines(record)
+    flags = record_flags(record)
+    if flags and not accept_flagged:
+        raise ValueError(f"{path}: flagged, not followed ({made}: {head}): {'; '.join(flags)}. Self-identify again, "
+                         f"or follow with it anyway with {accept}")
+    return [f"estimate {path} ({made}): {head}", *(f"  {x}" for x in rest),
+            *([f"  {accept}: following with it despite {len(flags)} flag(s)"] if flags else [])]
+
+
 def given_estimate(value, n: int, axes: tuple[int, ...], *, read: EstimateFile | None = None
                    ) -> tuple[np.ndarray, str]:
     """``(estimate (n, m), source)`` of ``OnlineOptions.estimate``: an ``.npz`` file of ``selfid-jax fit`` or
@@ -341,11 +371,15 @@ def _check_options(opts: OnlineOptions, n: int) -> tuple[tuple[int, ...], np.nda
 def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, resume: bool = False,
                stop_requested: Callable[[], bool] | None = None,
                sleep: Callable[[float], None] = time.sleep,
-               progress: Callable[[dict[str, Any]], None] | None = None) -> OnlineResult:
+               progress: Callable[[dict[str, Any]], None] | None = None,
+               accept_flagged_estimate: bool = False) -> OnlineResult:
     """Self-identify the robot's inverse Jacobian live (Algorithm 1), then follow ``options.path`` with it.
 
     ``robot``: a connected driver (:class:`~selfid_jax.robot.protocol.Robot`);
-    it is closed when the session ends, however it ends. ``run_dir``: where
+    it is closed when the session ends, however it ends; a ``close()`` that
+    raises does not replace the session's stop or error: it is the result's
+    ``close_error`` (and the log's ``close`` record), or a note on the error
+    raised. ``run_dir``: where
     the session log (``session.jsonl``) is appended; created if missing.
     ``resume``: continue the session logged there (see the module docstring);
     without it a run directory that already holds a log is refused.
@@ -361,19 +395,28 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
     "waypoints", "distance"}`` after each following move (waypoints reached
     out of the path's, the path distance [m]), and ``{"phase": "stop",
     "status", "detail"}`` once at the end. It runs in the loop: keep it quick.
+    ``accept_flagged_estimate``: follow with an ``options.estimate`` file
+    whose trust record is flagged (:func:`trust_lines`: trust warnings, or
+    not converged), which is otherwise refused (the command line's
+    ``--accept-flagged-estimate``).
 
     Returns an :class:`OnlineResult`; the session's stop is its ``status``
     (a :class:`selfid_jax.robot.session.Stop`: a safety stop is a result,
     not an exception).
 
     A start position outside the limits or the box, or a path that would
-    leave the box, ends the session before any motion with that status.
+    leave the box, ends the session before any motion with that status. A
+    waypoint farther from where following starts than any two positions of
+    the tracked point can be apart (a driver that states its ``reach``:
+    :func:`~selfid_jax.robot.safety.reach_bound`) is refused (ValueError)
+    before any motion, self-ID's included.
 
     Every error below is raised before any motion, and the robot is closed first.
 
     Raises:
-      ValueError: an option out of range (the message names it), or ``m_a``
-        above the envelope's ``max_step``.
+      ValueError: an option out of range (the message names it), ``m_a``
+        above the envelope's ``max_step``, or a given estimate file that is
+        not one, serves another task or is flagged (unless accepted).
       ResumeError: the log disagrees with the options (names the field), or
         ``resume`` without a log / a log without ``resume``.
       JournalError: the log is corrupt.
@@ -412,10 +455,16 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
                              f"{env.max_step[i]:g} (max_step: the driver's or the user's); lower m_a")
         if options.estimate is None:  # self-ID will move each actuator by up to m_a: its range must allow that
             check_room(env, m_a, joint_labels(robot, n))
-        if options.path is not None:
+        if options.path is not None:  # its waypoints, and none beyond the arm's reach (where the driver states it)
             options.path.offsets(axes)
+            check_path_reach(options.path.positions(axes), reach_bound(robot))
         given_file = _read_given(options.estimate) if isinstance(options.estimate, (str, Path)) else None
         given = None if options.estimate is None else given_estimate(options.estimate, n, axes, read=given_file)
+        if given is not None and given_file is not None:  # a flagged file is refused unless the caller accepts it
+            try:
+                trust_lines(given[1], given_file, accept_flagged=accept_flagged_estimate)
+            except ValueError as err:
+                raise ValueError(f"estimate: {err}") from None
         if given is not None and options.path is None:
             raise ValueError("estimate: following with a given estimate needs a path (path); without one there "
                              "is nothing to do")
@@ -506,13 +555,10 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         journal.append({"e": "stop", "reason": status.value, "detail": detail, **extra})
         if progress is not None:
             progress({"phase": "stop", "status": status.value, "detail": detail})
-    finally:
-        try:
-            robot.close()
-        except Exception:  # noqa: BLE001 - closing a lost connection may fail; the session is over either way
-            pass
-        if journal is not None:
-            journal.close()
+    except BaseException as err:  # refused before any motion (or interrupted outside the loop): still closed
+        _finish(robot, journal, err)
+        raise
+    closing = _finish(robot, journal)
     assert session is not None and session.state is not None
     state = jax.device_get(session.state)
     estimate = np.asarray(state.estimate) if session.given is None else session.given[0]
@@ -533,7 +579,33 @@ def run_online(robot: Robot, options: OnlineOptions, run_dir: str | Path, *, res
         follow_s=earlier["follow_s"] + wall["follow_s"],
         estimate_source=None if session.given is None else session.given[1], reference=session.reference,
         trust=figures, given_trust=None if given_file is None else given_file.trust,
-        given_converged_at=None if given_file is None else given_file.converged_at)
+        given_converged_at=None if given_file is None else given_file.converged_at, close_error=closing)
+
+
+def close_robot(robot: Robot) -> str | None:
+    """``robot.close()``; None, or where it raised (a lost connection, a vendor's disconnect failing) one line saying
+    so, raising nothing: a session's stop, or the error that ended it, stays the cause the user is told."""
+    try:
+        robot.close()
+    except Exception as err:  # noqa: BLE001 - any driver's own: reported beside the cause, never in its place
+        return f"closing the driver afterwards also failed: {type(err).__name__}: {' '.join(str(err).split())}"
+    return None
+
+
+def _finish(robot: Robot, journal: Journal | None, err: BaseException | None = None) -> str | None:
+    """Close the robot (:func:`close_robot`), then the log; a close that failed is logged (a ``close`` record) and
+    added to ``err``'s notes where an error is ending the call. Returns the close failure's line, or None."""
+    note = close_robot(robot)
+    if journal is not None:
+        if note is not None:
+            try:
+                journal.append({"e": "close", "error": note})
+            except (OSError, ValueError):  # a log that cannot be written (ValueError: closed) keeps what it has
+                pass
+        journal.close()
+    if note is not None and err is not None:
+        err.add_note(note)
+    return note
 
 
 def _estimate_record(given: tuple[np.ndarray, str], file: EstimateFile | None) -> dict[str, Any]:

@@ -89,6 +89,12 @@ class Robot(Protocol):
     # Optional: a driver may also have an attribute
     #     joint_names: a sequence of n strings, the vendor's names of the actuators in order
     # which the runner's messages use beside the 1-based joint number (joint_labels).
+    #
+    # Optional: a driver may state its arm's reach, as attributes
+    #     reach: the farthest [m] its flange (the tracked point, with tool_offset 0) gets from a point fixed to its base
+    #     tool_offset: how far [m] beyond the flange the tracked point is, where the driver knows it
+    # The runner then refuses, before any motion, a waypoint farther from the tracked point than two positions of it
+    # can be apart (safety.reach_bound: 2 (reach + tool_offset), with safety.TOOL_MARGIN for an unstated offset).
 
 
 def check_limits(limits: RobotLimits, n: int | None = None) -> RobotLimits:

@@ -17,8 +17,13 @@ import numpy as np
 from selfid_jax.robot.options import DIVERGE_DIST, STALE_S
 from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits, check_limits
 
-__all__ = ["COMMAND_MEMORY", "Commanded", "Envelope", "Sight", "actuation_target", "angle_between", "check_observation",
-           "check_room", "envelope", "linear_reach", "tracker_noise"]
+__all__ = ["COMMAND_MEMORY", "TOOL_MARGIN", "Commanded", "Envelope", "Sight", "actuation_target", "angle_between",
+           "check_observation", "check_path_reach", "check_room", "envelope", "linear_reach", "reach_bound",
+           "tracker_noise"]
+
+TOOL_MARGIN = 0.3
+"""[m] Where a driver states its arm's reach but not how far the tracked point is beyond the flange: a tool (a hand
+and a marker) up to this long is allowed for."""
 
 
 class Envelope(NamedTuple):
@@ -90,6 +95,55 @@ def check_room(env: Envelope, m_a: np.ndarray, labels: list[str]) -> None:
                          f"its self-ID magnitude m_a = {m_a[i]:.4g}: self-ID cannot move it by m_a and would "
                          "identify its column from moves too short to trust. Widen its limits, or lower m_a for "
                          "it (m_a per actuator); no move was made")
+
+
+def reach_bound(robot: object) -> tuple[float, str] | None:
+    """The farthest apart [m] two positions of the tracked point can be, and how that follows (words), from a
+    driver's optional ``reach`` and ``tool_offset``; None where it states no ``reach``.
+
+    ``reach`` [m]: the farthest the arm's flange (or, with ``tool_offset``
+    0, the tracked point itself) gets from a point fixed to its base;
+    ``tool_offset`` [m]: how far beyond it the tracked point is, where the
+    driver knows (else :data:`TOOL_MARGIN`). Each position is within
+    ``reach + tool`` of that base point, so two are at most
+    ``2 (reach + tool)`` apart. ValueError naming the attribute where one is
+    not a finite number (``reach`` > 0, ``tool_offset`` >= 0) or reading it
+    fails.
+    """
+    values = []
+    for name in ("reach", "tool_offset"):
+        try:
+            v = getattr(robot, name, None)
+        except Exception as err:  # noqa: BLE001 - a driver's property that fails: one line naming it
+            raise ValueError(f"robot {name}: reading the driver's {name} raised {type(err).__name__}: {err}"
+                             ) from None
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer))
+                              or not math.isfinite(v) or v < 0 or (name == "reach" and v == 0)):
+            raise ValueError(f"robot {name}: the driver states {v!r}; expected metres, a finite number "
+                             f"{'> 0' if name == 'reach' else '>= 0'}, or None")
+        values.append(None if v is None else float(v))
+    reach, tool = values
+    if reach is None:
+        return None
+    if tool is None:
+        return 2.0 * (reach + TOOL_MARGIN), (f"2 x (the driver's reach {reach:.4g} m + {TOOL_MARGIN:g} m allowed for "
+                                             "a tool: the driver states none)")
+    return 2.0 * (reach + tool), f"2 x (the driver's reach {reach:.4g} m + its tool offset {tool:.4g} m)"
+
+
+def check_path_reach(positions: np.ndarray, bound: tuple[float, str] | None) -> None:
+    """ValueError naming the first waypoint whose position offset ``positions (W, 3)`` [m] from where following
+    starts is longer than ``bound`` (:func:`reach_bound`: no two positions of the tracked point are farther apart),
+    with its distance and the bound; nothing where ``bound`` is None."""
+    if bound is None:
+        return
+    d = np.linalg.norm(np.asarray(positions, np.float64), axis=1)  # (W,) m
+    far = np.flatnonzero(d > bound[0])
+    if far.size:
+        w = int(far[0])
+        raise ValueError(f"path: waypoint {w + 1} of {d.shape[0]} is {1e3 * d[w]:.4g} mm from where following "
+                         f"starts, out of the arm's reach: no two positions of the tracked point are more than "
+                         f"{1e3 * bound[0]:.4g} mm apart ({bound[1]}). No move was made: a path within reach")
 
 
 def linear_reach(Jinv: np.ndarray, offsets: np.ndarray, q: np.ndarray, lower: np.ndarray,

@@ -23,10 +23,12 @@ as it happens, and raising :class:`Stopped` where a stop is found:
   already within tolerance whose successor is too are passed (a densely
   sampled path); each move's tracked change (position, and rotation on a
   task with rotation axes) is held against the estimate's prediction above
-  the tracker's noise, measured at rest where following starts; a move the
-  limits clipped is not held against the estimate, and an actuator held at
-  a limit while the waypoint comes no nearer stops as ``unreachable``,
-  naming the joint, its limit and whose it is.
+  the tracker's noise, measured at rest where following starts, and
+  predicted from the actuators' measured motion, so a move the limits
+  clipped is held against it too (on a redundant arm, where that motion
+  lies within the estimate's range); an actuator held at a limit while the
+  waypoint comes no nearer stops as ``unreachable``, naming the joint, its
+  limit and whose it is.
 * :meth:`Session.replay` folds a logged session back into the state (resume);
   the first reading of the resumed session is tested against where the log
   left the robot (``moved``, in either phase, whatever ``wander`` is).
@@ -69,6 +71,9 @@ NOISE_READS = 8
 """Tracker readings at rest where following starts: their spread is the noise floor of the following check."""
 STALL_MOVES = 10
 """Following moves with an actuator held at a limit and the waypoint no nearer (by ``tol``) that stop (unreachable)."""
+OFF_RANGE = 0.05
+"""Following: a move the limits clipped whose actuator motion lies more than this fraction of its norm outside the
+estimate's range (a redundant arm) is not a sample of the following check (the estimate does not predict it)."""
 FAR_MOVES = 10.0
 """Following: an actuator farther than this many of its ``m_a`` from where following started is beyond where the
 estimate was identified; the following check failing there names the distant waypoint (unreachable), not the
@@ -161,7 +166,8 @@ class Session:
         self.clock_offset = math.inf  # min over readings of (runner's monotonic clock - driver's clock) [s]
         self.sight: Sight | None = None
         self.commanded = Commanded(np.zeros(self.n), np.zeros(self.n))
-        self.predict: np.ndarray | None = None  # (P, n) pinv of the estimate while following: dq -> predicted dp
+        self.predict: np.ndarray | None = None  # (m, n) pinv of the estimate while following: dq -> predicted V
+        self.span: np.ndarray | None = None  # (n, n) following: Jinv pinv(Jinv), the projection onto its range
         self.position_axes = [a for a in axes if a < 3]  # the task's P position axes, indices into (x, y, z)
         self.residual = (0.0, 0.0, 0)  # following: recent-weighted sums of |dp - predicted dp|, |predicted dp|; moves
         self.pairs: list[tuple[np.ndarray, np.ndarray]] = []  # the accepted samples (dtheta (n,), V (m,))
@@ -266,9 +272,14 @@ class Session:
         rotation) against ``pinv(estimate) dq``, each part's miss less its
         noise floor (3 sigma of the difference of two readings, from the
         tracker's noise measured at rest), rotation weighed by ``scale`` m/rad.
-        A move whose command the limits ``clipped`` is not a sample: the
-        estimate predicts the motion of its own commands, and the actuators'
-        motion a limit cut short is not one (the limits' own test names that).
+        The prediction is of the actuators' measured motion ``dq``, so a move
+        whose command the limits ``clipped`` is a sample too: what was
+        commanded after clipping, as made. ``pinv(estimate) dq`` is the
+        estimate's forward map only on the estimate's range (all of ``dq``
+        for ``n == m``); on a redundant arm a clipped move whose ``dq`` lies
+        more than :data:`OFF_RANGE` (a fraction of ``|dq|``) outside it is
+        not a sample (the estimate says nothing of that part's motion; a
+        joint held at a limit is named by the limits' own test).
         """
         opts, dq, d = self.opts, obs.q - base.q, target - base.q
         c, w = self.commanded, COMMAND_MEMORY  # recent moves weigh most: a joint that sticks later is seen too
@@ -289,7 +300,7 @@ class Session:
         full = None if self.predict is None else self.predict @ dq  # (m,) predicted task change [m, rad]
         P = len(self.position_axes)
         pred = None if full is None else full[:P]  # (P,) predicted position change [m]
-        if full is not None and not clipped:  # following: each move is a held-out sample of the estimate
+        if full is not None and (not clipped or self.predicts(dq)):  # following: a held-out sample of the estimate
             V = task_difference(obs, base, self.axes)
             (sp, sr), R = self.noise, full.shape[0] - P
             miss_p = max(0.0, float(np.linalg.norm(V[:P] - full[:P])) - 3.0 * sp * math.sqrt(2 * P))
@@ -327,6 +338,13 @@ class Session:
         """Actuator motion [actuator units] with no seen change that stops: the option, or 3 max(m_a)."""
         v = self.opts.frozen_motion
         return 3.0 * float(np.max(self.m_a)) if v is None else float(v)
+
+    def predicts(self, dq: np.ndarray) -> bool:
+        """Whether the estimate followed with predicts the task motion of actuator motion ``dq (n,)``: its part
+        outside the estimate's range (``(I - Jinv pinv(Jinv)) dq``) is at most :data:`OFF_RANGE` of ``|dq|``."""
+        assert self.span is not None
+        off = float(np.linalg.norm(dq - self.span @ dq))
+        return off <= OFF_RANGE * float(np.linalg.norm(dq))
 
     def check_quality(self) -> None:
         """After convergence, before any following move: the held-out error of the samples (:func:`held_out`),
@@ -470,6 +488,7 @@ class Session:
         W = offsets.shape[0]
         ctrl = path.controller(env)
         self.predict = np.linalg.pinv(Jinv)  # (m, n): dq -> predicted change of the task's pose (m, rad)
+        self.span = Jinv @ self.predict  # (n, n): projection onto the estimate's range (I where n == m)
         obs = self.measure_noise(obs)
         moved = False  # a reading after a move of this call (not the one following starts or resumes from)
         while True:

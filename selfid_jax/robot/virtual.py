@@ -41,6 +41,7 @@ naming the actuator) and nothing moves.
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -60,7 +61,7 @@ UR5E_JOINT_NAMES = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_
 """Universal Robots' names of the UR5e's joints, base to tool."""
 
 __all__ = ["UR5E_JOINT_NAMES", "Faults", "LatencySpike", "TickStats", "VirtualRobot", "Window", "build_system",
-           "default_q0", "servo_step", "system_limits"]
+           "default_q0", "servo_step", "system_limits", "tracked_reach"]
 
 
 class Window(NamedTuple):
@@ -163,6 +164,50 @@ def system_limits(system: System, max_step: Any = None) -> RobotLimits:
     hi = np.where(np.isfinite(hi), hi, np.asarray(system.sample_high, np.float64))
     step = np.asarray(system.dq_max if max_step is None else max_step, np.float64)
     return check_limits(RobotLimits(lo, hi, np.broadcast_to(step, lo.shape).copy()), system.n_act)
+
+
+REACH_BATCH = 4096
+"""Actuator positions per evaluation of the tracked position in :func:`tracked_reach` (one compilation)."""
+REACH_MARGIN = 0.02
+""":func:`tracked_reach` adds this fraction: what a search from samples may still miss of the farthest position."""
+
+
+def tracked_reach(system: System, lower: np.ndarray, upper: np.ndarray, *, batches: int = 8,
+                  seed: int = 0) -> float | None:
+    """The radius [m] of a ball fixed in the world that holds every position of the system's tracked point with the
+    actuators ``(n,)`` within ``[lower, upper]``: so any two of them are at most twice this apart.
+
+    From ``batches`` x :data:`REACH_BATCH` uniform actuator positions: the ball's centre is the smallest enclosing
+    ball's of their tracked positions (Badoiu-Clarkson's iteration), its radius the farthest of them from it after
+    six rounds of local search around the 16 farthest (steps 0.2 to 0.005 in actuator units), plus
+    :data:`REACH_MARGIN`. A search, not a proof: the margin covers what it misses. Positions that are not finite
+    are left out; None where none is.
+    """
+    lo, hi = np.asarray(lower, np.float64), np.asarray(upper, np.float64)
+    rng = np.random.default_rng(seed)
+    with jax.enable_x64(True):
+        position = jax.jit(jax.vmap(lambda q: system.pose(q)[0]))
+        Q = lo + (hi - lo) * rng.uniform(size=(batches * REACH_BATCH, lo.shape[0]))
+        P = np.concatenate([np.asarray(position(x)) for x in np.split(Q, batches)])
+        ok = np.all(np.isfinite(P), axis=1)
+        if not ok.any():
+            return None
+        Q, P = Q[ok], P[ok]
+        centre = P[0].copy()
+        for k in range(1, 1000):
+            centre += (P[np.argmax(np.sum((P - centre) ** 2, axis=1))] - centre) / (k + 1)
+        d = np.linalg.norm(P - centre, axis=1)
+        top = np.argsort(d)[-16:]
+        Q, d = Q[top], d[top]
+        for step in (0.2, 0.1, 0.05, 0.02, 0.01, 0.005):
+            near = np.clip(np.repeat(Q, REACH_BATCH // 16, axis=0) + step * rng.normal(size=(REACH_BATCH, lo.shape[0])),
+                           lo, hi)
+            dn = np.linalg.norm(np.asarray(position(near)) - centre, axis=1)
+            dn = np.where(np.isfinite(dn), dn, -np.inf)
+            allq, alld = np.concatenate([Q, near]), np.concatenate([d, dn])
+            top = np.argsort(alld)[-16:]
+            Q, d = allq[top], alld[top]
+    return float(d.max()) * (1.0 + REACH_MARGIN)
 
 
 def servo_step(q: np.ndarray, u: np.ndarray, gain: float, deadband: np.ndarray) -> np.ndarray:
@@ -308,6 +353,16 @@ class VirtualRobot:
         late = self._lateness[:w] if w else np.zeros(1)
         return TickStats(self.period, self.now(), self._k, self._wakeups, float(np.percentile(late, 50)),
                          float(np.percentile(late, 99)), float(late.max()), self._caught_up)
+
+    @functools.cached_property
+    def reach(self) -> float | None:
+        """[m] The farthest the tracked point gets from a point fixed in the world, within the limits
+        (:func:`tracked_reach` of the model, computed once): the runner refuses a waypoint farther than twice this
+        from where following starts (the protocol's optional ``reach``)."""
+        return tracked_reach(self.system, self._limits.lower, self._limits.upper)
+
+    tool_offset = 0.0
+    """[m] :attr:`reach` is the tracked point's own: no tool beyond it (the protocol's optional ``tool_offset``)."""
 
     def info(self) -> dict[str, Any]:
         """What a client may want to know (plain values): name, n, period, latency, the clock."""

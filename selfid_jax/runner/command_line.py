@@ -496,10 +496,10 @@ def main(argv: Sequence[str] | None = None,
     try:
         return command(args)
     except (_UsageError, ConfigError) as err:
-        print(f"{_PROG} {args.command}: error: {err}", file=sys.stderr)
+        _print_error(args.command, str(err), err)
         return 2
     except OSError as err:
-        print(f"{_PROG} {args.command}: error: {_os_error(err, args.command)}", file=sys.stderr)
+        _print_error(args.command, _os_error(err, args.command), err)
         return 2
     except KeyboardInterrupt:
         print(f"{_PROG}: interrupted", file=sys.stderr)
@@ -508,9 +508,16 @@ def main(argv: Sequence[str] | None = None,
         code = getattr(err, "exit_code", None)  # an error that says its own exit code (a robot's driver failing: 3)
         if not isinstance(code, int) or isinstance(code, bool) or code in (0, 1, 2):
             raise
-        print(f"{_PROG} {args.command}: error: {' '.join(str(err).split())}", file=sys.stderr)
+        _print_error(args.command, " ".join(str(err).split()), err)
         return code
 
+
+def _print_error(command: str, text: str, err: BaseException) -> None:
+    """The one error line on stderr, then a ``note:`` line for each note the error carries (``add_note``: a
+    driver whose ``close()`` failed after the error, say)."""
+    print(f"{_PROG} {command}: error: {text}", file=sys.stderr)
+    for note in getattr(err, "__notes__", ()):
+        print(f"note: {' '.join(str(note).split())}", file=sys.stderr)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -215,7 +215,9 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
             from selfid_jax.robot.camera.live import CameraTracked
 
             robot = tracked = CameraTracked(robot, *camera, wait_s=cfg.tracker.wait_s)
-        try:  # run_online closes the robot however it ends; close (idempotent) here too if it never starts
+        # run_online closes the robot however it ends; close (idempotent) here too if it never starts. A close
+        # that raises is a note beside the cause (live.close_robot), never in its place
+        try:
             n = checked_limits(robot, cfg.robot.driver or f"{cfg.robot.host}:{cfg.robot.port}").lower.shape[0]
             _check_sizes(cfg, n, label)
             write_json(out / CONFIG_JSON, dump_config(cfg))
@@ -225,11 +227,20 @@ def run_session(cfg: OnlineConfig, out: str | Path, *, config_path: str | Path |
                                       "(continue with --resume)", stop.set, interrupt=True,
                                       last_words=lambda: _log_killed(log)):
                     result = live.run_online(robot, opts, out, resume=resume, stop_requested=stopping,
-                                             progress=progress)
+                                             progress=progress, accept_flagged_estimate=accept_flagged_estimate)
             except ValueError as err:  # bad options, a log that disagrees: all before any motion
-                raise ConfigError(f"{label}: {' '.join(str(err).split())}") from None
-        finally:
-            robot.close()
+                config_error = ConfigError(f"{label}: {' '.join(str(err).split())}")
+                for note in getattr(err, "__notes__", ()):  # a close that failed after it
+                    config_error.add_note(note)
+                raise config_error from None
+        except BaseException as err:
+            note = live.close_robot(robot)
+            if note is not None and note not in getattr(err, "__notes__", ()):
+                err.add_note(note)
+            raise
+        note = live.close_robot(robot)
+        if note is not None and result.close_error is None:
+            result = result._replace(close_error=note)
         signals.phase("write")
         files = write_run(result, cfg, out, tracker=None if tracked is None else tracked.counts())
     return result, files
@@ -247,8 +258,7 @@ def check_estimate(path: str | Path, task: str, *, accept_flagged: bool = False)
     Raises:
       ConfigError: naming ``--estimate FILE`` and what is wrong (exit 2, before any motion).
     """
-    from selfid_jax.robot.live import read_estimate
-    from selfid_jax.robot.quality import record_flags, record_lines
+    from selfid_jax.robot.live import read_estimate, trust_lines
     from selfid_jax.runner.errors import ConfigError
 
     try:
@@ -260,20 +270,10 @@ def check_estimate(path: str | Path, task: str, *, accept_flagged: bool = False)
     if axes and read.task_axes != names:
         raise ConfigError(f"--estimate {path}: its task axes are {','.join(read.task_axes)}, the task is "
                           f"{','.join(names)} (selfid.task); an estimate serves only the task it was identified for")
-    record = read.trust
-    if record is None:
-        return [f"estimate {path}: carries no trust figures (written before estimate files carried them); "
-                "followed unchecked"]
-    made = f"{record.get('source', '?')} of {record.get('log', '?')}"
-    lines = [f"estimate {path} ({made}): {record_lines(record)[0]}", *(f"  {x}" for x in record_lines(record)[1:])]
-    flags = record_flags(record)
-    if flags and not accept_flagged:
-        raise ConfigError(f"--estimate {path}: flagged, not followed ({made}: {record_lines(record)[0]}): "
-                          f"{'; '.join(flags)}. Self-identify again, or follow with it anyway with "
-                          "--accept-flagged-estimate")
-    if flags:
-        lines.append(f"  --accept-flagged-estimate: following with it despite {len(flags)} flag(s)")
-    return lines
+    try:
+        return trust_lines(path, read, accept_flagged=accept_flagged, accept="--accept-flagged-estimate")
+    except ValueError as err:
+        raise ConfigError(f"--estimate {err}") from None
 
 
 def _axis_names(axes) -> list[str]:
@@ -338,6 +338,7 @@ def summary(result: OnlineResult, cfg: OnlineConfig, tracker: dict[str, Any] | N
         "eps": cfg.selfid.eps,
         "eps_rel": cfg.selfid.eps_rel,
         "log": str(result.log),
+        "close_error": result.close_error,  # closing the driver after the stop failed: that failure (None: closed)
     }
     if tracker is not None:  # frames received, tracked and valid; dropouts by reason (stale: a frozen camera)
         info["camera"] = tracker

@@ -94,6 +94,8 @@ from selfid_jax.robot.protocol import Observation, RobotError, RobotLimits
 __all__ = ["HINTS", "Franka", "urdf_joint_limits"]
 
 N_JOINTS = 7
+REACH = 0.855
+"""[m] Franka's stated maximum reach of the FR3 and the Panda (855 mm, to the flange): :attr:`Franka.reach`."""
 
 HINTS = (  # what libfranka's messages mean for the user, first match wins ({host}: robot.args.host)
     Hint(r"FCI refused|enable FCI",
@@ -242,6 +244,13 @@ class Franka:
                                      connect_timeout_s, what=f"Franka connect at {host}",
                                      hint=functools.partial(_silent_arm, host))
             self.robot.relative_dynamics_factor = self.dynamics
+
+    @property
+    def reach(self) -> float | None:
+        """[m] The arm's stated reach (:data:`REACH`) where the tracked point is on the arm (``end_effector`` or
+        ``flange``; the runner allows a tool beyond it: no ``tool_offset``); None with an external tracker, whose
+        point may be anywhere on what the arm holds (the protocol's optional ``reach``)."""
+        return REACH if self.tracker is None else None
 
     def _check_open(self) -> None:
         if self.closed:
