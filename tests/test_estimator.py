@@ -277,6 +277,26 @@ class JitVmapTest(chex.TestCase):
 
 
 @pytest.mark.slow  # compile-heavy: the fast tier stays about a minute
+def test_update_once_and_record_norm_change_no_value():
+    """update(once=f) screens and folds as update() does, f seeing the acceptance and the sample's terms; record(norm=)
+    stores the given ||J||_F, which record otherwise computes itself; a wrong-shaped norm names the argument."""
+    seen = []
+
+    def f(x):
+        seen.append(x.shape)
+        return x
+
+    state = E.init(3, 2, capacity=2)
+    for d, V in (([0.1, -0.2, 0.3], [0.5, -0.1]), ([jnp.nan, 0.0, 0.1], [1.0, 0.0])):  # accepted, rejected
+        chex.assert_trees_all_equal(E.update(state, d, V, once=f), E.update(state, d, V))
+    assert seen == [(), (3,), (2,), (2,)] * 2  # acceptance, u_t, u_v, 1 / |V_j|
+    J = jnp.arange(6.0).reshape(3, 2)
+    chex.assert_trees_all_close(E.record(state, J, 0.1, norm=jnp.linalg.norm(J)), E.record(state, J, 0.1),
+                                rtol=1e-15)
+    with pytest.raises(ValueError, match="norm"):
+        E.record(state, J, 0.1, norm=np.ones(2))
+
+
 def test_no_new_data_never_converges_and_eps_inf_needs_two_records():
     """Records that follow no accepted sample never count; iteration 1 never converges, even at eps = inf."""
     state = E.init(2, 2)

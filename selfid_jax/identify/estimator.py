@@ -25,6 +25,7 @@ jit, vmap and (where meaningful) differentiate.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -189,7 +190,8 @@ def tally(state, ok: jax.Array):
     )
 
 
-def guarded_update(fold, state, dtheta, V, *, shape, dtype, tally=tally, admit=None, zero_is_identity=False):
+def guarded_update(fold, state, dtheta, V, *, shape, dtype, tally=tally, admit=None, zero_is_identity=False,
+                   once=None):
     """Fold one sample into ``state`` with ``fold`` if it is valid; else only count it as rejected.
 
     The sample screen shared by :func:`update` and every method of
@@ -207,6 +209,8 @@ def guarded_update(fold, state, dtheta, V, *, shape, dtype, tally=tally, admit=N
     ``zero_is_identity=True`` declares that ``fold`` returns ``state``
     unchanged for the all-zero sample, which skips selecting between the old
     and the folded state (one pass over the state less per sample).
+    ``once`` (optional): applied to the ``()`` bool acceptance before it is
+    used (see :func:`accumulate`'s ``once``).
     """
     n, m = shape
     check_array("dtheta", dtheta, (n,))
@@ -216,6 +220,8 @@ def guarded_update(fold, state, dtheta, V, *, shape, dtype, tally=tally, admit=N
     ok = is_valid_sample(dtheta, V)
     if admit is not None:
         ok = ok & admit(state, dtheta, V)
+    if once is not None:
+        ok = once(ok)
     dtheta, V = jnp.where(ok, dtheta, 0.0), jnp.where(ok, V, 0.0)
     new = fold(state, dtheta, V)
     if not zero_is_identity:
@@ -235,7 +241,7 @@ def fits(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> jax.Array:
     return jnp.isfinite(state.forget * (state.s_tt + trace) + jnp.sum(dtheta * dtheta) + jnp.sum(V * V))
 
 
-def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> EstimatorState:
+def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array, *, once=None) -> EstimatorState:
     """Fold one *valid* sample ``(dtheta (n,), V (m,))`` into the sums and the ring buffer; counters untouched.
 
     Multiplies every sum by ``forget`` and adds the sample's signed weights
@@ -245,6 +251,11 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> Estima
     row ``count % capacity`` (if ``capacity > 0``). ``O(n m + m^2)`` operations.
     The all-zero sample (a rejected one, zeroed by :func:`guarded_update`)
     leaves the state unchanged, forgetting included. No checks: use :func:`update`.
+    ``once`` (optional): a function that returns its array argument unchanged
+    in value, applied to the per-sample terms (``s_ij w_ij`` factors, ratios'
+    inverses) before they enter the sums, such as
+    :func:`selfid_jax.identify.recursive.once`, which makes XLA compute each
+    term once per estimator instead of once per entry of every sum it updates.
     """
     n, m, capacity = sizes(state)
     dtype = state.sign_net.dtype
@@ -258,6 +269,8 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> Estima
     u_v = V / jnp.where(sum_v > 0, sum_v, 1.0)  # sign(V_j) w_V_j (Eq. 8)
     big = (a_v > state.v_tol).astype(dtype)  # (m,)
     inv_v = jnp.where(big > 0, 1.0 / jnp.where(big > 0, a_v, 1.0), 0.0)  # Eq. 11 ratio = |dtheta_i| * inv_v_j
+    if once is not None:
+        u_t, u_v, inv_v = once(u_t), once(u_v), once(inv_v)
     sw = u_t[:, None] * u_v[None, :]  # s_ij w_ij (Eq. 6-8)
     new = state._replace(
         sign_net=lam * state.sign_net + sw,
@@ -276,7 +289,7 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array) -> Estima
     )
 
 
-def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike) -> EstimatorState:
+def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike, *, once=None) -> EstimatorState:
     """Fold one self-ID sample ``(dtheta (n,) [actuator units], V (m,) [task units])`` into the state.
 
     Accumulates the sign weights (Eq. 6-9), the magnitude ratios
@@ -285,11 +298,13 @@ def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike) -> EstimatorS
     buffer if there is one (:func:`accumulate`). A sample with a non-finite
     entry, with all-zero ``dtheta`` or ``V``, or so large that a sum of squares
     would overflow (:func:`fits`), is rejected: only ``rejected`` changes
-    (:func:`guarded_update`).
+    (:func:`guarded_update`). ``once``: see :func:`accumulate` (None: none;
+    the result's value is the same either way).
     """
     n, m, _ = sizes(state)
-    return guarded_update(accumulate, state, dtheta, V, shape=(n, m), dtype=state.sign_net.dtype, admit=fits,
-                          zero_is_identity=True)
+    fold = accumulate if once is None else functools.partial(accumulate, once=once)
+    return guarded_update(fold, state, dtheta, V, shape=(n, m), dtype=state.sign_net.dtype, admit=fits,
+                          zero_is_identity=True, once=once)
 
 
 def signed_inverse_jacobian(state: EstimatorState) -> jax.Array:
@@ -362,7 +377,7 @@ def _both_within(deltas: jax.Array, norms: jax.Array, fresh: jax.Array, eps, eps
 
 
 def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLike = 0.0, *,
-           delta: ArrayLike | None = None, min_count: ArrayLike = 0) -> EstimatorState:
+           delta: ArrayLike | None = None, norm: ArrayLike | None = None, min_count: ArrayLike = 0) -> EstimatorState:
     """Record estimate ``J_t (n, m)`` for the convergence test of Sec. IV-D.
 
     Stores ``delta_t = ||J_t - J_{t-1}||_F`` (with ``J_0 = 0``, Algorithm 1
@@ -378,6 +393,9 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
     ``delta`` (optional, ``()``): ``||J - state.estimate||_F`` where the
     caller has it already (for a rank-one update ``e k^T`` it is
     ``||e|| ||k||``), which saves a pass over ``J``; default: computed here.
+    ``norm`` (optional, ``()``): ``||J||_F`` where the caller has it (or
+    computes it in a form that fuses better, as a plain reduction); default:
+    computed here (equal up to summation order).
     ``min_count`` (``()`` int, may be traced): the test counts only once at
     least this many samples were accepted (0: from the start, the paper's).
     """
@@ -390,9 +408,14 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
     else:
         check_array("delta", delta, ())
         delta = jnp.asarray(delta, state.estimate.dtype)
+    if norm is None:
+        norm = jnp.sqrt(small_sum(J**2))
+    else:
+        check_array("norm", norm, ())
+        norm = jnp.asarray(norm, state.estimate.dtype)
     iteration = state.iteration + 1
     deltas = jnp.stack([state.last_deltas[1], delta])
-    norms = jnp.stack([state.last_norms[1], jnp.sqrt(small_sum(J**2))])
+    norms = jnp.stack([state.last_norms[1], norm])
     fresh = jnp.stack([state.last_fresh[1], state.count > state.recorded_count])
     first = _both_within(deltas, norms, fresh, eps, eps_rel) & (state.converged_at < 0) & (state.count >= min_count)
     return state._replace(

@@ -48,6 +48,10 @@ and the form :func:`selfid_jax.identify.algorithm.self_identify` runs. On
 XLA's CPU backend a conditional inside the per-sample loop splits the
 step's one fused pass over the state into one pass per field (and copies
 the carry), which costs more than the rank-one step saves; hence the block.
+Within :func:`fast_step` the sample's terms (its acceptance and weights, and
+``P V``, the gain and the residual of the rank-one step) pass through
+:func:`once`, so that XLA computes each once per estimator instead of once
+per entry of every field it updates.
 :func:`pack` and :func:`packed_step` pass the state through ``jit`` as two
 flat arrays instead of 21, for the per-call cost at batch 1. A live loop that
 waits for every result should also run its process with synchronous CPU
@@ -56,7 +60,7 @@ JAX's first computation): each call then runs on the calling thread, without
 a hand-off to the CPU client's thread (``benchmarks/rls_floor.py``: p50 about
 0.05 ms async, 0.02 ms sync for the packed step, n = 6, m = 3).
 
-Size: about 470 lines, one algorithm: the recursive step, its exact fallback, the scan that switches between
+Size: about 500 lines, one algorithm: the recursive step, its exact fallback, the scan that switches between
 them and the packed state form share private helpers (``cond_any``, the rank-one update).
 """
 
@@ -171,13 +175,39 @@ def _trace(S):
     return small_sum(jnp.stack([S[k, k] for k in range(S.shape[-1])]))
 
 
-def _rank_one(J, P, dtheta, V, lam):
-    """The Sherman-Morrison step of the module docstring: ``(J (n, m), P (m, m), denominator (), ||e k^T||_F ())``."""
+def once(x: jax.Array) -> jax.Array:
+    """``x`` (any shape, float or bool) with the same values, as a value XLA's CPU backend computes once.
+
+    Vmapped, a per-estimator value that feeds the update of a field (``k`` in
+    ``J + e k^T``, a sample's weights in the sums) is fused by XLA into that
+    update and recomputed for every entry of every field it feeds. XLA does
+    not duplicate a division into its consumers, so ``x / (1 + 0 x)``
+    (exactly ``x`` where finite; a non-finite entry stays non-finite, ``inf``
+    reads ``nan``) is computed once per estimator and read by them; a bool is
+    passed as 0.0 / 1.0. ``once(x)`` equals ``x``; a step with it equals the
+    step without it up to round-off, since XLA rounds the arithmetic it fuses
+    around it differently (1 to 2 ulp seen in float32;
+    ``tests/test_recursive.py`` bounds the vmapped block's state at 1e-5
+    relative), and a later XLA that simplified the division away would only
+    lose the speed. In :func:`fast_step`'s loop body: about 970 -> 790 flops
+    and 3.1 -> 2.1 kB per estimator-step as XLA counts them (n = 6, m = 3).
+    """
+    if x.dtype == jnp.bool_:
+        return once(x.astype(jnp.float32)) > 0
+    return x / (1.0 + 0.0 * x)
+
+
+def _rank_one(J, P, dtheta, V, lam, fence=None):
+    """The Sherman-Morrison step of the module docstring: ``(J (n, m), P (m, m), denominator (), ||e k^T||_F ())``.
+
+    ``fence`` (optional, e.g. :func:`once`) is applied to ``g``, the denominator, ``k`` and ``e``.
+    """
     m = P.shape[-1]
-    g = small_sum(P * V[None, :], axis=1)  # P V (P symmetric)
-    den = lam + small_sum(V * g)
-    k = g / jnp.where(den > 0, den, 1.0)
-    e = dtheta - small_sum(J * V[None, :], axis=1)
+    fence = (lambda x: x) if fence is None else fence
+    g = fence(small_sum(P * V[None, :], axis=1))  # P V (P symmetric)
+    den = fence(lam + small_sum(V * g))
+    k = fence(g / jnp.where(den > 0, den, 1.0))
+    e = fence(dtheta - small_sum(J * V[None, :], axis=1))
     J = J + e[:, None] * k[None, :]
     P = (P - k[:, None] * g[None, :]) / lam
     P = 0.5 * (P + P.T) if m > 1 else P
@@ -299,17 +329,19 @@ def fast_step(state, rec, dtheta, V, eps, eps_rel=0.0, *, rcond=None, resolve_ev
     discarded and the sample re-run by :func:`exact_step`, as :func:`run` does.
     """
     m = state.S_vv.shape[-1]
-    new = E.update(state, dtheta, V)
+    # the per-sample terms computed once per estimator, not per entry of each field they update (see `once`)
+    new = E.update(state, dtheta, V, once=once)
     dtype = new.S_vv.dtype
     rc = default_rcond(m, dtype) if rcond is None else rcond
     accepted = new.count > state.count
     d = jnp.where(accepted, jnp.asarray(dtheta, dtype), 0.0)
     v = jnp.where(accepted, jnp.asarray(V, dtype), 0.0)
     lam = jnp.where(accepted, state.forget, 1.0).astype(dtype)
-    J, P, den, delta = _rank_one(state.estimate, rec.P, d, v, lam)
+    J, P, den, delta = _rank_one(state.estimate, rec.P, d, v, lam, fence=once)
     t = _trace(P) * _trace(new.S_vv) * rc
-    new = E.record(new, J, eps, eps_rel, delta=delta)
-    # ||J||_F (the record's, no pass of its own) is finite iff J is, or overflows: then the batch form re-runs
+    # ||J||_F as one reduction, which XLA fuses with J's square (the record's unrolled sum takes a pass of its own)
+    new = E.record(new, J, eps, eps_rel, delta=delta, norm=jnp.sqrt(jnp.sum(J * J)))
+    # ||J||_F is finite iff J is, or overflows: then the batch form re-runs
     ok = rec.full & (den > 0) & (t < 0.5) & (t > 0) & jnp.isfinite(new.last_norms[1])
     if resolve_every:
         ok = ok & ~(accepted & (new.count % resolve_every == 0))
