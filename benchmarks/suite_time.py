@@ -4,8 +4,8 @@ Each run is a fresh ``python -m pytest -q -n 2 [-m "not slow"] tests`` from the
 project's root (its own empty compilation cache, as in CI). The suite compiles
 at LLVM optimisation level 0 (``tests/conftest.py``); ``--shipped`` also times
 the fast tier at level 3 (``XLA_FLAGS=--xla_backend_optimization_level=3``) in
-the same run, the baseline of the ratio. Goals (issue 27): the whole suite
-<= 300 s and the fast tier <= 45 s on the 2-core machine.
+the same run, the baseline of the ratio. Goals: the fast tier under a minute
+(issue 57; issue 27 asked 45 s) and the whole suite <= 300 s on the 2-core machine.
 
     python benchmarks/suite_time.py [--tiers fast whole] [--shipped] [--json out.json]
 """
@@ -22,7 +22,7 @@ from emit import emit
 from timing import run_process
 
 ROOT = Path(__file__).resolve().parent.parent
-GOALS_S = {"fast": 45.0, "whole": 300.0}
+GOALS_S = {"fast": 60.0, "whole": 300.0}
 
 
 def one_tier(tier: str, level: int | None, timeout: int) -> dict:
