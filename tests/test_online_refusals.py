@@ -55,7 +55,6 @@ def test_run_online_refuses_a_flagged_estimate_file_unless_accepted(tmp_path, co
     assert res.status == live.Stop.COMPLETED, res.detail
 
 
-@pytest.mark.slow
 @pytest.mark.slow  # the command end to end (config, session, files, figures): ~4 s on 2 loaded cores
 def test_the_command_line_follows_a_flagged_estimate_when_told(tmp_path, converged_run, driver_module, capsys):
     """``selfid-jax online --estimate FILE --accept-flagged-estimate``: the acceptance reaches run_online, which
