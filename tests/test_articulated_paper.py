@@ -39,6 +39,7 @@ def test_stretched_step_covers_the_whole_unscaled_displacement(alpha):
 
 class TestTimeWeightedJerk(chex.TestCase):
     @chex.variants(with_jit=True, without_jit=True)
+    @pytest.mark.slow
     def test_cubic_from_rest_and_a_quartic_under_vmap(self):
         """q(t) = a t^3 from rest: the third backward difference is a, 5a, then exactly 6a (= d^3 q / dt^3)."""
         a, dt, n_steps = 0.7, 0.02, 50

@@ -116,6 +116,7 @@ def test_default_joint_order_is_the_first_messages(bags):
     assert info.other_joint_messages == len(REC["joints"]) and np.all(gripper["q_0"] == 0.04)
 
 
+@pytest.mark.slow
 def test_every_format_gives_the_same_table(bags):
     """ROS 1, ROS 2 sqlite3, ROS 2 mcap and the bare .mcap file: the same table to 1e-12 (in fact bit for bit) and
     the same counts."""

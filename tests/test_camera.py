@@ -103,6 +103,7 @@ def _tag_box(pose, pad):
     return x0, y0, x1, y1
 
 
+@pytest.mark.slow
 def test_dropouts_have_reasons(sim):
     frame = sim.render(Q0)
     tracker = TagTracker(sim.intrinsics, TAG)

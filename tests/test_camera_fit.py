@@ -300,6 +300,7 @@ def test_camera_options_are_refused_by_keyword_and_flag(files, tmp_path, capsys,
     assert "Traceback" not in err and re.search(message, err), err
 
 
+@pytest.mark.slow
 def test_camera_inputs_that_cannot_be_used(rec, files, tmp_path):
     """Each names the file, topic or flag: an unknown family, a camera topic of a table log, a video beside a bag,
     frames of another size than the intrinsics, more images than frame times, times that do not increase,

@@ -87,6 +87,7 @@ def test_parse_tag():
             parse_tag(bad)
 
 
+@pytest.mark.slow
 def test_the_newest_frame_on_the_runners_clock_and_never_one_from_before_a_move():
     """Poses from the stream, stamped at arrival less latency_s; after a move only a frame exposed after it; a
     silent camera repeats its stamp; a stream that ends is a lost connection."""
@@ -220,6 +221,7 @@ def test_a_frozen_camera_stops_the_session_as_stale_before_any_motion(tmp_path):
     assert counts["dropouts"] == {"stale": counts["tracked"]}
 
 
+@pytest.mark.slow
 def test_a_camera_that_cannot_be_used_is_an_error_naming_it_before_the_robot_is_reached(tmp_path, driver_module):
     write_intrinsics(tmp_path / "camera.yaml", INTRINSICS)
     url = f"http://127.0.0.1:{_free_port()}/stream.mjpg"  # nothing serves it

@@ -297,6 +297,7 @@ def test_update_once_and_record_norm_change_no_value():
         E.record(state, J, 0.1, norm=np.ones(2))
 
 
+@pytest.mark.slow
 def test_no_new_data_never_converges_and_eps_inf_needs_two_records():
     """Records that follow no accepted sample never count; iteration 1 never converges, even at eps = inf."""
     state = E.init(2, 2)

@@ -101,6 +101,7 @@ def test_bad_options_refused_before_any_motion(tmp_path):
         assert fake.moves == [] and fake.reads == 0 and fake.closed
 
 
+@pytest.mark.slow
 def test_interrupt_closes_and_keeps_the_log(tmp_path):
     fake = FakeArm(interrupt_at=2)
     result = live.run_online(fake, opts(), tmp_path / "kbd")
@@ -115,6 +116,7 @@ def test_interrupt_closes_and_keeps_the_log(tmp_path):
 # --------------------------------------------------------------------------- log and resume
 
 
+@pytest.mark.slow
 def test_connection_error_then_resume_equals_uninterrupted(tmp_path, converged_run):
     _, ref_fake, ref = converged_run
     assert ref.converged_at > 4
@@ -312,6 +314,7 @@ def test_samples_whose_motion_is_not_explained_stop_before_following(tmp_path, c
     assert res.follow_steps == 0 and res.quality is not None and res.quality.heldout_error > 0.5
 
 
+@pytest.mark.slow
 def test_staleness_counts_the_transport_delay(tmp_path):
     """A reading stamped 0.6 s before it arrives is stale at stale_s 0.5, though its two stamps agree."""
     fake = FakeArm(delay_at=4, delay_s=0.6)
@@ -426,6 +429,7 @@ def test_an_estimate_that_no_longer_predicts_the_motion_stops_following(tmp_path
     assert len(fake.moves) == 5
 
 
+@pytest.mark.slow
 def test_follow_divergence_and_box_stop(tmp_path, converged_run):
     run, ref_fake, _ = converged_run
     shutil.copytree(run, tmp_path / "d")

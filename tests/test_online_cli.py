@@ -100,6 +100,7 @@ def test_example_config_validates():
     assert opts.path.offsets((0, 1, 2)).shape == (10, 3)
 
 
+@pytest.mark.slow
 def test_task_difference_is_the_pose_change_with_rotation():
     from scipy.spatial.transform import Rotation
 

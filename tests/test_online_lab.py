@@ -140,6 +140,7 @@ def test_online_run_without_a_path_has_only_the_convergence_figure(tmp_path, con
     assert sorted(p.name for p in (tmp_path / "r" / "figures").iterdir()) == ["convergence.pdf", "convergence.png"]
 
 
+@pytest.mark.slow
 def test_path_figure_titles_say_tracked_point(converged_run, tmp_path):
     from selfid_jax.sessions import online_figures
 
@@ -180,6 +181,7 @@ def _write_estimate(path, estimate, axes=("x", "y", "z")):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["waypoints", "csv"])
 def test_waypoints_and_csv_paths_are_followed_to_completion(tmp_path, converged_run, kind):
     run, ref_fake, ref = converged_run

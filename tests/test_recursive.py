@@ -218,6 +218,7 @@ def test_float32_over_10000_samples_within_1e_4_of_float64_least_squares():
     assert float32_error(10_000) < 1e-4
 
 
+@pytest.mark.slow
 def test_once_is_its_argument():
     """R.once(x) == x bit for bit (signed zeros, extremes, bools), derivative 1; a non-finite entry stays non-finite."""
     x = jnp.asarray([1.5, -0.0, 0.0, 3e-300, -7.25, 1e300])

@@ -263,6 +263,7 @@ def test_chunk_copied_from_another_run_is_recomputed(tmp_path, capsys):
     assert len(load_results(mine, partial=True)) == 23
 
 
+@pytest.mark.slow
 def test_chunk_changed_during_the_run_is_never_assembled(tmp_path, monkeypatch):
     _run(tmp_path)
     (tmp_path / "chunks" / "chunk_00004.parquet").unlink()

@@ -66,6 +66,7 @@ def test_latency_fit_times_a_smooth_motion(lag):
         latency_fit(t, q, p, max_lag_s=abs(lag) / 2)
 
 
+@pytest.mark.slow
 def test_latency_fit_agrees_with_the_speed_correlation_on_a_stream_with_rests():
     t, q, p = _tqp(_stream(seed=2)[0])
     assert abs(latency_fit(t, q, p).seconds - latency_estimate(t, q, p).seconds) < 2e-3

@@ -273,6 +273,7 @@ def test_server_keeps_framing_across_a_stall_and_never_executes_an_embedded_fram
     assert arm.moves == [] and np.all(arm.q == 0)
 
 
+@pytest.mark.slow
 def test_server_drops_a_client_that_stalls_past_the_frame_deadline(served):
     server, arm = served(frame_timeout_s=0.3)
     outer, cut = _read_with_embedded_move()

@@ -87,6 +87,7 @@ def flagged_log(tmp_path):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("no_figures")
 def test_the_estimate_file_carries_the_trust_figures_and_report(tmp_path, flagged_log):
     code, info, est = run_fit_command(tmp_path, flagged_log, "--joint-names", ",".join(UR))
@@ -103,6 +104,7 @@ def test_the_estimate_file_carries_the_trust_figures_and_report(tmp_path, flagge
     assert record_flags(record) == info["warnings"] and len(info["warnings"]) == 1
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("no_figures")
 def test_a_failed_strict_fit_writes_no_estimate(tmp_path, flagged_log, capsys):
     """Before: exit 1 with inverse_jacobian.npz on disk. Now none, and the one an earlier fit left there goes too

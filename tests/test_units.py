@@ -22,6 +22,7 @@ def _error(result):
     return float(np.linalg.norm(_J() @ result.estimate - np.eye(3)))
 
 
+@pytest.mark.slow
 def test_the_stream_in_its_own_units_has_no_unit_warning(stream):
     result = sj.fit(stream)
     assert _error(result) < 0.2
@@ -62,6 +63,7 @@ def test_unit_warnings_bounds():
     assert MIN_LEVER_M_PER_RAD < 0.3 < MAX_LEVER_M_PER_RAD
 
 
+@pytest.mark.slow
 def test_a_multi_turn_joint_is_read_under_a_stated_rad(stream):
     turned = dict(stream)
     turned["q_0"] = stream["q_0"] + 4 * np.pi + 3.7  # 16.3 rad: a joint that has turned more than twice
