@@ -162,6 +162,24 @@ def test_spring_wrench_closed_form():
     np.testing.assert_allclose(w, [-10.0 + 0.5, 0, 0, 0, 0, -0.3 - 0.02], atol=1e-12)
 
 
+def test_spring_wrench_equals_the_numpy_form_bit_for_bit():
+    """The host loop's wrench (Python floats, work arrays kept) is numpy's expression of the same formula, exactly."""
+    import mujoco
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        p_t, p_h, v_t, v_h, w_t, w_h = rng.normal(size=(6, 3)) * [[1], [1], [0.1], [0.1], [1], [1]]
+        q_t, q_h = (q / np.linalg.norm(q) for q in rng.normal(size=(2, 4)))
+        k, c, kr, cr = grasp = rng.uniform(0.1, 1e6, 4)
+        qi, qr, rv, rot = np.empty(4), np.empty(4), np.empty(3), np.empty(3)
+        mujoco.mju_negQuat(qi, q_t)
+        mujoco.mju_mulQuat(qr, qi, q_h)
+        mujoco.mju_quat2Vel(rv, qr, 1.0)
+        mujoco.mju_rotVecQuat(rot, rv, q_t)
+        ref = np.concatenate([-k * (p_h - p_t) - c * (v_h - v_t), -kr * rot - cr * (w_h - w_t)])
+        assert np.array_equal(sim.spring_wrench(p_t, q_t, v_t, w_t, p_h, q_h, v_h, w_h, grasp), ref)
+
+
 def test_spring_grasp_config_checks_the_timestep_and_the_backend():
     from selfid_jax.experiments.articulated import ArticulatedConfig, Grasp, spring_stable
 

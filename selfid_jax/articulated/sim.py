@@ -24,7 +24,7 @@ Backends (static): ``"native"`` steps ``mujoco.MjModel`` on the host through
 skipping finished rollouts); ``"mjx"`` steps ``mjx.Model`` with per-object
 fields set by :func:`~.scenes.apply_mjx` (compiled; worth it on a GPU).
 
-Size: about 510 lines, one rollout: its carry, the physics step on both backends and the sensor model are
+Size: about 540 lines, one rollout: its carry, the physics step on both backends and the sensor model are
 private helpers of a single ``lax.scan`` body.
 """
 
@@ -198,18 +198,41 @@ def spring_wrench(p_t, q_t, v_t, w_t, p_h, q_h, v_h, w_h, grasp, out=None):
     helpers), one call per physics step on the host; written into ``out``
     when given.
     """
-    import mujoco
-
-    k, c, kr, cr = grasp
-    qi, qr, rv, rot = np.empty(4), np.empty(4), np.empty(3), np.empty(3)
-    mujoco.mju_negQuat(qi, np.asarray(q_t, np.float64))
-    mujoco.mju_mulQuat(qr, qi, np.asarray(q_h, np.float64))  # R_t^T R_h
-    mujoco.mju_quat2Vel(rv, qr, 1.0)  # its rotation vector (gripper frame)
-    mujoco.mju_rotVecQuat(rot, rv, np.asarray(q_t, np.float64))  # in the world frame
+    f64 = lambda a: np.asarray(a, np.float64)
     out = np.empty(6) if out is None else out
-    out[:3] = -k * (np.subtract(p_h, p_t)) - c * np.subtract(v_h, v_t)
-    out[3:] = -kr * rot - cr * np.subtract(w_h, w_t)
+    _Wrench()(f64(p_t), f64(q_t), f64(v_t).tolist(), f64(w_t).tolist(), f64(p_h), f64(q_h), f64(v_h), f64(w_h),
+              f64(grasp).tolist(), out)
     return out
+
+
+class _Wrench:
+    """:func:`spring_wrench` with its work arrays kept between calls: the host loop calls it once per physics step.
+
+    Positions, quaternions and the handle's velocities are float64 arrays (MuJoCo's views), the gripper's
+    velocities ``v_t``, ``w_t`` sequences of 3 floats, ``gains = (k, c, kr, cr)`` floats; the same float64
+    operations, in the same order, as numpy's on the arrays, written into ``out (6,)``.
+    """
+
+    def __init__(self):
+        import mujoco
+
+        self.mj = mujoco
+        self.qi, self.qr, self.rv, self.rot = np.empty(4), np.empty(4), np.empty(3), np.empty(3)
+
+    def __call__(self, p_t, q_t, v_t, w_t, p_h, q_h, v_h, w_h, gains, out):
+        mj, qi, qr, rv, rot = self.mj, self.qi, self.qr, self.rv, self.rot
+        k, c, kr, cr = gains
+        mj.mju_negQuat(qi, q_t)
+        mj.mju_mulQuat(qr, qi, q_h)  # R_t^T R_h
+        mj.mju_quat2Vel(rv, qr, 1.0)  # its rotation vector (gripper frame)
+        mj.mju_rotVecQuat(rot, rv, q_t)  # in the world frame
+        (a0, a1, a2), (b0, b1, b2) = p_h.tolist(), p_t.tolist()
+        (c0, c1, c2), (d0, d1, d2) = v_h.tolist(), v_t
+        (e0, e1, e2), (f0, f1, f2) = w_h.tolist(), w_t
+        r0, r1, r2 = rot.tolist()
+        nk, nkr = -k, -kr
+        out[:] = (nk * (a0 - b0) - c * (c0 - d0), nk * (a1 - b1) - c * (c1 - d1), nk * (a2 - b2) - c * (c2 - d2),
+                  nkr * r0 - cr * (e0 - f0), nkr * r1 - cr * (e1 - f1), nkr * r2 - cr * (e2 - f2))
 
 
 def _target_velocity(mpos, mquat, h):
@@ -244,6 +267,15 @@ def _native_host(static: Static):
     spring = lay.grasp == "spring"
     h = float(m.opt.timestep)
     vel = np.zeros(6)
+    # views into MjData's buffers, bound once: the loop below runs once per physics step
+    vel_ang, vel_lin = vel[:3], vel[3:]
+    mocap_p, mocap_q = d.mocap_pos[0], d.mocap_quat[0]
+    grip_p, grip_q, handle_p, handle_q = (d.xpos[lay.gripper], d.xquat[lay.gripper], d.xpos[lay.handle],
+                                          d.xquat[lay.handle])
+    handle_f = d.xfrc_applied[lay.handle]
+    step1, step2, object_velocity = mujoco.mj_step1, mujoco.mj_step2, mujoco.mj_objectVelocity
+    body = mujoco.mjtObj.mjOBJ_BODY
+    wrench = _Wrench()
 
     def host(qpos, qvel, warm, mpos, mquat, active, grasp, *obj):
         lead = np.broadcast_shapes(qpos.shape[:-1], active.shape, *(o.shape[: o.ndim - f] for o, f in
@@ -262,21 +294,22 @@ def _native_host(static: Static):
         for b in range(B):
             scenes.apply_native(m, lay, scenes.ObjectParams(*(o[b] for o in obj)))
             d.qpos[:], d.qvel[:], d.qacc_warmstart[:] = qpos[b], qvel[b], warm[b]
+            pos_b, quat_b = mpos[b], mquat[b]
             if active[b] and spring:
-                v_t, w_t = _target_velocity(mpos[b], mquat[b], h)
+                v_t, w_t = _target_velocity(pos_b, quat_b, h)
+                v_t, w_t, gains = v_t.tolist(), w_t.tolist(), grasp[b].tolist()
                 for k in range(K):  # the wrench from the gripper and handle states at the same instant t_k
-                    d.mocap_pos[0], d.mocap_quat[0] = mpos[b, k], mquat[b, k]
-                    mujoco.mj_step1(m, d)
-                    mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, lay.handle, vel, 0)
-                    spring_wrench(d.xpos[lay.gripper], d.xquat[lay.gripper], v_t[k], w_t[k], d.xpos[lay.handle],
-                                  d.xquat[lay.handle], vel[3:], vel[:3], grasp[b], out=d.xfrc_applied[lay.handle])
-                    mujoco.mj_step2(m, d)
+                    mocap_p[:], mocap_q[:] = pos_b[k], quat_b[k]
+                    step1(m, d)
+                    object_velocity(m, d, body, lay.handle, vel, 0)
+                    wrench(grip_p, grip_q, v_t[k], w_t[k], handle_p, handle_q, vel_lin, vel_ang, gains, handle_f)
+                    step2(m, d)
             elif active[b]:
                 for k in range(K):
-                    d.mocap_pos[0], d.mocap_quat[0] = mpos[b, k + 1], mquat[b, k + 1]
+                    mocap_p[:], mocap_q[:] = pos_b[k + 1], quat_b[k + 1]
                     mujoco.mj_step(m, d)
             if spring:
-                d.mocap_pos[0], d.mocap_quat[0] = mpos[b, -1], mquat[b, -1]
+                mocap_p[:], mocap_q[:] = pos_b[-1], quat_b[-1]
             mujoco.mj_kinematics(m, d)
             qpos[b], qvel[b], warm[b] = d.qpos, d.qvel, d.qacc_warmstart
             sens[b] = np.concatenate([d.xpos[lay.gripper], d.xquat[lay.gripper], d.xpos[lay.handle],
