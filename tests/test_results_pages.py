@@ -274,8 +274,8 @@ def test_kept_rows_are_small():
 
 @pytest.mark.parametrize("page", sorted(NOT_ON_RECORD))
 def test_pages_without_kept_rows_say_their_run_is_not_on_record(page):
-    """The valid-region and articulated data predate the provenance and their runs (3.5 and 57 min on free cores)
-    were not rerun: each page must say that no run is on record, not show a provenance it does not have; once
+    """Data that predate the provenance and whose runs were not rerun to the end (the articulated population: 4-6 h of
+    host physics) must say on their page that no run is on record, not show a provenance they do not have; once
     rerun with ``scripts/rerun_results.py --keep`` a page joins WITH_ROWS."""
     data = json.loads((ROOT / "docs" / "results" / "data" / f"{page}.json").read_text())
     body = _block((ROOT / "docs" / "results" / f"{page}.md").read_text(), "provenance", NOT_ON_RECORD[page])
