@@ -274,9 +274,9 @@ def test_kept_rows_are_small():
 
 @pytest.mark.parametrize("page", sorted(NOT_ON_RECORD))
 def test_pages_without_kept_rows_say_their_run_is_not_on_record(page):
-    """Data that predate the provenance and whose runs were not rerun to the end (the articulated population: 24 chunks of
-    host physics) must say on their page that no run is on record, not show a provenance they do not have; once
-    rerun with ``scripts/rerun_results.py --keep`` a page joins WITH_ROWS."""
+    """Data that predate the provenance and whose runs were not rerun to the end (the articulated population, 24
+    chunks of host physics) must say on their page that no run is on record, not show a provenance they do not have;
+    once rerun with ``scripts/rerun_results.py --keep`` a page joins WITH_ROWS."""
     data = json.loads((ROOT / "docs" / "results" / "data" / f"{page}.json").read_text())
     body = _block((ROOT / "docs" / "results" / f"{page}.md").read_text(), "provenance", NOT_ON_RECORD[page])
     assert body == page_blocks.provenance_block(data.get("provenance", []))
