@@ -312,8 +312,7 @@ def _native_host(static: Static):
                 mocap_p[:], mocap_q[:] = pos_b[-1], quat_b[-1]
             mujoco.mj_kinematics(m, d)
             qpos[b], qvel[b], warm[b] = d.qpos, d.qvel, d.qacc_warmstart
-            sens[b] = np.concatenate([d.xpos[lay.gripper], d.xquat[lay.gripper], d.xpos[lay.handle],
-                                      d.xquat[lay.handle]])
+            sens[b] = np.concatenate([grip_p, grip_q, handle_p, handle_q])
         # float64 travels as uint32 pairs: the callback's return check canonicalises float64 to float32
         # when x64 is enabled by a (thread-local) context rather than globally.
         out = lambda a: np.ascontiguousarray(a, np.float64).view(np.uint32).reshape(lead + a.shape[1:] + (2,))
