@@ -188,9 +188,8 @@ WITH_ROWS = {
     "gap": (gap_study, DATA),
     "tracking": (tracking_page, TRACKING_DATA),
     "valid_region": (valid_region_page, ROOT / "docs" / "results" / "data" / "valid_region.json"),
+    "articulated": (articulated_page, ROOT / "docs" / "results" / "data" / "articulated.json"),
 }
-#: Pages whose runs predate the provenance and were not rerun yet: their pages must say so.
-NOT_ON_RECORD = {"articulated": "articulated"}
 ROWS = page_blocks.ROWS
 
 
@@ -270,18 +269,6 @@ def test_kept_rows_are_small():
     """The kept rows stay small enough to commit: a few MB in all."""
     total = sum(p.stat().st_size for p in ROWS.rglob("*") if p.is_file())
     assert total < 4e6, f"{ROWS} holds {total / 1e6:.1f} MB"
-
-
-@pytest.mark.parametrize("page", sorted(NOT_ON_RECORD))
-def test_pages_without_kept_rows_say_their_run_is_not_on_record(page):
-    """Data that predate the provenance and whose runs were not rerun to the end (the articulated population, 24
-    chunks of host physics) must say on their page that no run is on record, not show a provenance they do not have;
-    once rerun with ``scripts/rerun_results.py --keep`` a page joins WITH_ROWS."""
-    data = json.loads((ROOT / "docs" / "results" / "data" / f"{page}.json").read_text())
-    body = _block((ROOT / "docs" / "results" / f"{page}.md").read_text(), "provenance", NOT_ON_RECORD[page])
-    assert body == page_blocks.provenance_block(data.get("provenance", []))
-    assert not data.get("provenance"), f"{page} now has a provenance: move it to WITH_ROWS"
-    assert body.startswith("No run of these numbers is on record")
 
 
 # --- the gap study's tracker noise is measured (issue 53 item 3) --------------------------------------------------
