@@ -38,12 +38,18 @@ the live loop's setting).
 Goals (issue 27): new >= 0.5x plain RLS, >= 1x baselines.rls, >= 2,000 steps/s at
 10,000 estimators; batch-1 p99 <= 0.1 ms.
 
+On a 2-core CPU, XLA splits each large loop of a program over both cores; what that split costs differs
+between processes (plain RLS at 0.31-0.37 or 0.67-0.71 ms per sample at 10,000 estimators, the same code), so
+a single process's ratios can be off by up to 1.4x. ``--one-core`` pins the process to one CPU before JAX
+starts: every row then runs without the split (docs/benchmarks.md).
+
     python benchmarks/rls_floor.py [--batch 10000] [--steps 50] [--reps 3] [--rounds 3] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 
@@ -269,7 +275,8 @@ def run(batch=10_000, steps=50, reps=3, rounds=3, long=10_000, long_batch=100, c
     for where, more in latencies_sync(calls, block).items():
         lat[where].update({f"{name}, sync": r for name, r in more.items()})
     return {"batch": batch, "steps": steps, "n": 6, "m": 3, "dtype": "float32", "reps": reps * rounds,
-            "device": f"1 {jax.devices()[0].platform}", "rows": rows,
+            "device": f"1 {jax.devices()[0].platform}, {len(os.sched_getaffinity(0))} CPU core(s) usable",
+            "rows": rows,
             "long": {"samples": long, "batch": long_batch, "rel_err": long_error(long_batch, long)},
             "latency": lat}
 
@@ -323,7 +330,12 @@ def main():
     ap.add_argument("--latency-only", action="store_true", help="only the batch-1 latencies (their JSON record)")
     ap.add_argument("--sync-dispatch", action="store_true",
                     help="run each call on the calling thread (jax_cpu_enable_async_dispatch=False)")
+    ap.add_argument("--one-core", action="store_true",
+                    help="run on one CPU (set before JAX starts its CPU client): every row without XLA's split of "
+                         "each loop over the cores, whose cost differs between processes")
     a = ap.parse_args()
+    if a.one_core:
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     if a.sync_dispatch:
         jax.config.update("jax_cpu_enable_async_dispatch", False)  # before the CPU backend starts
     if a.latency_only:
