@@ -51,29 +51,6 @@ def pytest_configure(config):
         _CREATED.append(tempfile.mkdtemp(prefix="selfid_jax_test_xla_"))
         os.environ[_CACHE_ENV] = _CREATED[0]
     _use_test_cache()
-    if hasattr(config, "workerinput"):
-        _pin_worker()
-
-
-# Each pytest-xdist worker on a CPU of its own when there are as many workers as CPUs (the README's `-n 2` on 2
-# cores), set before JAX starts its CPU client, which sizes its thread pools by the CPUs a process may use. Unpinned,
-# each worker's XLA splits its loops over both cores and oversubscribes them; the real-time simulators (their tests
-# run on one worker, `xdist_group("realtime")`) then fall behind the clock and stretch: franky-sim's session took
-# 357 s beside the other worker against 102 s alone. The simulators themselves run on every CPU
-# (`helpers_cpu.all_cpus`). SELFID_JAX_TEST_PIN=0 turns it off.
-_ALL_CPUS_ENV = "SELFID_JAX_TEST_ALL_CPUS"
-
-
-def _pin_worker():
-    if os.environ.get("SELFID_JAX_TEST_PIN", "1") == "0" or not hasattr(os, "sched_setaffinity"):
-        return
-    cpus = sorted(os.sched_getaffinity(0))
-    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "")
-    if workers < 2 or workers != len(cpus) or not worker.startswith("gw"):
-        return
-    os.environ[_ALL_CPUS_ENV] = ",".join(map(str, cpus))
-    os.sched_setaffinity(0, {cpus[int(worker[2:]) % len(cpus)]})
 
 
 _SLOW_MODULE = re.compile(r"^pytestmark = \[?pytest\.mark\.slow\b", re.M)

@@ -16,7 +16,6 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
-from helpers_cpu import all_cpus
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -40,8 +39,7 @@ def simulator(command: Sequence[str], port: int, log: Path, timeout_s: float = 3
     if exe is None:
         raise RuntimeError(f"{name} is not on PATH")
     with open(log, "ab") as out:
-        proc = subprocess.Popen([exe, *command[1:]], stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
-                                preexec_fn=all_cpus())
+        proc = subprocess.Popen([exe, *command[1:]], stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         deadline = time.monotonic() + timeout_s
         while not port_open(port):

@@ -23,8 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from helpers_cpu import all_cpus  # tests/ is on the path
-from helpers_online import FakeArm
+from helpers_online import FakeArm  # tests/ is on the path
 
 from selfid_jax.robot import live
 from selfid_jax.robot.camera.intrinsics import Intrinsics, write_intrinsics
@@ -277,7 +276,7 @@ def test_online_session_self_identifies_and_follows_a_star_through_robot_sims_ca
     args = [*console, "robot-sim", str(CONFIGS / "robot_sim_camera.yaml"), "--port", "0", "--port-file",
             str(port_file), "--set", "camera.port=0", *sum((["--set", s] for s in view + files), [])]
     started = time.monotonic()
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, preexec_fn=all_cpus())
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         deadline = time.monotonic() + 120
         while not port_file.exists():

@@ -16,7 +16,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from helpers_cpu import all_cpus
 
 from selfid_jax.robot import live, options
 from selfid_jax.robot.journal import read_journal
@@ -39,8 +38,7 @@ class Sim:
         self.cfg.write_text(textwrap.dedent(text))
         port_file = tmp_path / f"{name}.port"
         self.proc = subprocess.Popen([*console, "robot-sim", str(self.cfg), "--port", "0", "--port-file",
-                                      str(port_file)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     preexec_fn=all_cpus())
+                                      str(port_file)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         deadline = time.monotonic() + 120
         while not port_file.exists():
             if self.proc.poll() is not None or time.monotonic() > deadline:
