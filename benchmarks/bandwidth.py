@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from emit import emit
 from estimator import F32, E, M, N, make_data, ours_step, scan_fn
-from timing import first_call, interleaved
+from timing import first_call, interleaved, usable_cpus
 
 from selfid_jax.identify import recursive as R
 
@@ -194,7 +194,7 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5, rounds: int = 3, co
     main = out["closed form"]
     return {"batch": batch, "steps": steps, "n": N, "m": M, "dtype": "float32",
             "device": f"1 {jax.devices()[0].platform} ({jax.devices()[0].device_kind})",
-            "cpus_visible": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+            "cpus_visible": usable_cpus(),
             "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
             "memory_level": "cache" if resident else "main memory", "cache_mib": cache_mib,

@@ -57,7 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from emit import emit
-from timing import first_call, interleaved
+from timing import first_call, interleaved, usable_cpus
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax import baselines
@@ -275,7 +275,7 @@ def run(batch=10_000, steps=50, reps=3, rounds=3, long=10_000, long_batch=100, c
     for where, more in latencies_sync(calls, block).items():
         lat[where].update({f"{name}, sync": r for name, r in more.items()})
     return {"batch": batch, "steps": steps, "n": 6, "m": 3, "dtype": "float32", "reps": reps * rounds,
-            "device": f"1 {jax.devices()[0].platform}, {len(os.sched_getaffinity(0))} CPU core(s) usable",
+            "device": f"1 {jax.devices()[0].platform}, {usable_cpus()} CPU core(s) usable",
             "rows": rows,
             "long": {"samples": long, "batch": long_batch, "rel_err": long_error(long_batch, long)},
             "latency": lat}
@@ -335,6 +335,8 @@ def main():
                          "each loop over the cores, whose cost differs between processes")
     a = ap.parse_args()
     if a.one_core:
+        if not hasattr(os, "sched_setaffinity"):
+            ap.error("--one-core: this OS has no CPU affinity (os.sched_setaffinity); pin it with the OS tool")
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     if a.sync_dispatch:
         jax.config.update("jax_cpu_enable_async_dispatch", False)  # before the CPU backend starts

@@ -18,6 +18,7 @@ JAX before a script has set its flags (``import selfid_jax``, ``jax_enable_x64``
 
 from __future__ import annotations
 
+import os
 import statistics
 import subprocess
 import time
@@ -32,6 +33,11 @@ class Timed(NamedTuple):
     first_s: float  # the first call: trace + compile + one run
     run_s: float  # ``stat`` of ``times``
     times: list[float]  # seconds per call (divided by ``per``) of each later call
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on: its affinity mask where the OS has one, else ``os.cpu_count()``."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def first_call(fn: Callable, *args) -> tuple[Any, float]:
