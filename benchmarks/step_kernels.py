@@ -1,0 +1,192 @@
+"""Where the self-ID step's time goes, kernel by kernel, against the plain RLS of ``rls_floor.py`` (one CPU core).
+
+Both programs are those of ``benchmarks/rls_floor.py``: the steady block step
+(:func:`selfid_jax.identify.recursive.run`, ``warmup=0``, one block, the whole
+state returned) and the five-line plain RLS, ``--batch`` estimators (n = 6,
+m = 3, float32), ``--steps`` samples. Each is compiled once and run
+``--reps`` times under ``jax.profiler``; every kernel XLA's CPU runtime
+launches (a fusion, a copy, a batched dot) is matched by name to the
+compiled program and its time summed, in microseconds per sample. Kernels
+are grouped by what they write:
+
+* ``fields``: an ``(n, m)`` or ``(m, m)`` array per estimator (``J``,
+  ``sign_net``, ``mag_sum``, ``S_tv``, ``S_vv``, ``P``): the state's matrices;
+* ``per-estimator``: anything smaller (the sample's screen, weights and
+  reciprocals, the rank-one step's ``P V``, gain and residual, norms, the
+  convergence record's scalars and ``mag_count``);
+* ``copies``: ``copy`` kernels (the loop carry's buffers).
+
+Then the rate of XLA's CPU code on one elementwise kernel over ``(batch, 6)``
+float32 inside a ``lax.scan``: a multiply-add against a division
+(``x / (1 + 0 x)``, the form of :func:`selfid_jax.identify.recursive.once`),
+in nanoseconds per element. The process pins itself to one CPU before JAX
+starts (XLA's split of each loop over the cores costs a different amount in
+each two-core process; ``rls_floor.py --one-core``).
+
+The last lines: the field kernels alone as a multiple of plain RLS's whole
+time, and the per-estimator time that would leave the step at 0.5x plain RLS.
+
+    python benchmarks/step_kernels.py [--batch 10000] [--steps 50] [--reps 5] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import os
+import re
+import statistics
+import tempfile
+import time
+
+FIELD_DIMS = ("6,3", "3,3")
+
+
+def pin_one_core(ap: argparse.ArgumentParser) -> None:
+    """Pin this process to its lowest usable CPU (before JAX starts its CPU client)."""
+    if not hasattr(os, "sched_setaffinity"):
+        ap.error("this OS has no CPU affinity (os.sched_setaffinity); pin the process with the OS tool")
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
+def instructions(hlo: str) -> dict[str, tuple[str, str]]:
+    """``name: (opcode, result shape)`` of every instruction of a compiled program's text."""
+    out = {}
+    for line in hlo.splitlines():
+        m = re.match(r"\s*(?:ROOT )?%(\S+) = (\S+?)(?:\{[^}]*\})? (\S+?)\(", line)
+        if m:
+            out[m.group(1)] = (m.group(3), m.group(2))
+    return out
+
+
+def group_of(opcode: str, shape: str, batch: int) -> str | None:
+    """The group a launched kernel is counted in, None for what is not a kernel of its own."""
+    if opcode in ("while", "conditional", "call", "tuple", "get-tuple-element", "parameter", "bitcast", "constant"):
+        return None
+    if opcode == "copy":
+        return "copies"
+    return "fields" if any(shape.startswith(f"f32[{batch},{d}]") for d in FIELD_DIMS) else "per-estimator"
+
+
+def kernel_times(compiled, args: tuple, batch: int, steps: int, reps: int) -> dict:
+    """Microseconds per sample of each kernel of ``compiled(*args)`` (``reps`` profiled calls), with its group."""
+    import jax
+
+    ins = instructions(compiled.as_text())
+    for _ in range(2):
+        jax.block_until_ready(compiled(*args))
+    with tempfile.TemporaryDirectory() as tmp:
+        with jax.profiler.trace(tmp):
+            for _ in range(reps):
+                jax.block_until_ready(compiled(*args))
+        (path,) = glob.glob(os.path.join(tmp, "**", "*.trace.json.gz"), recursive=True)
+        with gzip.open(path) as f:
+            events = json.load(f)["traceEvents"]
+    total: collections.Counter = collections.Counter()
+    for e in events:
+        if e.get("ph") == "X" and e.get("name") in ins:
+            total[e["name"]] += e["dur"]
+    rows = []
+    for name, us in total.most_common():
+        opcode, shape = ins[name]
+        group = group_of(opcode, shape, batch)
+        if group is not None:
+            rows.append({"kernel": name, "shape": shape, "group": group, "us_per_sample": us / reps / steps})
+    return {"kernels": rows, "groups": {g: sum(r["us_per_sample"] for r in rows if r["group"] == g)
+                                        for g in ("fields", "per-estimator", "copies")}}
+
+
+def element_rates(batch: int, steps: int, reps: int) -> dict:
+    """Nanoseconds per element of a multiply-add and of a division over ``(batch, 6)`` float32 in a ``lax.scan``."""
+    import jax
+    import jax.numpy as jnp
+
+    ops = {"multiply-add": lambda c: c * 1.0001 + 1.0, "division x / (1 + 0 x)": lambda c: c / (1.0 + 0.0 * c) + 1.0}
+    x = jnp.ones((batch, 6), jnp.float32)
+    out = {}
+    for name, op in ops.items():
+        fn = jax.jit(lambda x, op=op: jax.lax.scan(lambda c, _: (op(c), None), x, None, length=steps)[0])
+        jax.block_until_ready(fn(x))
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(x))
+            ts.append(time.perf_counter() - t0)
+        out[name] = 1e9 * statistics.median(ts) / steps / x.size
+    return out
+
+
+def run(batch: int = 10_000, steps: int = 50, reps: int = 5) -> dict:
+    import jax
+    import jax.numpy as jnp
+    from rls_floor import EPS, F32, make_data, scan_fn, scan_rows
+    from timing import usable_cpus
+
+    import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
+    from selfid_jax.identify import estimator as E
+    from selfid_jax.identify import recursive as R
+
+    n, m = 6, 3
+    d64, V64 = make_data(batch, 2 * steps, n, m)
+    d0, V0 = jnp.asarray(d64[:steps], F32), jnp.asarray(V64[:steps], F32)
+    d, V = jnp.asarray(d64[steps:], F32), jnp.asarray(V64[steps:], F32)
+
+    def first(d, V):
+        return R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 5, history=False)[:2]
+
+    s0, r0 = jax.block_until_ready(jax.jit(jax.vmap(first, in_axes=(1, 1)))(d0, V0))
+
+    def more(s, r, d, V):
+        return R.run(s, r, d, V, EPS, warmup=0, history=False)[:2]
+
+    step = jax.jit(jax.vmap(more, in_axes=(0, 0, 1, 1))).lower(s0, r0, d, V).compile()
+    plain = scan_fn(batch, *scan_rows(n, m)["plain RLS"]).lower(d, V).compile()
+    prog = {"self-ID step, steady, full state out": kernel_times(step, (s0, r0, d, V), batch, steps, reps),
+            "plain RLS": kernel_times(plain, (d, V), batch, steps, reps)}
+    return {"batch": batch, "steps": steps, "reps": reps, "n": n, "m": m, "dtype": "float32",
+            "device": f"1 {jax.devices()[0].platform}, {usable_cpus()} CPU core(s) usable",
+            "programs": prog, "element_ns": element_rates(batch, steps, reps)}
+
+
+def report(res: dict, top: int = 12) -> str:
+    lines = [f"kernels of the self-ID step and of plain RLS: {res['batch']} estimators (n=6, m=3, float32), "
+             f"{res['steps']} samples, {res['reps']} profiled calls, {res['device']}"]
+    for name, p in res["programs"].items():
+        g = p["groups"]
+        lines.append(f"{name}: {len(p['kernels'])} kernels, {sum(g.values()):.0f} us per sample: "
+                     + ", ".join(f"{k} {v:.0f} us" for k, v in g.items()))
+        for r in p["kernels"][:top]:
+            lines.append(f"  {r['us_per_sample']:7.1f} us  {r['group']:13s} {r['shape']:24s} {r['kernel']}")
+    lines.append("elementwise over (batch, 6) in a scan: " + ", ".join(f"{k} {v:.2f} ns per element"
+                                                                      for k, v in res["element_ns"].items()))
+    step, plain = res["programs"].values()
+    whole = sum(plain["groups"].values())
+    fields = step["groups"]["fields"]
+    budget = 2 * whole - fields - step["groups"]["copies"]
+    lines.append(f"the step's field kernels alone: {fields:.0f} us = {fields / whole:.2f}x plain RLS's whole "
+                 f"{whole:.0f} us; at 0.5x plain RLS the rest of the step (per-estimator kernels) would have "
+                 f"{budget:.0f} us, against {step['groups']['per-estimator']:.0f} us now")
+    return "\n".join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=10_000)
+    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--json", default=None, help="write the results here")
+    a = ap.parse_args()
+    if a.batch < 1 or a.steps < 1 or a.reps < 1:
+        ap.error("--batch, --steps and --reps must be >= 1")
+    pin_one_core(ap)
+    from emit import emit
+
+    res = run(a.batch, a.steps, a.reps)
+    emit(res, report(res), a.json)
+
+
+if __name__ == "__main__":
+    main()
