@@ -49,7 +49,6 @@ starts: every row then runs without the split (docs/benchmarks.md).
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import time
 
@@ -57,7 +56,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from emit import emit
-from timing import first_call, interleaved, usable_cpus
+from timing import first_call, interleaved, pin_one_core, usable_cpus
 
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax import baselines
@@ -335,9 +334,7 @@ def main():
                          "each loop over the cores, whose cost differs between processes")
     a = ap.parse_args()
     if a.one_core:
-        if not hasattr(os, "sched_setaffinity"):
-            ap.error("--one-core: this OS has no CPU affinity (os.sched_setaffinity); pin it with the OS tool")
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+        pin_one_core(ap)
     if a.sync_dispatch:
         jax.config.update("jax_cpu_enable_async_dispatch", False)  # before the CPU backend starts
     if a.latency_only:

@@ -42,14 +42,9 @@ import statistics
 import tempfile
 import time
 
+from timing import pin_one_core, usable_cpus
+
 FIELD_DIMS = ("6,3", "3,3")
-
-
-def pin_one_core(ap: argparse.ArgumentParser) -> None:
-    """Pin this process to its lowest usable CPU (before JAX starts its CPU client)."""
-    if not hasattr(os, "sched_setaffinity"):
-        ap.error("this OS has no CPU affinity (os.sched_setaffinity); pin the process with the OS tool")
-    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
 
 
 def instructions(hlo: str) -> dict[str, tuple[str, str]]:
@@ -123,7 +118,6 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5) -> dict:
     import jax
     import jax.numpy as jnp
     from rls_floor import EPS, F32, make_data, scan_fn, scan_rows
-    from timing import usable_cpus
 
     import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
     from selfid_jax.identify import estimator as E

@@ -40,6 +40,14 @@ def usable_cpus() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
+def pin_one_core(ap) -> None:
+    """Pin this process to its lowest usable CPU, before JAX starts its CPU client; ``ap.error`` (an
+    ``argparse.ArgumentParser``'s) where the OS has no CPU affinity."""
+    if not hasattr(os, "sched_setaffinity"):
+        ap.error("this OS has no CPU affinity (os.sched_setaffinity); pin the process with the OS tool")
+    os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
 def first_call(fn: Callable, *args) -> tuple[Any, float]:
     """``(fn(*args), seconds)`` of one call, blocked on its result (for a jitted ``fn``: compile + first run)."""
     import jax
