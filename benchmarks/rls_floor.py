@@ -138,11 +138,12 @@ def block_fn(batch, n, m, resolve_every: int = 0):
     return jax.jit(jax.vmap(one, in_axes=(1, 1)))
 
 
-def steady_fn(n, m, d0, V0, *, full_state: bool = False):
-    """The block step from the state after ``d0 (T, batch, n)``, ``V0``: ``fn(d, V) -> estimates``.
+def steady_program(n, m, d0, V0, *, full_state: bool = False):
+    """``(fn, s0, r0)``: the block step jitted and vmapped, ``fn(s0, r0, d, V)``, from the state ``(s0, r0)`` after
+    ``d0 (T, batch, n)``, ``V0``.
 
     ``full_state=True``: ``fn`` returns the whole ``(state, rec)``, as a fleet that keeps its estimators
-    must; returning only the estimates lets XLA drop the updates of the statistics that the rank-one
+    must; else only the estimates, which lets XLA drop the updates of the statistics that the rank-one
     steps do not read (sign weights, magnitudes, ``S_tv``) from the rank-one loop.
     """
     def first(d, V):
@@ -154,10 +155,16 @@ def steady_fn(n, m, d0, V0, *, full_state: bool = False):
         out = R.run(s, r, d, V, EPS, warmup=0, history=False)[:2]
         return out if full_state else out[0].estimate
 
-    fn = jax.jit(jax.vmap(more, in_axes=(0, 0, 1, 1)))
+    return jax.jit(jax.vmap(more, in_axes=(0, 0, 1, 1))), s0, r0
+
+
+def steady_fn(n, m, d0, V0, *, full_state: bool = False):
+    """The block step from the state after ``d0 (T, batch, n)``, ``V0`` (:func:`steady_program`):
+    ``fn(d, V) -> estimates``; with ``full_state`` the whole state is computed and the estimate read."""
+    fn, s0, r0 = steady_program(n, m, d0, V0, full_state=full_state)
     if not full_state:
         return lambda d, V: fn(s0, r0, d, V)
-    return lambda d, V: fn(s0, r0, d, V)[0].estimate  # the whole state is computed; the estimate is read
+    return lambda d, V: fn(s0, r0, d, V)[0].estimate
 
 
 def lstsq(d, V, count):

@@ -38,11 +38,9 @@ import gzip
 import json
 import os
 import re
-import statistics
 import tempfile
-import time
 
-from timing import pin_one_core, usable_cpus
+from timing import pin_one_core, time_call, usable_cpus
 
 FIELD_DIMS = ("6,3", "3,3")
 
@@ -104,39 +102,21 @@ def element_rates(batch: int, steps: int, reps: int) -> dict:
     out = {}
     for name, op in ops.items():
         fn = jax.jit(lambda x, op=op: jax.lax.scan(lambda c, _: (op(c), None), x, None, length=steps)[0])
-        jax.block_until_ready(fn(x))
-        ts = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(x))
-            ts.append(time.perf_counter() - t0)
-        out[name] = 1e9 * statistics.median(ts) / steps / x.size
+        out[name] = 1e9 * time_call(fn, x, reps=reps, per=steps).run_s / x.size
     return out
 
 
 def run(batch: int = 10_000, steps: int = 50, reps: int = 5) -> dict:
     import jax
     import jax.numpy as jnp
-    from rls_floor import EPS, F32, make_data, scan_fn, scan_rows
-
-    import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
-    from selfid_jax.identify import estimator as E
-    from selfid_jax.identify import recursive as R
+    from rls_floor import F32, make_data, scan_fn, scan_rows, steady_program
 
     n, m = 6, 3
     d64, V64 = make_data(batch, 2 * steps, n, m)
     d0, V0 = jnp.asarray(d64[:steps], F32), jnp.asarray(V64[:steps], F32)
     d, V = jnp.asarray(d64[steps:], F32), jnp.asarray(V64[steps:], F32)
-
-    def first(d, V):
-        return R.run(E.init(n, m, capacity=0, dtype=F32), R.init(m, F32), d, V, EPS, warmup=m + 5, history=False)[:2]
-
-    s0, r0 = jax.block_until_ready(jax.jit(jax.vmap(first, in_axes=(1, 1)))(d0, V0))
-
-    def more(s, r, d, V):
-        return R.run(s, r, d, V, EPS, warmup=0, history=False)[:2]
-
-    step = jax.jit(jax.vmap(more, in_axes=(0, 0, 1, 1))).lower(s0, r0, d, V).compile()
+    fn, s0, r0 = steady_program(n, m, d0, V0, full_state=True)
+    step = fn.lower(s0, r0, d, V).compile()
     plain = scan_fn(batch, *scan_rows(n, m)["plain RLS"]).lower(d, V).compile()
     prog = {"self-ID step, steady, full state out": kernel_times(step, (s0, r0, d, V), batch, steps, reps),
             "plain RLS": kernel_times(plain, (d, V), batch, steps, reps)}
