@@ -16,10 +16,15 @@ are grouped by what they write:
   convergence record's scalars and ``mag_count``);
 * ``copies``: ``copy`` kernels (the loop carry's buffers).
 
-Then the rate of XLA's CPU code on one elementwise kernel over ``(batch, 6)``
-float32 inside a ``lax.scan``: a multiply-add against a division
-(``x / (1 + 0 x)``, the form of :func:`selfid_jax.identify.recursive.once`),
-in nanoseconds per element. The process pins itself to one CPU before JAX
+Then the rate of XLA's CPU code on one elementwise kernel over ``batch x 6``
+float32 inside a ``lax.scan``, in nanoseconds per element: a multiply-add, a
+multiply-add by a per-estimator value broadcast over the 6 (the form of every
+field update under ``vmap``) and a division (``x / (1 + 0 x)``, the form of
+:func:`selfid_jax.identify.recursive.once`), each with the batch outermost
+(``(batch, 6)``: the layout ``vmap`` gives the step) and innermost
+(``(6, batch)``). Which layouts XLA vectorizes depends on its code generator:
+run the script under ``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` to see
+the other one (the flag the user sets wins over selfid_jax's default). The process pins itself to one CPU before JAX
 starts (XLA's split of each loop over the cores costs a different amount in
 each two-core process; ``rls_floor.py --one-core``).
 
@@ -93,16 +98,22 @@ def kernel_times(compiled, args: tuple, batch: int, steps: int, reps: int) -> di
 
 
 def element_rates(batch: int, steps: int, reps: int) -> dict:
-    """Nanoseconds per element of a multiply-add and of a division over ``(batch, 6)`` float32 in a ``lax.scan``."""
+    """Nanoseconds per element of a multiply-add, a multiply-add by a per-estimator value and a division over
+    ``batch x 6`` float32 in a ``lax.scan``, batch-major ``(batch, 6)`` and batch-minor ``(6, batch)``."""
     import jax
     import jax.numpy as jnp
 
-    ops = {"multiply-add": lambda c: c * 1.0001 + 1.0, "division x / (1 + 0 x)": lambda c: c / (1.0 + 0.0 * c) + 1.0}
-    x = jnp.ones((batch, 6), jnp.float32)
+    ops = {"multiply-add": lambda c, y, ax: c * 1.0001 + 1.0,
+           "multiply-add by a per-estimator value": lambda c, y, ax: c * jnp.expand_dims(y, ax) + 1.0,
+           "division x / (1 + 0 x)": lambda c, y, ax: c / (1.0 + 0.0 * c) + 1.0}
+    y = jnp.full((batch,), 0.9999, jnp.float32)
     out = {}
-    for name, op in ops.items():
-        fn = jax.jit(lambda x, op=op: jax.lax.scan(lambda c, _: (op(c), None), x, None, length=steps)[0])
-        out[name] = 1e9 * time_call(fn, x, reps=reps, per=steps).run_s / x.size
+    for layout, shape, ax in (("(batch, 6)", (batch, 6), 1), ("(6, batch)", (6, batch), 0)):
+        x = jnp.ones(shape, jnp.float32)
+        for name, op in ops.items():
+            fn = jax.jit(lambda x, y, op=op, ax=ax: jax.lax.scan(lambda c, _: (op(c, y, ax), None), x, None,
+                                                                 length=steps)[0])
+            out[f"{name}, {layout}"] = 1e9 * time_call(fn, x, y, reps=reps, per=steps).run_s / x.size
     return out
 
 
@@ -122,27 +133,30 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5) -> dict:
             "plain RLS": kernel_times(plain, (d, V), batch, steps, reps)}
     return {"batch": batch, "steps": steps, "reps": reps, "n": n, "m": m, "dtype": "float32",
             "device": f"1 {jax.devices()[0].platform}, {usable_cpus()} CPU core(s) usable",
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),
             "programs": prog, "element_ns": element_rates(batch, steps, reps)}
 
 
 def report(res: dict, top: int = 12) -> str:
     lines = [f"kernels of the self-ID step and of plain RLS: {res['batch']} estimators (n=6, m=3, float32), "
-             f"{res['steps']} samples, {res['reps']} profiled calls, {res['device']}"]
+             f"{res['steps']} samples, {res['reps']} profiled calls, {res['device']}; XLA_FLAGS {res['xla_flags']}"]
     for name, p in res["programs"].items():
         g = p["groups"]
         lines.append(f"{name}: {len(p['kernels'])} kernels, {sum(g.values()):.0f} us per sample: "
                      + ", ".join(f"{k} {v:.0f} us" for k, v in g.items()))
         for r in p["kernels"][:top]:
             lines.append(f"  {r['us_per_sample']:7.1f} us  {r['group']:13s} {r['shape']:24s} {r['kernel']}")
-    lines.append("elementwise over (batch, 6) in a scan: " + ", ".join(f"{k} {v:.2f} ns per element"
-                                                                      for k, v in res["element_ns"].items()))
+    lines.append("elementwise over batch x 6 in a scan, ns per element: " + "; ".join(
+        f"{k} {v:.2f}" for k, v in res["element_ns"].items()))
     step, plain = res["programs"].values()
     whole = sum(plain["groups"].values())
     fields = step["groups"]["fields"]
     budget = 2 * whole - fields - step["groups"]["copies"]
+    left = (f"would have {budget:.0f} us" if budget > 0 else
+            "would have no time left (the field kernels and copies alone take twice plain RLS's time)")
     lines.append(f"the step's field kernels alone: {fields:.0f} us = {fields / whole:.2f}x plain RLS's whole "
-                 f"{whole:.0f} us; at 0.5x plain RLS the rest of the step (per-estimator kernels) would have "
-                 f"{budget:.0f} us, against {step['groups']['per-estimator']:.0f} us now")
+                 f"{whole:.0f} us; at 0.5x plain RLS the rest of the step (per-estimator kernels) {left}, "
+                 f"against {step['groups']['per-estimator']:.0f} us now")
     return "\n".join(lines)
 
 
