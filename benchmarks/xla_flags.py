@@ -8,7 +8,14 @@ iterations, vmapped over a batch of keys; 200-step UR5e star rollouts
 (``control.follow`` with the true inverse Jacobian) at the same batch; and one
 batched UR5e pose through ``mjx.kinematics``.
 
-    python benchmarks/xla_flags.py [--batch 1000] [--iters 200]
+The children start without the caller's ``XLA_FLAGS``, so that each arm runs
+the flags it names. ``--extra FLAGS`` adds a third arm: the package's default
+flags with ``FLAGS`` on top (a flag the user sets wins over the package's, so
+``--extra=--xla_cpu_use_fusion_emitters=true`` tries that flag alone);
+``--no-jax-defaults`` drops the JAX-defaults arm (its ``mjx.kinematics`` compile
+takes minutes).
+
+    python benchmarks/xla_flags.py [--batch 1000] [--iters 200] [--extra FLAGS] [--no-jax-defaults]
 """
 
 from __future__ import annotations
@@ -62,9 +69,13 @@ print(json.dumps({"compile_and_first": t.first_s, "run": t.run_s}))
 """
 
 
-def measure(batch: int, iters: int, flags_on: bool, workload: str) -> dict:
+def measure(batch: int, iters: int, flags_on: bool, workload: str, extra: str = "") -> dict:
+    """``{"compile_and_first", "run"}`` (s) of ``workload`` in a fresh process: the package's flags (``flags_on``)
+    or JAX's defaults, with ``extra`` as that process's ``XLA_FLAGS``."""
     env = dict(os.environ)
     env.pop("XLA_FLAGS", None)
+    if extra:
+        env["XLA_FLAGS"] = extra
     if not flags_on:
         env["SELFID_JAX_NO_XLA_FLAGS"] = "1"
     out = subprocess.run([sys.executable, "-c", CHILD, str(batch), str(iters), workload,
@@ -77,18 +88,31 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batch", type=int, default=1000)
     ap.add_argument("--iters", type=int, default=200)
+    ap.add_argument("--extra", default="", help="an arm with these XLA flags on top of the package's")
+    ap.add_argument("--no-jax-defaults", action="store_true", help="skip the arm with JAX's own defaults")
     args = ap.parse_args()
+    if args.batch < 1 or args.iters < 1:
+        ap.error("--batch and --iters must be >= 1")
+    if args.extra and not all(f.startswith("--xla_") for f in args.extra.split()):
+        ap.error(f"--extra must be XLA flags (--xla_...), got {args.extra!r}")
+    arms = [("selfid_jax defaults", True, "")]
+    if args.extra:
+        arms.append((f"+ {args.extra}", True, args.extra))
+    if not args.no_jax_defaults:
+        arms.append(("jax defaults", False, ""))
     print(f"batch {args.batch} x {args.iters} steps; compile+first run and steady run per workload")
-    print(f"{'workload':34s} {'XLA flags':20s} {'compile+first':>14s} {'run':>10s}")
+    w = max(20, *(len(name) for name, _, _ in arms))
+    print(f"{'workload':34s} {'XLA flags':{w}s} {'compile+first':>14s} {'run':>10s}")
     workloads = (("selfid", "self_identify, 3-link arm"), ("ur5e", "UR5e star rollouts"),
                  ("mjx", "UR5e mjx.kinematics pose (1 step)"))
     for workload, label in workloads:
-        on = measure(args.batch, args.iters, True, workload)
-        off = measure(args.batch, args.iters, False, workload)
-        print(f"{label:34s} {'selfid_jax defaults':20s} {on['compile_and_first']:13.2f}s {on['run']:9.3f}s")
-        print(f"{'':34s} {'jax defaults':20s} {off['compile_and_first']:13.2f}s {off['run']:9.3f}s")
-        print(f"{'':34s} run speed-up from the flags: {off['run'] / on['run']:.2f}x, compile+first: "
-              f"{off['compile_and_first'] / on['compile_and_first']:.2f}x")
+        res = {name: measure(args.batch, args.iters, on, workload, extra) for name, on, extra in arms}
+        base = res["selfid_jax defaults"]
+        for i, (name, r) in enumerate(res.items()):
+            print(f"{label if i == 0 else '':34s} {name:{w}s} {r['compile_and_first']:13.2f}s {r['run']:9.3f}s")
+        for name, r in list(res.items())[1:]:
+            print(f"{'':34s} {name}: run time {r['run'] / base['run']:.2f}x, compile+first "
+                  f"{r['compile_and_first'] / base['compile_and_first']:.2f}x those of the package's defaults")
 
 
 if __name__ == "__main__":
