@@ -1,15 +1,34 @@
-"""The package list, the one part of the build that pyproject.toml cannot state without listing every folder.
+"""The package list and the native kernel: the parts of the build that pyproject.toml cannot state.
 
 selfid_jax's subpackages and data folders (systems/assets, robot/data) are found in selfid_jax/; the top-level
 experiments/ and its subpackages install as selfid_jax.experiments (``[tool.setuptools.package-dir]`` in
 pyproject.toml) and configs/ as the data package selfid_jax.configs (its folders, one per experiment, as data
 subpackages: without them setuptools warns that it may drop their YAML), so a wheel holds the same files that a
 checkout and an editable install import.
+
+selfid_jax.math._native_kernels is a plain shared library, not a Python module: selfid_jax.math.native loads it
+with ctypes and registers its XLA FFI handler. It is built from selfid_jax/math/_native/ against the XLA FFI
+headers vendored there (OpenXLA, Apache-2.0), so the build needs no jaxlib. It is optional: without a C++17
+compiler the build goes on and the pure-JAX code runs instead.
 """
 
-from setuptools import find_namespace_packages, find_packages, setup
+from setuptools import Extension, find_namespace_packages, find_packages, setup
+
+NATIVE = Extension(
+    "selfid_jax.math._native_kernels",
+    sources=["selfid_jax/math/_native/estimator_kernels.cc"],
+    depends=["selfid_jax/math/_native/estimator_kernels.inc", "selfid_jax/math/_native/xla/ffi/api/ffi.h",
+             "selfid_jax/math/_native/xla/ffi/api/api.h", "selfid_jax/math/_native/xla/ffi/api/c_api.h"],
+    include_dirs=["selfid_jax/math/_native"],
+    language="c++",
+    # the vendored headers warn under GCC's defaults (-Wattributes, -Wreturn-type); -Wno-psabi: 32-byte vectors
+    # passed by value between the kernel's inline functions
+    extra_compile_args=["-std=c++17", "-O3", "-fno-math-errno", "-Wno-psabi", "-Wno-attributes", "-Wno-return-type"],
+    optional=True,
+)
 
 setup(
+    ext_modules=[NATIVE],
     packages=[
         *find_namespace_packages(include=["selfid_jax", "selfid_jax.*"], exclude=["*.__pycache__"]),
         "selfid_jax.experiments",

@@ -13,7 +13,10 @@ Rows (medians of ``--reps`` timings after a warm-up, interleaved in rounds so
 that load from other processes hits all alike; compile time separate):
 
 * ``rls``: :func:`selfid_jax.baselines.rls` ``update`` + ``estimate``, the reference;
-* ``ours``: the full step above, no sample buffer (``capacity=0``);
+* ``ours``: the full step above, no sample buffer (``capacity=0``), with the
+  update and the closed form in the native CPU kernels where they are built
+  (:mod:`selfid_jax.math.native`);
+* ``ours, pure JAX``: the same step with the kernels off, XLA code only;
 * ``ours, least squares only``: ``update`` + ``S_tv S_vv^+`` without the
   initial guess and the record (the probe of the issue);
 * ``ours, 64-sample buffer (before)``: the pre-statistics step, Eq. 14
@@ -43,6 +46,7 @@ from timing import first_call, interleaved
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax import baselines
 from selfid_jax.identify import estimator as E
+from selfid_jax.math import native
 
 RF = sys.modules["selfid_jax.identify.refine"]
 N, M = 6, 3
@@ -92,10 +96,24 @@ def rls_step(state, dtheta, V):
     return state._replace(J=RLS.estimate(state, jnp.zeros((N, M), F32)))
 
 
+def pure_jax(step):
+    """``step`` traced with the native kernels off (:mod:`selfid_jax.math.native`): XLA code only."""
+
+    def traced(*args):
+        old = native.set_enabled(False)
+        try:
+            return step(*args)
+        finally:
+            native.set_enabled(old)
+
+    return traced
+
+
 def variants(batch):
     return {
         "rls": (lambda: RLS.init(N, M, dtype=F32), rls_step, lambda s: s.J),
         "ours": (lambda: E.init(N, M, capacity=0, dtype=F32), ours_step, lambda s: s.estimate),
+        "ours, pure JAX": (lambda: E.init(N, M, capacity=0, dtype=F32), pure_jax(ours_step), lambda s: s.estimate),
         "ours, least squares only": (lambda: E.init(N, M, capacity=0, dtype=F32), least_squares_step,
                                      lambda s: s.estimate),
         "ours, 64-sample buffer (before)": (lambda: E.init(N, M, capacity=64, dtype=F32), buffered_step,
@@ -160,12 +178,13 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5, rounds: int = 3, st
             "timed_steps": fns[name][1],
         }
     return {"batch": batch, "n": N, "m": M, "dtype": "float32", "steps": steps, "reps": reps * rounds,
-            "device": f"{jax.device_count() if shard else 1} {jax.devices()[0].platform}", "rows": rows}
+            "device": f"{jax.device_count() if shard else 1} {jax.devices()[0].platform}", "rows": rows,
+            "native": "on" if native.enabled() else f"off ({native.load_error() or 'turned off'})"}
 
 
 def report(res: dict) -> str:
     lines = [f"self-ID step, {res['batch']} vmapped estimators (n={res['n']}, m={res['m']}, {res['dtype']}), "
-             f"median of {res['reps']} timings, {res['device']}",
+             f"median of {res['reps']} timings, {res['device']}, native kernels {res['native']}",
              f"{'variant':34s} {'ms/step':>8s} {'steps/s':>8s} {'x RLS':>6s} {'est-steps/s':>12s} "
              f"{'1st call':>9s} {'err vs f64':>10s}"]
     for name, r in res["rows"].items():

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import ArrayLike
 
+from selfid_jax.math import native
 from selfid_jax.math.checks import (
     check_array,
     check_float_dtype,
@@ -301,10 +302,37 @@ def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike, *, once=None)
     (:func:`guarded_update`). ``once``: see :func:`accumulate` (None: none;
     the result's value is the same either way).
     """
-    n, m, _ = sizes(state)
-    fold = accumulate if once is None else functools.partial(accumulate, once=once)
-    return guarded_update(fold, state, dtheta, V, shape=(n, m), dtype=state.sign_net.dtype, admit=fits,
-                          zero_is_identity=True, once=once)
+    n, m, capacity = sizes(state)
+    if once is not None or capacity > 0:
+        fold = accumulate if once is None else functools.partial(accumulate, once=once)
+        return guarded_update(fold, state, dtheta, V, shape=(n, m), dtype=state.sign_net.dtype, admit=fits,
+                              zero_is_identity=True, once=once)
+    check_array("dtheta", dtheta, (n,))
+    check_array("V", V, (m,))
+    dtype = state.sign_net.dtype
+    # the native CPU kernel where it is built (selfid_jax.math.native), _update_sums elsewhere
+    sums = native.call("update", _update_sums, *(getattr(state, f) for f in _UPDATE_IN),
+                       jnp.asarray(dtheta, dtype), jnp.asarray(V, dtype))
+    return state._replace(**dict(zip(_UPDATE_OUT, sums, strict=True)))
+
+
+_UPDATE_OUT = ("sign_net", "mag_sum", "mag_count", "S_vv", "S_tv", "s_tt", "count", "rejected")
+_UPDATE_IN = (*_UPDATE_OUT, "v_tol", "forget")
+
+
+def _update_sums(*args):
+    """:func:`update` of a state without a ring buffer, on the fields it reads (``_UPDATE_IN``, then ``dtheta``,
+    ``V``): the fields it writes (``_UPDATE_OUT``), a tuple."""
+    fields, dtheta, V = dict(zip(_UPDATE_IN, args[:-2], strict=True)), args[-2], args[-1]
+    n, m = fields["S_tv"].shape
+    dtype = fields["S_tv"].dtype
+    state = EstimatorState(**fields, dtheta_buf=jnp.zeros((0, n), dtype), v_buf=jnp.zeros((0, m), dtype),
+                           estimate=jnp.zeros((n, m), dtype), last_deltas=jnp.zeros((2,), dtype),
+                           last_norms=jnp.zeros((2,), dtype), last_fresh=jnp.zeros((2,), bool),
+                           recorded_count=jnp.zeros((), jnp.int32), iteration=jnp.zeros((), jnp.int32),
+                           converged_at=jnp.zeros((), jnp.int32))
+    new = guarded_update(accumulate, state, dtheta, V, shape=(n, m), dtype=dtype, admit=fits, zero_is_identity=True)
+    return tuple(getattr(new, f) for f in _UPDATE_OUT)
 
 
 def signed_inverse_jacobian(state: EstimatorState) -> jax.Array:
@@ -402,17 +430,49 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
     n, m, _ = sizes(state)
     check_array("J", J, (n, m))
     check_thresholds(eps, eps_rel)
-    J = jnp.asarray(J, state.estimate.dtype)
+    dtype = state.estimate.dtype
+    J = jnp.asarray(J, dtype)
+    if delta is not None:
+        check_array("delta", delta, ())
+        delta = jnp.asarray(delta, dtype)
+    if norm is not None:
+        check_array("norm", norm, ())
+        norm = jnp.asarray(norm, dtype)
+    same = all(jnp.result_type(x, dtype) == dtype for x in (eps, eps_rel))
+    if delta is None and norm is None and same and jnp.issubdtype(jnp.result_type(min_count), jnp.integer):
+        # the native CPU kernel where it is built (selfid_jax.math.native), _record_fields elsewhere
+        fields = native.call("record", _record_fields, J, *(getattr(state, f) for f in _RECORD_IN),
+                             jnp.asarray(eps, dtype), jnp.asarray(eps_rel, dtype), jnp.asarray(min_count, jnp.int32))
+        return state._replace(estimate=J, **dict(zip(_RECORD_OUT, fields, strict=True)))
+    return _record(state, J, eps, eps_rel, delta, norm, min_count)
+
+
+_RECORD_OUT = ("last_deltas", "last_norms", "last_fresh", "recorded_count", "iteration", "converged_at")
+_RECORD_IN = ("estimate", "last_deltas", "last_norms", "last_fresh", "count", "recorded_count", "iteration",
+              "converged_at")
+
+
+def _record_fields(J, *args):
+    """:func:`record` on ``J``, the fields it reads (``_RECORD_IN``), ``eps``, ``eps_rel``, ``min_count``: the
+    fields it writes besides ``estimate`` (``_RECORD_OUT``), a tuple."""
+    fields, (eps, eps_rel, min_count) = dict(zip(_RECORD_IN, args[:-3], strict=True)), args[-3:]
+    n, m = J.shape
+    zeros = jnp.zeros((n, m), J.dtype)
+    state = EstimatorState(sign_net=zeros, mag_sum=zeros, mag_count=jnp.zeros((m,), J.dtype),
+                           S_vv=jnp.zeros((m, m), J.dtype), S_tv=zeros, s_tt=jnp.zeros((), J.dtype),
+                           dtheta_buf=jnp.zeros((0, n), J.dtype), v_buf=jnp.zeros((0, m), J.dtype),
+                           rejected=jnp.zeros((), jnp.int32), v_tol=jnp.zeros((), J.dtype),
+                           forget=jnp.ones((), J.dtype), **fields)
+    new = _record(state, J, eps, eps_rel, None, None, min_count)
+    return tuple(getattr(new, f) for f in _RECORD_OUT)
+
+
+def _record(state: EstimatorState, J: jax.Array, eps, eps_rel, delta, norm, min_count) -> EstimatorState:
+    """:func:`record` after its checks (``delta``, ``norm``: None or ``()`` arrays of the state's dtype)."""
     if delta is None:
         delta = jnp.sqrt(small_sum((J - state.estimate) ** 2))
-    else:
-        check_array("delta", delta, ())
-        delta = jnp.asarray(delta, state.estimate.dtype)
     if norm is None:
         norm = jnp.sqrt(small_sum(J**2))
-    else:
-        check_array("norm", norm, ())
-        norm = jnp.asarray(norm, state.estimate.dtype)
     iteration = state.iteration + 1
     deltas = jnp.stack([state.last_deltas[1], delta])
     norms = jnp.stack([state.last_norms[1], norm])

@@ -48,6 +48,7 @@ import optax
 from jax.typing import ArrayLike
 
 from selfid_jax.identify.estimator import EstimatorState, samples, signed_inverse_jacobian, sizes
+from selfid_jax.math import native
 from selfid_jax.math.checks import check_array, check_scalar, is_traced
 from selfid_jax.math.kernels import small_matmul
 from selfid_jax.math.linalg import _ldl_null_space, _spd_right_solve, default_rcond, psd_pinv  # noqa: F401
@@ -108,6 +109,22 @@ def statistics_closed_form(S_vv, S_tv, J0, *, ridge=0.0, rcond=None):
     solution. ``ridge`` and ``rcond`` may be traced; a literal 0 skips the
     ridge branch.
     """
+    S_vv, S_tv, J0 = jnp.asarray(S_vv), jnp.asarray(S_tv), jnp.asarray(J0)
+    m = S_vv.shape[-1]
+    dtype = jnp.result_type(S_vv, S_tv, J0)
+    rcond = jnp.asarray(default_rcond(m, dtype) if rcond is None else rcond, dtype)
+    # the native CPU kernel where it is built (selfid_jax.math.native); _minimum_norm_correction elsewhere
+    J = native.call("closed_form", _minimum_norm_correction, S_vv, S_tv, J0, rcond)
+    if isinstance(ridge, (int, float)) and ridge == 0:
+        return J
+    ridge = jnp.asarray(ridge, S_vv.dtype)
+    safe = jnp.where(ridge > 0, ridge, 1.0)
+    ridged = jnp.linalg.solve(S_vv + safe * jnp.eye(m, dtype=S_vv.dtype), (S_tv + safe * J0).T).T
+    return jnp.where(ridge > 0, ridged, J)
+
+
+def _minimum_norm_correction(S_vv, S_tv, J0, rcond):
+    """``S_tv P + J0 N`` with ``(P, N) = psd_pinv(S_vv, rcond=rcond)``: :func:`statistics_closed_form` with ridge 0."""
     m = S_vv.shape[-1]
     _, _, N = _ldl_null_space(S_vv, rcond)
     # S P = I - N and N S = 0 give (S / c + N)^-1 = c P + N, so that
@@ -116,13 +133,7 @@ def statistics_closed_form(S_vv, S_tv, J0, *, ridge=0.0, rcond=None):
     tr = sum((S_vv[k, k] for k in range(1, m)), S_vv[0, 0])
     inv_c = 1.0 / jnp.where(tr > 0, tr / m, 1.0)
     T = S_tv * inv_c
-    J = _spd_right_solve(T + small_matmul(J0 - T, N), S_vv * inv_c + N)
-    if isinstance(ridge, (int, float)) and ridge == 0:
-        return J
-    ridge = jnp.asarray(ridge, S_vv.dtype)
-    safe = jnp.where(ridge > 0, ridge, 1.0)
-    ridged = jnp.linalg.solve(S_vv + safe * jnp.eye(m, dtype=S_vv.dtype), (S_tv + safe * J0).T).T
-    return jnp.where(ridge > 0, ridged, J)
+    return _spd_right_solve(T + small_matmul(J0 - T, N), S_vv * inv_c + N)
 
 
 def _project(J, S, sign_project: bool):

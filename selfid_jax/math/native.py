@@ -1,0 +1,166 @@
+"""Native CPU kernels for the estimator's hot path: the per-sample update and Eq. 14's closed form.
+
+XLA's CPU backend compiles a vmapped estimator step into loops that update one
+scalar per instruction (about 0.45 ns per value on the 2-core development
+machine, whatever the layout; ``docs/benchmarks.md``). The C++ kernels in
+``selfid_jax/math/_native/`` run the same operations, in the same order, on 8
+float32 (4 float64) estimators per instruction (AVX2 and FMA where the CPU has
+them, SSE2 otherwise), each as one XLA FFI custom call over the whole batch:
+
+* ``"update"``: :func:`selfid_jax.identify.estimator.update` of a state
+  without a ring buffer (the sample screen, the sums of Eq. 6-12 and 14, the
+  counters);
+* ``"closed_form"``: :func:`selfid_jax.identify.refine.statistics_closed_form`
+  with no ridge (two unrolled ``L D L^T`` factorisations, a null-space
+  projector and a solve per estimator);
+* ``"record"``: :func:`selfid_jax.identify.estimator.record` where it
+  computes ``||J_t - J_{t-1}||_F`` and ``||J_t||_F`` itself (the convergence
+  test of Sec. IV-D).
+
+With AVX2, float32 fields of 8 or more values per estimator move between the
+batch's rows and the lanes by 8x8 register transposes. The initial guess
+(Eq. 13, elementwise) stays XLA code.
+
+They are built with the package (``pip install``, a C++17 compiler; the build
+goes on without them if none is found) and used on the CPU backend only:
+:func:`call` lowers the kernel for CPU and the pure-JAX function for every
+other platform (``jax.lax.platform_dependent``), and its derivatives are the
+pure-JAX function's (``jax.custom_jvp``), so a caller jits, vmaps and
+differentiates as before. Values agree with the pure-JAX functions to float
+round-off (the kernels contract a multiply and an add into one FMA where the
+CPU has it); the counters are equal.
+
+:func:`available` says whether the kernels are loaded; :func:`enabled` is
+False where they are not, or where ``SELFID_JAX_NATIVE=0`` was set before
+import or :func:`set_enabled` turned them off (read when a function is
+traced, so a ``jit`` compiled before keeps what it had).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import importlib.machinery
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["available", "call", "enabled", "load_error", "set_enabled"]
+
+_LIB_STEM = "_native_kernels"
+_TARGETS = {"closed_form": "SelfidClosedForm", "record": "SelfidRecord", "update": "SelfidUpdate"}
+# result k written over argument j's buffer ({j: k}): XLA then updates a loop's carried state in place instead of
+# copying each new field into it
+_ALIASES = {"closed_form": {2: 0}, "record": {2: 0, 3: 1, 4: 2, 6: 3, 7: 4, 8: 5},
+            "update": {k: k for k in range(8)}}
+_state: dict[str, object] = {"enabled": os.environ.get("SELFID_JAX_NATIVE", "1") != "0"}
+
+
+def _library_path() -> Path | None:
+    here = Path(__file__).parent
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        path = here / f"{_LIB_STEM}{suffix}"
+        if path.is_file():
+            return path
+    return None
+
+
+@functools.cache
+def _load() -> tuple[bool, str]:
+    """Load the library and register its FFI targets once: ``(loaded, why not)``."""
+    path = _library_path()
+    if path is None:
+        return False, f"no {_LIB_STEM} library next to {__file__} (built without a C++ compiler?)"
+    try:
+        lib = ctypes.cdll.LoadLibrary(str(path))
+        for target in _TARGETS.values():
+            jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, target)), platform="cpu")
+    except (OSError, AttributeError) as e:
+        return False, f"{path}: {e}"
+    return True, ""
+
+
+def available() -> bool:
+    """True iff the native kernels are built and registered with XLA's CPU backend."""
+    return _load()[0]
+
+
+def load_error() -> str:
+    """Why the kernels are not available ("" when they are)."""
+    return _load()[1]
+
+
+def enabled() -> bool:
+    """True iff :func:`call` uses the native kernels on CPU (available and not turned off)."""
+    return bool(_state["enabled"]) and available()
+
+
+def set_enabled(on: bool) -> bool:
+    """Use the native kernels (``True``, if available) or the pure-JAX functions everywhere; returns the old
+    setting. Read at trace time."""
+    old = bool(_state["enabled"])
+    _state["enabled"] = bool(on)
+    return old
+
+
+def call(kernel: str, reference: Callable, *args: jax.Array):
+    """``reference(*args)``, computed on CPU by the native kernel ``kernel`` (see the module docstring).
+
+    ``kernel``: ``"update"`` (``sign_net, mag_sum (n, m), mag_count (m,),
+    S_vv (m, m), S_tv (n, m), s_tt (), count, rejected () int32, v_tol,
+    forget (), dtheta (n,), V (m,)`` -> the first eight after the sample),
+    ``"closed_form"`` (``S_vv (m, m), S_tv (n, m), J0 (n, m), rcond () ->
+    J (n, m)``) or ``"record"`` (``J, estimate (n, m), last_deltas,
+    last_norms (2,), last_fresh (2,) bool, count, recorded_count, iteration,
+    converged_at () int32, eps, eps_rel (), min_count () int32`` -> the
+    state's ``last_deltas, last_norms, last_fresh, recorded_count, iteration,
+    converged_at`` after it); one float dtype (float32 or float64), ``1 <= m <= 6``,
+    ``1 <= n <= 64``: other shapes and dtypes go to ``reference``. ``args``
+    are one estimator's arrays (``vmap`` adds the kernel's batch); the result
+    has ``reference``'s structure, shapes and dtypes. Falls back to
+    ``reference`` where :func:`enabled` is False.
+    """
+    if kernel not in _TARGETS:
+        raise ValueError(f"kernel: expected one of {sorted(_TARGETS)}, got {kernel!r}")
+    args = tuple(jnp.asarray(a) for a in args)
+    if not (enabled() and _supported(kernel, args)):
+        return reference(*args)
+    out_shape = jax.eval_shape(reference, *args)
+    leaves, tree = jax.tree.flatten(out_shape)
+    ffi = jax.ffi.ffi_call(_TARGETS[kernel], [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves],
+                           vmap_method="broadcast_all", input_output_aliases=_ALIASES[kernel])
+
+    def native(*xs):
+        return jax.tree.unflatten(tree, ffi(*xs))
+
+    @jax.custom_jvp
+    def f(*xs):
+        return jax.lax.platform_dependent(*xs, cpu=native, default=reference)
+
+    @f.defjvp
+    def f_jvp(primals, tangents):
+        return f(*primals), jax.jvp(reference, primals, tangents)[1]
+
+    return f(*args)
+
+
+def _supported(kernel: str, args: tuple[jax.Array, ...]) -> bool:
+    """The kernel's shapes (``1 <= m <= 6``, ``1 <= n <= 64``) and dtypes (float32 or float64; int32 counters)."""
+    J = args[{"closed_form": 1, "update": 4, "record": 0}[kernel]]  # an (n, m) argument
+    if J.ndim != 2 or not (1 <= J.shape[1] <= 6 and 1 <= J.shape[0] <= 64) or J.dtype not in (jnp.float32,
+                                                                                             jnp.float64):
+        return False
+    n, m = J.shape
+    f, i, b = J.dtype, jnp.dtype(jnp.int32), jnp.dtype(bool)
+    signature = {
+        "closed_form": (((m, m), f), ((n, m), f), ((n, m), f), ((), f)),
+        "update": (((n, m), f), ((n, m), f), ((m,), f), ((m, m), f), ((n, m), f), ((), f), ((), i), ((), i),
+                   ((), f), ((), f), ((n,), f), ((m,), f)),
+        "record": (((n, m), f), ((n, m), f), ((2,), f), ((2,), f), ((2,), b), ((), i), ((), i), ((), i), ((), i),
+                   ((), f), ((), f), ((), i)),
+    }[kernel]
+    return len(args) == len(signature) and all(a.shape == s and a.dtype == d
+                                               for a, (s, d) in zip(args, signature, strict=True))
