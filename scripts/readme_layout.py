@@ -31,6 +31,8 @@ HEADING = "# Layout"
 # Folders that are not Python packages: their one job, stated here.
 FOLDERS = {
     "selfid_jax/systems/assets": "the shipped MJCF models ({files}), every dimension in each file's header",
+    "selfid_jax/math/_native": "C++ sources of selfid_jax.math.native's kernels ({files}; the XLA FFI headers in "
+    "xla/ffi/api/), built by setup.py",
     "selfid_jax/robot/data": "the shipped example log ({files}) of selfid-jax fit --example, made by "
     "scripts/make_example_log.py",
     "scripts": "studies and maintenance scripts run from a checkout (not installed)",

@@ -352,3 +352,42 @@ def test_record_with_a_given_delta_or_other_dtypes_takes_the_pure_jax_path():
     assert "SelfidRecord" not in g.lower(s, J).as_text()
     h = jax.jit(lambda s, J: E.record(s, J, 1e-3))
     assert "SelfidRecord" in h.lower(s, J).as_text()
+
+
+def test_a_kernel_called_with_shapes_it_does_not_take_raises_and_names_them():
+    """The handlers check every argument before any compute (what :func:`native.call` never passes them)."""
+    assert native.available(), native.load_error()
+    f32 = jnp.float32
+    call = jax.ffi.ffi_call("SelfidClosedForm", jax.ShapeDtypeStruct((4, 6, 3), f32), vmap_method="broadcast_all")
+    with pytest.raises(Exception, match="closed form: an argument's size does not match the batch"):
+        jax.block_until_ready(call(jnp.ones((4, 3, 3), f32), jnp.ones((4, 6, 3), f32), jnp.ones((3, 6, 3), f32),
+                                   jnp.ones((4,), f32)))
+    wide = jax.ffi.ffi_call("SelfidClosedForm", jax.ShapeDtypeStruct((2, 7), f32), vmap_method="broadcast_all")
+    with pytest.raises(Exception, match="closed form: expected 1 <= m <= 6"):
+        jax.block_until_ready(wide(jnp.ones((7, 7), f32), jnp.ones((2, 7), f32), jnp.ones((2, 7), f32),
+                                   jnp.ones((), f32)))
+    with pytest.raises(ValueError, match="kernel: expected one of"):
+        native.call("solve", lambda x: x, jnp.ones(3))
+
+
+def test_a_batch_split_over_the_thread_pool_equals_the_reference():
+    """4,099 estimators: above the kernels' smallest chunk per thread (2,048), with a remainder past the last
+    block; the same values as the pure-JAX step."""
+    n, m, batch = 6, 3, 4099
+    d, V = sample_stream(3, batch, n, m, seed=12)
+    got = run_updates(d, V, jnp.float32, 0.97, 0.05, True)
+    ref = run_updates(d, V, jnp.float32, 0.97, 0.05, False)
+    np.testing.assert_array_equal(got.count, ref.count)
+    np.testing.assert_array_equal(got.rejected, ref.rejected)
+    np.testing.assert_allclose(got.S_tv, ref.S_tv, rtol=2e-5, atol=2e-5 * float(jnp.max(jnp.abs(ref.S_tv))))
+    J0 = jax.vmap(E.initial_guess)(got)
+    a, b = both(jax.vmap(RF.statistics_closed_form), got.S_vv, got.S_tv, J0)
+    np.testing.assert_allclose(a, b, rtol=0, atol=2e-5 * np.max(np.abs(b)))
+    rec = jax.jit(jax.vmap(lambda s, J: E.record(s, J, 1e-3)))
+    native.set_enabled(True)
+    x = rec(got, jnp.asarray(a))
+    native.set_enabled(False)
+    y = jax.jit(jax.vmap(lambda s, J: E.record(s, J, 1e-3)))(got, jnp.asarray(a))
+    native.set_enabled(True)
+    np.testing.assert_array_equal(x.estimate, y.estimate)
+    np.testing.assert_allclose(x.last_deltas, y.last_deltas, rtol=1e-6)

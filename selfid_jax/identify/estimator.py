@@ -443,18 +443,18 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
         # the native CPU kernel where it is built (selfid_jax.math.native), _record_fields elsewhere
         fields = native.call("record", _record_fields, J, *(getattr(state, f) for f in _RECORD_IN),
                              jnp.asarray(eps, dtype), jnp.asarray(eps_rel, dtype), jnp.asarray(min_count, jnp.int32))
-        return state._replace(estimate=J, **dict(zip(_RECORD_OUT, fields, strict=True)))
+        return state._replace(**dict(zip(_RECORD_OUT, fields, strict=True)))
     return _record(state, J, eps, eps_rel, delta, norm, min_count)
 
 
-_RECORD_OUT = ("last_deltas", "last_norms", "last_fresh", "recorded_count", "iteration", "converged_at")
+_RECORD_OUT = ("estimate", "last_deltas", "last_norms", "last_fresh", "recorded_count", "iteration", "converged_at")
 _RECORD_IN = ("estimate", "last_deltas", "last_norms", "last_fresh", "count", "recorded_count", "iteration",
               "converged_at")
 
 
 def _record_fields(J, *args):
     """:func:`record` on ``J``, the fields it reads (``_RECORD_IN``), ``eps``, ``eps_rel``, ``min_count``: the
-    fields it writes besides ``estimate`` (``_RECORD_OUT``), a tuple."""
+    fields it writes (``_RECORD_OUT``, the first the new estimate ``J``), a tuple."""
     fields, (eps, eps_rel, min_count) = dict(zip(_RECORD_IN, args[:-3], strict=True)), args[-3:]
     n, m = J.shape
     zeros = jnp.zeros((n, m), J.dtype)

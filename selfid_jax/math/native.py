@@ -1,4 +1,4 @@
-"""Native CPU kernels for the estimator's hot path: the per-sample update and Eq. 14's closed form.
+"""Native CPU kernels for the estimator's per-sample step: the update, Eq. 14's closed form, the record.
 
 XLA's CPU backend compiles a vmapped estimator step into loops that update one
 scalar per instruction (about 0.45 ns per value on the 2-core development
@@ -54,7 +54,7 @@ _LIB_STEM = "_native_kernels"
 _TARGETS = {"closed_form": "SelfidClosedForm", "record": "SelfidRecord", "update": "SelfidUpdate"}
 # result k written over argument j's buffer ({j: k}): XLA then updates a loop's carried state in place instead of
 # copying each new field into it
-_ALIASES = {"closed_form": {2: 0}, "record": {2: 0, 3: 1, 4: 2, 6: 3, 7: 4, 8: 5},
+_ALIASES = {"closed_form": {2: 0}, "record": {1: 0, 2: 1, 3: 2, 4: 3, 6: 4, 7: 5, 8: 6},
             "update": {k: k for k in range(8)}}
 _state: dict[str, object] = {"enabled": os.environ.get("SELFID_JAX_NATIVE", "1") != "0"}
 
@@ -116,8 +116,8 @@ def call(kernel: str, reference: Callable, *args: jax.Array):
     J (n, m)``) or ``"record"`` (``J, estimate (n, m), last_deltas,
     last_norms (2,), last_fresh (2,) bool, count, recorded_count, iteration,
     converged_at () int32, eps, eps_rel (), min_count () int32`` -> the
-    state's ``last_deltas, last_norms, last_fresh, recorded_count, iteration,
-    converged_at`` after it); one float dtype (float32 or float64), ``1 <= m <= 6``,
+    state's ``estimate (= J), last_deltas, last_norms, last_fresh,
+    recorded_count, iteration, converged_at`` after it); one float dtype (float32 or float64), ``1 <= m <= 6``,
     ``1 <= n <= 64``: other shapes and dtypes go to ``reference``. ``args``
     are one estimator's arrays (``vmap`` adds the kernel's batch); the result
     has ``reference``'s structure, shapes and dtypes. Falls back to
