@@ -17,7 +17,10 @@ For each it states the traffic per estimator and sample two ways:
   ``(dtheta, V)``: what a step must move at least;
 * **as XLA counts it**: ``cost_analysis()["bytes accessed"]`` of the compiled
   scan, divided by the batch (XLA counts a loop body once, whatever its trip
-  count: every fusion's operands and outputs, and the copies of the carry).
+  count: every fusion's operands and outputs, and the copies of the carry),
+  plus the arguments and results of its custom calls (the native kernels of
+  :mod:`selfid_jax.math.native`), which XLA's cost analysis leaves out: read
+  off the compiled HLO, each counted once as read and once as written.
 
 **The bound** is a copy at the memory level the state lives in: a ``lax.scan``
 of ``--steps`` jitted ``x * a + b`` over an array of the state's own size
@@ -34,6 +37,9 @@ copy at another memory level), flagged and not printed.
     python benchmarks/bandwidth.py [--batch 10000] [--steps 50] [--reps 5] [--rounds 3] [--json out.json]
     JAX_PLATFORMS=cpu taskset -c 0,1 python benchmarks/bandwidth.py   # the 2-core CPU row on a bigger machine
 
+The step's native CPU kernels run on one thread here (``SELFID_JAX_NATIVE_THREADS=1``
+unless the environment sets it), as the copy that sets the bound does.
+
 On a GPU run it with ``--batch 1000000 --copy-mib 2048`` (``benchmarks/gpu.sh`` does).
 """
 
@@ -43,7 +49,9 @@ import argparse
 import datetime
 import functools
 import glob
+import math
 import os
+import re
 import statistics
 import sys
 import time
@@ -52,6 +60,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# the bound is one thread's copy: the step's native kernels (selfid_jax.math.native) run on one thread too
+os.environ.setdefault("SELFID_JAX_NATIVE_THREADS", "1")
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,6 +70,7 @@ from estimator import F32, E, M, N, make_data, ours_step, scan_fn
 from timing import first_call, interleaved, usable_cpus
 
 from selfid_jax.identify import recursive as R
+from selfid_jax.math import native
 
 EPS = 1e-3
 
@@ -135,10 +146,39 @@ def xla_bytes(compiled) -> float | None:
 def xla_body_bytes(jitted, lead, d, V, batch: int, compiled=None) -> float | None:
     """XLA's count for one pass of the scan's body, per estimator: the program's ``bytes accessed`` over ``d, V``
     (``compiled``, if given, is it) less that of the same program over no samples (XLA counts a loop body once,
-    whatever its trip count)."""
+    whatever its trip count), plus its custom calls' arguments and results (:func:`custom_call_bytes`)."""
     compiled = jitted.lower(*lead, d, V).compile() if compiled is None else compiled
     full, empty = xla_bytes(compiled), xla_bytes(jitted.lower(*lead, d[:0], V[:0]).compile())
-    return None if full is None or empty is None else (full - empty) / batch
+    return None if full is None or empty is None else (full - empty + custom_call_bytes(compiled)) / batch
+
+
+_SHAPE = re.compile(r"\b(pred|[suf](?:8|16|32|64)|bf16)\[([\d,]*)\]")
+_DEF = re.compile(r"^\s*(?:ROOT\s+)?(%[\w.-]+)\s*=\s*(.*?)\s+([\w-]+)\((.*)$")
+
+
+def shape_bytes(text: str) -> int:
+    """Bytes of every array shape written in ``text`` (an HLO shape or tuple of shapes, ``f32[10000,6,3]{2,1,0}``)."""
+    total = 0
+    for dtype, dims in _SHAPE.findall(text):
+        width = 1 if dtype in ("pred", "s8", "u8") else (2 if dtype == "bf16" else int(dtype[1:]) // 8)
+        total += width * math.prod(int(x) for x in dims.split(",") if x)
+    return total
+
+
+def custom_call_bytes(compiled) -> int:
+    """Bytes of the arguments and results of every custom call in ``compiled``'s HLO (each call once)."""
+    shapes: dict[str, str] = {}
+    calls: list[tuple[str, str]] = []
+    for line in compiled.as_text().splitlines():
+        m = _DEF.match(line)
+        if m is None:
+            continue
+        name, shape, op, rest = m.groups()
+        shapes[name] = shape
+        if op == "custom-call":
+            calls.append((shape, rest[: rest.find(")")]))
+    return sum(shape_bytes(shape) + sum(shape_bytes(shapes.get(a, "")) for a in re.findall(r"%[\w.-]+", args))
+               for shape, args in calls)
 
 
 def copy_program(nbytes: int, steps: int):
@@ -200,6 +240,8 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5, rounds: int = 3, co
             "memory_level": "cache" if resident else "main memory", "cache_mib": cache_mib,
             "state_mib": state_bytes / (1 << 20), "copy_mib": copy_bytes / (1 << 20),
             "copy_bandwidth_gb_s": bw / 1e9, "reps": reps * rounds, "steps_rows": out,
+            "native": (f"on, SELFID_JAX_NATIVE_THREADS={os.environ.get('SELFID_JAX_NATIVE_THREADS', '')}"
+                       if native.enabled() else f"off ({native.load_error() or 'turned off'})"),
             # the closed-form row under the names benchmarks/run_all.py reads (NaN where it is a measurement error)
             "traffic": main["traffic"], "xla_bytes_per_step": main["xla_bytes_per_step"],
             "estimator_steps_per_s": main["estimator_steps_per_s"], "steps_per_s": main["steps_per_s"],
@@ -221,7 +263,8 @@ def report(r: dict) -> str:
              f"{r['date']}, load average {load}",
              f"state {r['state_mib']:.1f} MiB at batch {r['batch']:,} ({r['memory_level']}; last-level cache "
              f"{r['cache_mib']:.0f} MiB): bound = a copy of {r['copy_mib']:.1f} MiB, {r['steps']} iterations in one "
-             f"scan, {r['copy_bandwidth_gb_s']:.1f} GB/s (read + written), medians of {r['reps']} interleaved calls"]
+             f"scan, {r['copy_bandwidth_gb_s']:.1f} GB/s (read + written), medians of {r['reps']} interleaved calls",
+             f"native kernels {r['native']}"]
     for name, s in r["steps_rows"].items():
         t = s["traffic"]
         xla = "-" if s["xla_bytes_per_step"] is None else f"{s['xla_bytes_per_step']:.0f} B"

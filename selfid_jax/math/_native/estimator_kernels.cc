@@ -8,6 +8,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <limits>
 #include <memory>
 #include <string>
@@ -153,11 +154,21 @@ struct Call {
 // intra-op thread pool (chunks of at least kMinChunk estimators; one chunk below that). A scheduled task that starts
 // late finds no chunk left and returns: the caller waits only for chunks that a thread has taken, never for a task
 // the pool has not started, so a busy pool costs time, not a deadlock.
+// SELFID_JAX_NATIVE_THREADS (read once): the most threads a kernel uses; unset or 0: all of the pool's.
 constexpr int64_t kMinChunk = 2048;
+
+int64_t MaxThreads() {
+  static const int64_t max = [] {
+    const char* v = std::getenv("SELFID_JAX_NATIVE_THREADS");
+    return v == nullptr ? int64_t{0} : std::max<int64_t>(0, std::atoll(v));
+  }();
+  return max;
+}
 
 template <typename Body>
 void ParallelFor(ffi::ThreadPool& pool, int64_t batch, const Body& body) {
-  const int64_t threads = std::max<int64_t>(1, pool.num_threads());
+  int64_t threads = std::max<int64_t>(1, pool.num_threads());
+  if (MaxThreads() > 0) threads = std::min(threads, MaxThreads());
   const int64_t chunks = std::min<int64_t>(threads, batch / kMinChunk);
   if (chunks <= 1) {
     body(int64_t{0}, batch);
