@@ -31,9 +31,10 @@ round-off (the kernels contract a multiply and an add into one FMA where the
 CPU has it); the counters are equal.
 
 Each call splits its batch over XLA's intra-op thread pool in chunks of at
-least 2,048 estimators (a smaller batch runs on the calling thread);
-``SELFID_JAX_NATIVE_THREADS=k`` in the environment before the first call
-caps it at ``k`` threads (0 or unset: the pool's).
+least 2,048 estimators (a smaller batch runs on the calling thread), on at
+most as many threads as the CPUs the process may run on (Linux's affinity
+mask); ``SELFID_JAX_NATIVE_THREADS=k`` in the environment before the first
+call caps it at ``k`` threads instead.
 
 :func:`available` says whether the kernels are loaded; :func:`enabled` is
 False where they are not, or where ``SELFID_JAX_NATIVE=0`` was set before

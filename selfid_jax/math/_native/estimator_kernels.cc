@@ -4,6 +4,10 @@
 // XLA's CPU code generator runs a vmapped estimator one scalar at a time; these kernels run the same operations
 // on 8 float32 (4 float64) estimators per instruction. The arithmetic is estimator_kernels.inc, compiled twice:
 // for the x86-64 baseline (SSE2) and, where the CPU has them, AVX2 and FMA (chosen at run time).
+#ifdef __linux__
+#include <sched.h>
+#endif
+
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -154,13 +158,20 @@ struct Call {
 // intra-op thread pool (chunks of at least kMinChunk estimators; one chunk below that). A scheduled task that starts
 // late finds no chunk left and returns: the caller waits only for chunks that a thread has taken, never for a task
 // the pool has not started, so a busy pool costs time, not a deadlock.
-// SELFID_JAX_NATIVE_THREADS (read once): the most threads a kernel uses; unset or 0: all of the pool's.
+// The most threads a kernel uses (read once): SELFID_JAX_NATIVE_THREADS if set above 0, else the CPUs this process
+// may run on (on Linux; a thread pool larger than that would only take turns on them), else no limit (0).
 constexpr int64_t kMinChunk = 2048;
 
 int64_t MaxThreads() {
   static const int64_t max = [] {
     const char* v = std::getenv("SELFID_JAX_NATIVE_THREADS");
-    return v == nullptr ? int64_t{0} : std::max<int64_t>(0, std::atoll(v));
+    const int64_t asked = v == nullptr ? 0 : std::max<int64_t>(0, std::atoll(v));
+    if (asked > 0) return asked;
+#ifdef __linux__
+    cpu_set_t set;
+    if (sched_getaffinity(0, sizeof(set), &set) == 0) return static_cast<int64_t>(CPU_COUNT(&set));
+#endif
+    return int64_t{0};
   }();
   return max;
 }
