@@ -391,3 +391,25 @@ def test_a_batch_split_over_the_thread_pool_equals_the_reference():
     native.set_enabled(True)
     np.testing.assert_array_equal(x.estimate, y.estimate)
     np.testing.assert_allclose(x.last_deltas, y.last_deltas, rtol=1e-6)
+
+
+def test_update_with_a_ring_buffer_keeps_the_accepted_samples_like_the_reference():
+    """A state with ``capacity=4``: the kernel's sums, the buffer written by XLA, bit-identical buffers."""
+    n, m, batch = 6, 3, 11
+    d, V = sample_stream(9, batch, n, m, seed=13)
+
+    def go(d, V):
+        s0 = jax.vmap(lambda _: E.init(n, m, capacity=4, v_tol=0.05, dtype=jnp.float32))(jnp.arange(batch))
+        return jax.lax.scan(lambda s, x: (jax.vmap(E.update)(s, *x), None), s0, (d, V))[0]
+
+    args = jnp.asarray(d, jnp.float32), jnp.asarray(V, jnp.float32)
+    assert "SelfidUpdate" in jax.jit(go).lower(*args).as_text()
+    got = jax.jit(go)(*args)
+    native.set_enabled(False)
+    ref = jax.jit(go)(*args)
+    native.set_enabled(True)
+    np.testing.assert_array_equal(got.dtheta_buf, ref.dtheta_buf)
+    np.testing.assert_array_equal(got.v_buf, ref.v_buf)
+    np.testing.assert_array_equal(got.count, ref.count)
+    assert np.all(np.isfinite(np.asarray(got.dtheta_buf)))
+    np.testing.assert_allclose(got.S_tv, ref.S_tv, rtol=2e-5, atol=2e-5 * float(jnp.max(jnp.abs(ref.S_tv))))

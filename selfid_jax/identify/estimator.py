@@ -303,17 +303,24 @@ def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike, *, once=None)
     the result's value is the same either way).
     """
     n, m, capacity = sizes(state)
-    if once is not None or capacity > 0:
-        fold = accumulate if once is None else functools.partial(accumulate, once=once)
-        return guarded_update(fold, state, dtheta, V, shape=(n, m), dtype=state.sign_net.dtype, admit=fits,
-                              zero_is_identity=True, once=once)
+    if once is not None:
+        return guarded_update(functools.partial(accumulate, once=once), state, dtheta, V, shape=(n, m),
+                              dtype=state.sign_net.dtype, admit=fits, zero_is_identity=True, once=once)
     check_array("dtheta", dtheta, (n,))
     check_array("V", V, (m,))
     dtype = state.sign_net.dtype
-    # the native CPU kernel where it is built (selfid_jax.math.native), _update_sums elsewhere
-    sums = native.call("update", _update_sums, *(getattr(state, f) for f in _UPDATE_IN),
-                       jnp.asarray(dtheta, dtype), jnp.asarray(V, dtype))
-    return state._replace(**dict(zip(_UPDATE_OUT, sums, strict=True)))
+    dtheta, V = jnp.asarray(dtheta, dtype), jnp.asarray(V, dtype)
+    # the sums: the native CPU kernel where it is built (selfid_jax.math.native), _update_sums elsewhere
+    sums = native.call("update", _update_sums, *(getattr(state, f) for f in _UPDATE_IN), dtheta, V)
+    new = state._replace(**dict(zip(_UPDATE_OUT, sums, strict=True)))
+    if capacity == 0:
+        return new
+    slot = state.count % capacity  # the ring buffer takes an accepted sample only
+    accepted = new.count > state.count
+    return new._replace(
+        dtheta_buf=state.dtheta_buf.at[slot].set(jnp.where(accepted, dtheta, state.dtheta_buf[slot])),
+        v_buf=state.v_buf.at[slot].set(jnp.where(accepted, V, state.v_buf[slot])),
+    )
 
 
 _UPDATE_OUT = ("sign_net", "mag_sum", "mag_count", "S_vv", "S_tv", "s_tt", "count", "rejected")
@@ -321,8 +328,8 @@ _UPDATE_IN = (*_UPDATE_OUT, "v_tol", "forget")
 
 
 def _update_sums(*args):
-    """:func:`update` of a state without a ring buffer, on the fields it reads (``_UPDATE_IN``, then ``dtheta``,
-    ``V``): the fields it writes (``_UPDATE_OUT``), a tuple."""
+    """:func:`update`'s sums, on the fields it reads (``_UPDATE_IN``, then ``dtheta``, ``V``): the fields it writes
+    besides the ring buffer (``_UPDATE_OUT``), a tuple."""
     fields, dtheta, V = dict(zip(_UPDATE_IN, args[:-2], strict=True)), args[-2], args[-1]
     n, m = fields["S_tv"].shape
     dtype = fields["S_tv"].dtype

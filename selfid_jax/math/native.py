@@ -7,9 +7,9 @@ machine, whatever the layout; ``docs/benchmarks.md``). The C++ kernels in
 float32 (4 float64) estimators per instruction (AVX2 and FMA where the CPU has
 them, SSE2 otherwise), each as one XLA FFI custom call over the whole batch:
 
-* ``"update"``: :func:`selfid_jax.identify.estimator.update` of a state
-  without a ring buffer (the sample screen, the sums of Eq. 6-12 and 14, the
-  counters);
+* ``"update"``: the sums of :func:`selfid_jax.identify.estimator.update`
+  (the sample screen, the sums of Eq. 6-12 and 14, the counters; the ring
+  buffer's write, if the state has one, stays XLA code);
 * ``"closed_form"``: :func:`selfid_jax.identify.refine.statistics_closed_form`
   with no ridge (two unrolled ``L D L^T`` factorisations, a null-space
   projector and a solve per estimator);

@@ -30,8 +30,8 @@ namespace ffi = xla::ffi;
 // A kernel's arguments, each array at p + (first estimator) * stride (stride 0: one value for every estimator),
 // its results written back to back (a result may be its argument's buffer: see selfid_jax.math.native's aliases).
 
-// update without a ring buffer: sign_net, mag_sum, S_tv (n, m); mag_count (m,); S_vv (m, m); s_tt, v_tol, forget
-// (); count, rejected () int32; the sample dtheta (n,), V (m,); the first eight written.
+// update's sums (its ring buffer is XLA's): sign_net, mag_sum, S_tv (n, m); mag_count (m,); S_vv (m, m); s_tt,
+// v_tol, forget (); count, rejected () int32; the sample dtheta (n,), V (m,); the first eight written.
 template <typename T>
 struct UpdateArgs {
   const T *sign_net, *mag_sum, *mag_count, *S_vv, *S_tv, *s_tt;
