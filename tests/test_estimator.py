@@ -8,6 +8,7 @@ import pytest
 
 import selfid_jax as sj
 from selfid_jax.identify import estimator as E
+from selfid_jax.math import native
 
 
 def numpy_reference(dthetas, Vs, v_tol):
@@ -287,8 +288,12 @@ def test_update_once_and_record_norm_change_no_value():
         return x
 
     state = E.init(3, 2, capacity=2)
-    for d, V in (([0.1, -0.2, 0.3], [0.5, -0.1]), ([jnp.nan, 0.0, 0.1], [1.0, 0.0])):  # accepted, rejected
-        chex.assert_trees_all_equal(E.update(state, d, V, once=f), E.update(state, d, V))
+    old = native.set_enabled(False)  # update() without once runs the native kernel where built: equal to round-off
+    try:
+        for d, V in (([0.1, -0.2, 0.3], [0.5, -0.1]), ([jnp.nan, 0.0, 0.1], [1.0, 0.0])):  # accepted, rejected
+            chex.assert_trees_all_equal(E.update(state, d, V, once=f), E.update(state, d, V))
+    finally:
+        native.set_enabled(old)
     assert seen == [(), (3,), (2,), (2,)] * 2  # acceptance, u_t, u_v, 1 / |V_j|
     J = jnp.arange(6.0).reshape(3, 2)
     chex.assert_trees_all_close(E.record(state, J, 0.1, norm=jnp.linalg.norm(J)), E.record(state, J, 0.1),

@@ -1,6 +1,7 @@
 """The wheel holds what a checkout imports: experiments/ as selfid_jax.experiments, configs/ as selfid_jax.configs,
-the type stubs that list the public names, and no top-level package of another name; and the installed package finds
-its experiments and configs with the import system's own finders (no hook of ours on ``sys.meta_path``)."""
+the type stubs that list the public names, the native kernels' library, and no top-level package of another name;
+and the installed package finds its experiments, configs and kernels with the import system's own finders (no hook of
+ours on ``sys.meta_path``)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-pytestmark = pytest.mark.slow  # builds a wheel (about 5 s)
+# builds a wheel (about 25 s: the native kernels compile), once: both tests on one worker
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("wheel")]
 
 PROBE = r"""
 import json, sys
@@ -28,6 +30,7 @@ print(json.dumps({
     "demo": type(runner.get("demo")).__name__,
     "finders": [getattr(f, "__module__", None) or type(f).__module__ for f in sys.meta_path],
     "fit": selfid_jax.fit.__module__,
+    "native": __import__("selfid_jax.math.native").math.native.load_error() or "loaded",
 }))
 """
 
@@ -51,6 +54,7 @@ def test_wheel_holds_the_experiments_configs_and_stubs(wheel):
     assert configs and {f"selfid_jax/configs/{p}" for p in configs} <= set(names)
     stubs = {p.relative_to(ROOT).as_posix() for p in (ROOT / "selfid_jax").rglob("*.pyi")}
     assert stubs and stubs | {"selfid_jax/py.typed"} <= set(names)
+    assert [n for n in names if n.startswith("selfid_jax/math/_native_kernels.")], "no native kernels in the wheel"
 
 
 def test_installed_wheel_finds_its_experiments_without_a_hook(wheel, tmp_path):
@@ -63,4 +67,5 @@ def test_installed_wheel_finds_its_experiments_without_a_hook(wheel, tmp_path):
     assert got["package"].startswith(str(site)) and got["experiment"].startswith(str(site)), got
     assert got["configs"] == [str(site / "selfid_jax" / "configs")], got
     assert got["demo"] and got["fit"] == "selfid_jax.robot.offline"
+    assert got["native"] == "loaded", got["native"]  # the wheel's own kernels, built with it
     assert not [m for m in got["finders"] if m and m.startswith("selfid_jax")], got["finders"]

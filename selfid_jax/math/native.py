@@ -57,6 +57,7 @@ import jax.numpy as jnp
 __all__ = ["available", "call", "enabled", "load_error", "set_enabled"]
 
 _LIB_STEM = "_native_kernels"
+_ABI = 1  # SelfidKernelsAbi() of the sources beside this module: a change to a handler's arguments bumps both
 _TARGETS = {"closed_form": "SelfidClosedForm", "record": "SelfidRecord", "update": "SelfidUpdate"}
 # result k written over argument j's buffer ({j: k}): XLA then updates a loop's carried state in place instead of
 # copying each new field into it
@@ -82,6 +83,9 @@ def _load() -> tuple[bool, str]:
         return False, f"no {_LIB_STEM} library next to {__file__} (built without a C++ compiler?)"
     try:
         lib = ctypes.cdll.LoadLibrary(str(path))
+        abi = lib.SelfidKernelsAbi()
+        if abi != _ABI:
+            return False, f"{path} was built from other sources (ABI {abi}, expected {_ABI}): reinstall the package"
         for target in _TARGETS.values():
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, target)), platform="cpu")
     except (OSError, AttributeError) as e:

@@ -341,6 +341,10 @@ ffi::Error RecordImpl(ffi::ThreadPool pool, ffi::AnyBuffer J, ffi::AnyBuffer est
 
 }  // namespace
 
+// The handlers' argument lists' version: selfid_jax.math.native refuses a library built from other sources (an
+// editable checkout pulled without a rebuild) instead of calling it with arguments it does not take.
+extern "C" int SelfidKernelsAbi() { return 1; }
+
 XLA_FFI_DEFINE_HANDLER_SYMBOL(SelfidClosedForm, ClosedFormImpl,
                               ffi::Ffi::Bind()
                                   .Ctx<ffi::ThreadPool>()
