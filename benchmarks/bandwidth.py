@@ -240,8 +240,7 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5, rounds: int = 3, co
             "memory_level": "cache" if resident else "main memory", "cache_mib": cache_mib,
             "state_mib": state_bytes / (1 << 20), "copy_mib": copy_bytes / (1 << 20),
             "copy_bandwidth_gb_s": bw / 1e9, "reps": reps * rounds, "steps_rows": out,
-            "native": (f"on, SELFID_JAX_NATIVE_THREADS={os.environ.get('SELFID_JAX_NATIVE_THREADS', '')}"
-                       if native.enabled() else f"off ({native.load_error() or 'turned off'})"),
+            "native": f"{native.status()}, SELFID_JAX_NATIVE_THREADS={os.environ.get('SELFID_JAX_NATIVE_THREADS', '')}",
             # the closed-form row under the names benchmarks/run_all.py reads (NaN where it is a measurement error)
             "traffic": main["traffic"], "xla_bytes_per_step": main["xla_bytes_per_step"],
             "estimator_steps_per_s": main["estimator_steps_per_s"], "steps_per_s": main["steps_per_s"],

@@ -194,7 +194,7 @@ def run(batch: int = 10_000, steps: int = 50, reps: int = 5, rounds: int = 3, st
     return {"batch": batch, "n": N, "m": M, "dtype": "float32", "steps": steps, "reps": reps * rounds,
             "device": f"{jax.device_count() if shard else 1} {jax.devices()[0].platform}", "rows": rows,
             "cpus_usable": usable_cpus(),
-            "native": "on" if native.enabled() else f"off ({native.load_error() or 'turned off'})"}
+            "native": native.status()}
 
 
 def report(res: dict) -> str:

@@ -258,7 +258,7 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array, *, once=N
     :func:`selfid_jax.identify.recursive.once`, which makes XLA compute each
     term once per estimator instead of once per entry of every sum it updates.
     """
-    n, m, capacity = sizes(state)
+    n, m, _ = sizes(state)
     dtype = state.sign_net.dtype
     # Per-sample values come out of reductions (computed once per estimator by XLA); what follows
     # them is recomputed inside each (n, m) sum below, so it stays short.
@@ -281,12 +281,19 @@ def accumulate(state: EstimatorState, dtheta: jax.Array, V: jax.Array, *, once=N
         S_tv=lam * state.S_tv + dtheta[:, None] * V[None, :],
         s_tt=lam * state.s_tt + jnp.sum(dtheta * dtheta),
     )
+    return _ring_write(state, new, dtheta, V, nonzero)
+
+
+def _ring_write(state: EstimatorState, new: EstimatorState, dtheta, V, keep) -> EstimatorState:
+    """``new`` with ``(dtheta, V)`` in ring-buffer row ``state.count % capacity`` where ``keep`` (``()`` bool: the
+    sample was accepted); ``new`` itself without a buffer."""
+    _, _, capacity = sizes(state)
     if capacity == 0:
         return new
     slot = state.count % capacity
     return new._replace(
-        dtheta_buf=state.dtheta_buf.at[slot].set(jnp.where(nonzero, dtheta, state.dtheta_buf[slot])),
-        v_buf=state.v_buf.at[slot].set(jnp.where(nonzero, V, state.v_buf[slot])),
+        dtheta_buf=state.dtheta_buf.at[slot].set(jnp.where(keep, dtheta, state.dtheta_buf[slot])),
+        v_buf=state.v_buf.at[slot].set(jnp.where(keep, V, state.v_buf[slot])),
     )
 
 
@@ -302,7 +309,7 @@ def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike, *, once=None)
     (:func:`guarded_update`). ``once``: see :func:`accumulate` (None: none;
     the result's value is the same either way).
     """
-    n, m, capacity = sizes(state)
+    n, m, _ = sizes(state)
     if once is not None:
         return guarded_update(functools.partial(accumulate, once=once), state, dtheta, V, shape=(n, m),
                               dtype=state.sign_net.dtype, admit=fits, zero_is_identity=True, once=once)
@@ -313,14 +320,7 @@ def update(state: EstimatorState, dtheta: ArrayLike, V: ArrayLike, *, once=None)
     # the sums: the native CPU kernel where it is built (selfid_jax.math.native), _update_sums elsewhere
     sums = native.call("update", _update_sums, *(getattr(state, f) for f in _UPDATE_IN), dtheta, V)
     new = state._replace(**dict(zip(_UPDATE_OUT, sums, strict=True)))
-    if capacity == 0:
-        return new
-    slot = state.count % capacity  # the ring buffer takes an accepted sample only
-    accepted = new.count > state.count
-    return new._replace(
-        dtheta_buf=state.dtheta_buf.at[slot].set(jnp.where(accepted, dtheta, state.dtheta_buf[slot])),
-        v_buf=state.v_buf.at[slot].set(jnp.where(accepted, V, state.v_buf[slot])),
-    )
+    return _ring_write(state, new, dtheta, V, new.count > state.count)
 
 
 _UPDATE_OUT = ("sign_net", "mag_sum", "mag_count", "S_vv", "S_tv", "s_tt", "count", "rejected")
@@ -333,11 +333,7 @@ def _update_sums(*args):
     fields, dtheta, V = dict(zip(_UPDATE_IN, args[:-2], strict=True)), args[-2], args[-1]
     n, m = fields["S_tv"].shape
     dtype = fields["S_tv"].dtype
-    state = EstimatorState(**fields, dtheta_buf=jnp.zeros((0, n), dtype), v_buf=jnp.zeros((0, m), dtype),
-                           estimate=jnp.zeros((n, m), dtype), last_deltas=jnp.zeros((2,), dtype),
-                           last_norms=jnp.zeros((2,), dtype), last_fresh=jnp.zeros((2,), bool),
-                           recorded_count=jnp.zeros((), jnp.int32), iteration=jnp.zeros((), jnp.int32),
-                           converged_at=jnp.zeros((), jnp.int32))
+    state = init(n, m, capacity=0, dtype=dtype)._replace(**fields)  # the fields update does not read: unused
     new = guarded_update(accumulate, state, dtheta, V, shape=(n, m), dtype=dtype, admit=fits, zero_is_identity=True)
     return tuple(getattr(new, f) for f in _UPDATE_OUT)
 
@@ -464,12 +460,7 @@ def _record_fields(J, *args):
     fields it writes (``_RECORD_OUT``, the first the new estimate ``J``), a tuple."""
     fields, (eps, eps_rel, min_count) = dict(zip(_RECORD_IN, args[:-3], strict=True)), args[-3:]
     n, m = J.shape
-    zeros = jnp.zeros((n, m), J.dtype)
-    state = EstimatorState(sign_net=zeros, mag_sum=zeros, mag_count=jnp.zeros((m,), J.dtype),
-                           S_vv=jnp.zeros((m, m), J.dtype), S_tv=zeros, s_tt=jnp.zeros((), J.dtype),
-                           dtheta_buf=jnp.zeros((0, n), J.dtype), v_buf=jnp.zeros((0, m), J.dtype),
-                           rejected=jnp.zeros((), jnp.int32), v_tol=jnp.zeros((), J.dtype),
-                           forget=jnp.ones((), J.dtype), **fields)
+    state = init(n, m, capacity=0, dtype=J.dtype)._replace(**fields)  # the fields record does not read: unused
     new = _record(state, J, eps, eps_rel, None, None, min_count)
     return tuple(getattr(new, f) for f in _RECORD_OUT)
 

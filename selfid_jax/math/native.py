@@ -54,7 +54,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 
-__all__ = ["available", "call", "enabled", "load_error", "set_enabled"]
+__all__ = ["available", "call", "enabled", "load_error", "set_enabled", "status"]
 
 _LIB_STEM = "_native_kernels"
 _ABI = 1  # SelfidKernelsAbi() of the sources beside this module: a change to a handler's arguments bumps both
@@ -106,6 +106,11 @@ def load_error() -> str:
 def enabled() -> bool:
     """True iff :func:`call` uses the native kernels on CPU (available and not turned off)."""
     return bool(_state["enabled"]) and available()
+
+
+def status() -> str:
+    """One line for a report: ``"on"``, or ``"off (why)"``."""
+    return "on" if enabled() else f"off ({load_error() or 'turned off'})"
 
 
 def set_enabled(on: bool) -> bool:
