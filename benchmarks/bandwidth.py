@@ -3,9 +3,10 @@
 Two steps, n = 6, m = 3, float32, no sample buffer, ``--batch`` vmapped
 estimators, ``--steps`` samples in one ``lax.scan``, the whole state returned:
 
-* ``closed form``: ``benchmarks/estimator.py``'s ``ours`` (``update``,
-  ``initial_guess``, ``statistics_closed_form``, ``record`` every sample: the
-  per-sample step of :func:`selfid_jax.identify.step.sample_step`);
+* ``closed form``: ``benchmarks/estimator.py``'s ``ours``, the per-sample
+  step :func:`selfid_jax.identify.step.sample_step` (``update``,
+  ``initial_guess``, the closed form of Eq. 14, ``record``; one native kernel
+  on CPU where the kernels are built);
 * ``rank-one block``: :func:`selfid_jax.identify.recursive.run` past the start
   (``warmup=0``, ``history=False``), the state and its ``Recursion`` returned
   (the fleet form, ``benchmarks/rls_floor.py``'s ``... steady, full state out``).

@@ -13,16 +13,20 @@ Rows (medians of ``--reps`` timings after a warm-up, interleaved in rounds so
 that load from other processes hits all alike; compile time separate):
 
 * ``rls``: :func:`selfid_jax.baselines.rls` ``update`` + ``estimate``, the reference;
-* ``ours``: the full step above, no sample buffer (``capacity=0``), with the
-  update and the closed form in the native CPU kernels where they are built
+* ``ours``: the full step above as :func:`selfid_jax.identify.step.sample_step`
+  runs it (``method="closed_form"``), no sample buffer (``capacity=0``): one
+  native CPU kernel for the whole step where the kernels are built
   (:mod:`selfid_jax.math.native`);
 * ``ours, pure JAX``: the same step with the kernels off, XLA code only;
+* ``ours, composed``: the step written by a caller from the public functions
+  (``update``, ``initial_guess``, ``statistics_closed_form``, ``record``):
+  three native kernels and the guess in XLA between them;
 * ``ours, least squares only``: ``update`` + ``S_tv S_vv^+`` without the
   initial guess and the record (the probe of the issue);
 * ``ours, 64-sample buffer (before)``: the pre-statistics step, Eq. 14
   re-solved on a 64-sample ring buffer every step (``closed_form`` on the
   buffer, SVD pseudo-inverse), timed on ``--steps-before`` samples;
-* ``..., full state out``: ``rls``, ``ours`` and ``ours, pure JAX`` with the
+* ``..., full state out``: ``rls``, ``ours``, ``ours, pure JAX`` and ``ours, composed`` with the
   whole final state returned instead of the estimate alone (so XLA drops none
   of the step as dead code), their ratios against ``plain RLS, full state
   out``: five lines written here (``P v``, the gain, ``J += e k^T``,
@@ -53,6 +57,7 @@ from timing import first_call, interleaved, usable_cpus
 import selfid_jax  # noqa: F401  (XLA flags before JAX initialises)
 from selfid_jax import baselines
 from selfid_jax.identify import estimator as E
+from selfid_jax.identify.step import sample_step
 from selfid_jax.math import native
 
 RF = sys.modules["selfid_jax.identify.refine"]
@@ -77,6 +82,10 @@ def lstsq_reference(d, V, count: int = 200):
 
 
 def ours_step(state, dtheta, V):
+    return sample_step(state, dtheta, V, 1e-3, 0.0, method="closed_form")[0]
+
+
+def composed_step(state, dtheta, V):
     state = E.update(state, dtheta, V)
     J = RF.statistics_closed_form(state.S_vv, state.S_tv, E.initial_guess(state))
     return E.record(state, J, 1e-3)
@@ -130,6 +139,7 @@ def variants(batch):
         "rls": (lambda: RLS.init(N, M, dtype=F32), rls_step, lambda s: s.J),
         "ours": (lambda: E.init(N, M, capacity=0, dtype=F32), ours_step, lambda s: s.estimate),
         "ours, pure JAX": (lambda: E.init(N, M, capacity=0, dtype=F32), pure_jax(ours_step), lambda s: s.estimate),
+        "ours, composed": (lambda: E.init(N, M, capacity=0, dtype=F32), composed_step, lambda s: s.estimate),
         "ours, least squares only": (lambda: E.init(N, M, capacity=0, dtype=F32), least_squares_step,
                                      lambda s: s.estimate),
         "ours, 64-sample buffer (before)": (lambda: E.init(N, M, capacity=64, dtype=F32), buffered_step,
@@ -141,6 +151,7 @@ def variants(batch):
         "rls" + FULL: (lambda: RLS.init(N, M, dtype=F32), rls_step, lambda s: s),
         "ours" + FULL: (lambda: E.init(N, M, capacity=0, dtype=F32), ours_step, lambda s: s),
         "ours, pure JAX" + FULL: (lambda: E.init(N, M, capacity=0, dtype=F32), pure_jax(ours_step), lambda s: s),
+        "ours, composed" + FULL: (lambda: E.init(N, M, capacity=0, dtype=F32), composed_step, lambda s: s),
     }
 
 

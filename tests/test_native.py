@@ -22,6 +22,7 @@ import pytest
 
 from selfid_jax.identify import estimator as E
 from selfid_jax.identify import refine as RF
+from selfid_jax.identify import step as ST
 from selfid_jax.math import native
 
 
@@ -413,3 +414,137 @@ def test_update_with_a_ring_buffer_keeps_the_accepted_samples_like_the_reference
     np.testing.assert_array_equal(got.count, ref.count)
     assert np.all(np.isfinite(np.asarray(got.dtheta_buf)))
     np.testing.assert_allclose(got.S_tv, ref.S_tv, rtol=2e-5, atol=2e-5 * float(jnp.max(jnp.abs(ref.S_tv))))
+
+
+def run_steps(d, V, dtype, *, forget=0.97, v_tol=0.05, capacity=0, eps=1e-2, eps_rel=1e-3, min_count=2,
+              options=(), on: bool = True, compose: bool = False):
+    """``(final state, StepInfo (T, batch))`` of a scan over ``vmap(sample_step)`` (closed form); ``compose``: the
+    step written from the public functions instead (update, initial_guess, statistics_closed_form, record)."""
+    T, batch, n = d.shape
+    m = V.shape[-1]
+
+    def one(s, x, v):
+        if not compose:
+            return ST.sample_step(s, x, v, eps, eps_rel, method="closed_form", options=options, min_count=min_count)
+        new = E.update(s, x, v)
+        J = RF.statistics_closed_form(new.S_vv, new.S_tv, E.initial_guess(new), rcond=dict(options).get("rcond"))
+        new = E.record(new, J, eps, eps_rel, min_count=min_count)
+        return new, new.last_deltas[1]
+
+    def go(d, V):
+        s0 = jax.vmap(lambda _: E.init(n, m, capacity=capacity, v_tol=v_tol, forget=forget, dtype=dtype))(
+            jnp.arange(batch))
+        return jax.lax.scan(lambda s, x: jax.vmap(one)(s, *x), s0, (d, V))
+
+    args = jnp.asarray(d, dtype), jnp.asarray(V, dtype)
+    native.set_enabled(on)
+    try:
+        text = jax.jit(go).lower(*args).as_text()
+        out = jax.jit(go)(*args)
+    finally:
+        native.set_enabled(True)
+    assert ("SelfidStep" in text) == (on and not compose)
+    return out
+
+
+def assert_states_close(got, ref, rtol):
+    """Counters, flags and iterations equal; float fields within ``rtol`` of the field's largest entry (the
+    deltas, differences of estimates that were larger before, within ``10 rtol``)."""
+    for name, a, b in zip(got._fields, got, ref, strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        if a.dtype.kind in "biu":
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        else:
+            finite = np.isfinite(b)
+            np.testing.assert_array_equal(np.isfinite(a), finite, err_msg=name)
+            scale = max(1.0, float(np.max(np.abs(b[finite]), initial=0.0))) * (10 if name == "last_deltas" else 1)
+            np.testing.assert_allclose(a[finite], b[finite], rtol=0, atol=rtol * scale, err_msg=name)
+
+
+@pytest.mark.parametrize("dtype, rtol", [(jnp.float32, 2e-5), (jnp.float64, 1e-12)])
+@pytest.mark.parametrize("n, m, batch", [(6, 3, 21), (1, 1, 3), (16, 6, 9), (3, 2, 1)])
+def test_the_step_is_one_kernel_equal_to_the_pure_jax_step_and_to_least_squares(n, m, batch, dtype, rtol):
+    """``sample_step`` with the closed form: one ``SelfidStep`` call per sample (no other kernel, no XLA guess), the
+    pure-JAX step's state and diagnostics to round-off (counters and convergence iterations equal), the three-kernel
+    composition's, and the float64 least-squares solution of the accepted samples (numpy)."""
+    d, V = sample_stream(14, batch, n, m, seed=3 * n + m + batch)
+    (got, info), (ref, ref_info) = run_steps(d, V, dtype), run_steps(d, V, dtype, on=False)
+    assert_states_close(got, ref, rtol)
+    np.testing.assert_array_equal(info.accepted, ref_info.accepted)
+    composed, composed_delta = run_steps(d, V, dtype, compose=True)
+    assert_states_close(got, composed, rtol)
+    # the per-sample deltas: the three kernels' to round-off; the pure-JAX step's in float64 (in float32 the
+    # estimates of the first, rank-deficient samples are ill-conditioned: 0.4 % apart where they jump by 1e3)
+    np.testing.assert_allclose(info.delta, composed_delta, rtol=rtol, atol=rtol)
+    if dtype == jnp.float64:
+        np.testing.assert_allclose(info.delta, ref_info.delta, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(info.threshold, ref_info.threshold, rtol=1e-9)
+    want, count, rejected = numpy_update(d, V, 0.97, 0.05, dtype)
+    np.testing.assert_array_equal(got.count, count)
+    np.testing.assert_array_equal(got.rejected, rejected)
+    for b in range(batch):
+        if np.linalg.matrix_rank(want["S_vv"][b]) == m:
+            J = np.linalg.solve(want["S_vv"][b], want["S_tv"][b].T).T
+            np.testing.assert_allclose(got.estimate[b], J, rtol=0, atol=200 * rtol * max(1.0, np.max(np.abs(J))))
+
+
+def test_the_step_with_a_ring_buffer_a_thread_split_and_a_given_rcond_equals_the_pure_jax_step():
+    """4,099 estimators (split over the pool, a remainder past the last block), ``capacity=4`` (the buffer written by
+    XLA after the kernel: bit-identical) and ``options=(("rcond", 1e-3),)``."""
+    d, V = sample_stream(4, 4099, 6, 3, seed=21)
+    opts = (("rcond", 1e-3),)
+    (got, _), (ref, _) = (run_steps(d, V, jnp.float32, capacity=4, options=opts, on=on) for on in (True, False))
+    assert_states_close(got, ref, 2e-5)
+    np.testing.assert_array_equal(got.dtheta_buf, ref.dtheta_buf)
+    np.testing.assert_array_equal(got.v_buf, ref.v_buf)
+
+
+def test_the_step_takes_the_composed_path_where_the_kernel_does_not_apply():
+    """A ridge, the optax method, thresholds of another dtype or a float ``min_count``: no ``SelfidStep``."""
+    s = E.init(6, 3, capacity=0, dtype=jnp.float32)
+    x, v = jnp.ones(6, jnp.float32), jnp.ones(3, jnp.float32)
+
+    def text(**kw):
+        kw = {"method": "closed_form", **kw}
+        eps = kw.pop("eps", 1e-3)
+        return jax.jit(lambda s: ST.sample_step(s, x, v, eps, 0.0, **kw)).lower(s).as_text()
+
+    assert "SelfidStep" in text()
+    assert "SelfidStep" in text(options=(("ridge", 0.0),))
+    assert "SelfidStep" not in text(options=(("ridge", 1e-3),))
+    assert "SelfidStep" not in text(method="optax", options=(("steps", 2),))
+    assert "SelfidStep" not in text(eps=np.float64(1e-3))
+    assert "SelfidStep" not in text(min_count=1.0)
+    native.set_enabled(False)
+    assert "Selfid" not in text()
+
+
+def test_the_step_checks_its_arguments_first_and_differentiates_as_the_pure_jax_step():
+    s = E.init(4, 2, capacity=0, dtype=jnp.float64)
+    with pytest.raises(ValueError, match="dtheta"):
+        ST.sample_step(s, jnp.ones(5), jnp.ones(2), 1e-3, 0.0, method="closed_form")
+    with pytest.raises(ValueError, match="eps"):
+        ST.sample_step(s, jnp.ones(4), jnp.ones(2), 0.0, 0.0, method="closed_form")
+    with pytest.raises(ValueError, match="rcond"):
+        ST.sample_step(s, jnp.ones(4), jnp.ones(2), 1e-3, 0.0, method="closed_form", options=(("rcond", -1.0),))
+    d, V = sample_stream(5, 1, 4, 2, seed=5)
+    s = jax.lax.scan(lambda s, xv: (ST.sample_step(s, *xv, 1e-3, 0.0, method="closed_form")[0], None), s,
+                     (jnp.asarray(d[:, 0]), jnp.asarray(V[:, 0])))[0]
+
+    def loss(x):
+        new, _ = ST.sample_step(s, x, jnp.asarray([0.3, -0.2]), 1e-3, 0.0, method="closed_form")
+        return jnp.sum(new.estimate**2) + new.last_deltas[1]
+
+    x = jnp.asarray([0.1, -0.2, 0.3, 0.05])
+    a, b = both(jax.grad(loss), x)
+    np.testing.assert_allclose(a, b, rtol=1e-10)
+    h = 1e-6
+    fd = [(loss(x.at[i].add(h)) - loss(x.at[i].add(-h))) / (2 * h) for i in range(4)]
+    np.testing.assert_allclose(a, fd, rtol=1e-5, atol=1e-8)
+
+
+def test_the_step_handler_checks_its_argument_count():
+    f32 = jnp.float32
+    call = jax.ffi.ffi_call("SelfidStep", jax.ShapeDtypeStruct((4, 6, 3), f32), vmap_method="broadcast_all")
+    with pytest.raises(Exception, match="step: wrong number of arguments or results"):
+        jax.block_until_ready(call(jnp.ones((4, 6, 3), f32)))

@@ -15,11 +15,16 @@ them, SSE2 otherwise), each as one XLA FFI custom call over the whole batch:
   projector and a solve per estimator);
 * ``"record"``: :func:`selfid_jax.identify.estimator.record` where it
   computes ``||J_t - J_{t-1}||_F`` and ``||J_t||_F`` itself (the convergence
-  test of Sec. IV-D).
+  test of Sec. IV-D);
+* ``"step"``: the four of :func:`selfid_jax.identify.step.sample_step` with
+  the closed form in one pass, the update, the initial guess (Eq. 13), Eq.
+  14 and the record, each field of the state read once and written once
+  (the ring buffer's write stays XLA code).
 
 With AVX2, float32 fields of 8 or more values per estimator move between the
-batch's rows and the lanes by 8x8 register transposes. The initial guess
-(Eq. 13, elementwise) stays XLA code.
+batch's rows and the lanes by 8x8 register transposes. A caller composing
+the first three gets the initial guess (Eq. 13, elementwise) as XLA code
+between them; ``"step"`` computes it in the update's pass.
 
 They are built with the package (``pip install``, a C++17 compiler; the build
 goes on without them if none is found) and used on the CPU backend only:
@@ -57,11 +62,13 @@ import jax.numpy as jnp
 __all__ = ["available", "call", "enabled", "load_error", "set_enabled", "status"]
 
 _LIB_STEM = "_native_kernels"
-_ABI = 1  # SelfidKernelsAbi() of the sources beside this module: a change to a handler's arguments bumps both
-_TARGETS = {"closed_form": "SelfidClosedForm", "record": "SelfidRecord", "update": "SelfidUpdate"}
+_ABI = 2  # SelfidKernelsAbi() of the sources beside this module: a change to a handler's arguments bumps both
+_TARGETS = {"closed_form": "SelfidClosedForm", "record": "SelfidRecord", "step": "SelfidStep",
+            "update": "SelfidUpdate"}
 # result k written over argument j's buffer ({j: k}): XLA then updates a loop's carried state in place instead of
 # copying each new field into it
 _ALIASES = {"closed_form": {2: 0}, "record": {1: 0, 2: 1, 3: 2, 4: 3, 6: 4, 7: 5, 8: 6},
+            "step": {**{k: k for k in range(8)}, **{k: k - 2 for k in range(10, 17)}},
             "update": {k: k for k in range(8)}}
 _state: dict[str, object] = {"enabled": os.environ.get("SELFID_JAX_NATIVE", "1") != "0"}
 
@@ -132,7 +139,11 @@ def call(kernel: str, reference: Callable, *args: jax.Array):
     last_norms (2,), last_fresh (2,) bool, count, recorded_count, iteration,
     converged_at () int32, eps, eps_rel (), min_count () int32`` -> the
     state's ``estimate (= J), last_deltas, last_norms, last_fresh,
-    recorded_count, iteration, converged_at`` after it); one float dtype (float32 or float64), ``1 <= m <= 6``,
+    recorded_count, iteration, converged_at`` after it) or ``"step"``
+    (update's first ten arguments, record's ``estimate, last_deltas,
+    last_norms, last_fresh, recorded_count, iteration, converged_at``,
+    ``dtheta, V``, ``rcond, eps, eps_rel``, ``min_count`` -> update's eight
+    results, then record's seven); one float dtype (float32 or float64), ``1 <= m <= 6``,
     ``1 <= n <= 64``: other shapes and dtypes go to ``reference``. ``args``
     are one estimator's arrays (``vmap`` adds the kernel's batch); the result
     has ``reference``'s structure, shapes and dtypes. Falls back to
@@ -164,18 +175,21 @@ def call(kernel: str, reference: Callable, *args: jax.Array):
 
 def _supported(kernel: str, args: tuple[jax.Array, ...]) -> bool:
     """The kernel's shapes (``1 <= m <= 6``, ``1 <= n <= 64``) and dtypes (float32 or float64; int32 counters)."""
-    J = args[{"closed_form": 1, "update": 4, "record": 0}[kernel]]  # an (n, m) argument
+    J = args[{"closed_form": 1, "update": 4, "record": 0, "step": 4}[kernel]]  # an (n, m) argument
     if J.ndim != 2 or not (1 <= J.shape[1] <= 6 and 1 <= J.shape[0] <= 64) or J.dtype not in (jnp.float32,
                                                                                              jnp.float64):
         return False
     n, m = J.shape
     f, i, b = J.dtype, jnp.dtype(jnp.int32), jnp.dtype(bool)
+    update = (((n, m), f), ((n, m), f), ((m,), f), ((m, m), f), ((n, m), f), ((), f), ((), i), ((), i), ((), f),
+              ((), f))
+    record = (((n, m), f), ((2,), f), ((2,), f), ((2,), b))
     signature = {
         "closed_form": (((m, m), f), ((n, m), f), ((n, m), f), ((), f)),
-        "update": (((n, m), f), ((n, m), f), ((m,), f), ((m, m), f), ((n, m), f), ((), f), ((), i), ((), i),
-                   ((), f), ((), f), ((n,), f), ((m,), f)),
-        "record": (((n, m), f), ((n, m), f), ((2,), f), ((2,), f), ((2,), b), ((), i), ((), i), ((), i), ((), i),
-                   ((), f), ((), f), ((), i)),
+        "update": (*update, ((n,), f), ((m,), f)),
+        "record": (((n, m), f), *record, ((), i), ((), i), ((), i), ((), i), ((), f), ((), f), ((), i)),
+        "step": (*update, *record, ((), i), ((), i), ((), i), ((n,), f), ((m,), f), ((), f), ((), f), ((), f),
+                 ((), i)),
     }[kernel]
     return len(args) == len(signature) and all(a.shape == s and a.dtype == d
                                                for a, (s, d) in zip(args, signature, strict=True))

@@ -58,6 +58,16 @@ struct RecordArgs {
   int32_t *o_recorded_count, *o_iteration, *o_converged_at;
 };
 
+// the whole closed-form step (selfid_jax.identify.step.sample_step, ring buffer aside): update's arguments and
+// results, then record's on the estimate the step refines (r.J unused; r.count is u.o_count, the new count), rcond.
+template <typename T>
+struct StepArgs {
+  UpdateArgs<T> u;
+  RecordArgs<T> r;
+  const T* rcond;
+  int64_t s_rcond;
+};
+
 namespace base {
 #include "estimator_kernels.inc"
 }  // namespace base
@@ -117,40 +127,90 @@ bool HasAvx2() {
 #define SELFID_DISPATCH(CALL) SELFID_FOR_M(base, CALL)
 #endif
 
-// One kernel's call: (n, m) from its (..., n, m) argument `shaped`, the batch, every argument's and result's size
-// and dtype checked, and the arguments' strides.
+// A kernel's fields: sizes per estimator in terms of (n, m), and element types (float: the call's dtype).
+enum Size { kNM, kM, kMM, kN, kOne, kTwo };
+enum Kind { kFloat, kInt, kBool };
+struct Field {
+  Size size;
+  Kind kind;
+};
+
+struct Spec {
+  const char* name;
+  int shaped;  // the argument whose last two dimensions are (n, m)
+  std::vector<Field> in, out;
+};
+
+// One kernel's call: (n, m) from its (..., n, m) argument, the batch, every argument's and result's size and dtype
+// checked; the arguments' data and strides (stride 0: one value for every estimator), the results' data.
 struct Call {
   int64_t n = 0, m = 0, batch = 0;
-  int64_t stride[12] = {};
   ffi::DataType dtype = ffi::DataType::F32;
+  std::vector<const void*> in;
+  std::vector<int64_t> stride;
+  std::vector<void*> out;
 
-  ffi::Error Check(const char* kernel, const ffi::AnyBuffer& shaped, const ffi::AnyBuffer* in, int n_in,
-                   const int64_t* in_sizes, const ffi::DataType* in_types, ffi::Result<ffi::AnyBuffer>* out,
-                   int n_out, const int64_t* out_sizes, const ffi::DataType* out_types) {
-    auto dims = shaped.dimensions();
-    if (dims.size() < 2) return Fail(kernel, "the (n, m) argument has rank < 2");
+  ffi::Error Decode(const Spec& spec, const ffi::RemainingArgs& args, const ffi::RemainingRets& rets) {
+    if (args.size() != spec.in.size() || rets.size() != spec.out.size())
+      return Fail(spec, "wrong number of arguments or results");
+    std::vector<ffi::AnyBuffer> a;
+    for (size_t k = 0; k < args.size(); ++k) {
+      auto x = args.get<ffi::AnyBuffer>(k);
+      if (x.has_error()) return Fail(spec, "an argument is not a buffer");
+      a.push_back(x.value());
+    }
+    auto dims = a[spec.shaped].dimensions();
+    if (dims.size() < 2) return Fail(spec, "the (n, m) argument has rank < 2");
     n = dims[dims.size() - 2];
     m = dims[dims.size() - 1];
-    if (m < 1 || m > kMaxM || n < 1 || n > kMaxN) return Fail(kernel, "expected 1 <= m <= 6 and 1 <= n <= 64");
-    batch = static_cast<int64_t>(shaped.element_count()) / (n * m);
-    dtype = shaped.element_type();
-    if (dtype != ffi::DataType::F32 && dtype != ffi::DataType::F64) return Fail(kernel, "float32 or float64 only");
-    for (int k = 0; k < n_in; ++k) {
-      const int64_t count = static_cast<int64_t>(in[k].element_count());
-      if (in[k].element_type() != in_types[k]) return Fail(kernel, "an argument's dtype is not the expected one");
-      if (count != in_sizes[k] * batch && count != in_sizes[k])
-        return Fail(kernel, "an argument's size does not match the batch");
-      stride[k] = count == in_sizes[k] * batch ? in_sizes[k] : 0;
+    if (m < 1 || m > kMaxM || n < 1 || n > kMaxN) return Fail(spec, "expected 1 <= m <= 6 and 1 <= n <= 64");
+    batch = static_cast<int64_t>(a[spec.shaped].element_count()) / (n * m);
+    dtype = a[spec.shaped].element_type();
+    if (dtype != ffi::DataType::F32 && dtype != ffi::DataType::F64) return Fail(spec, "float32 or float64 only");
+    for (size_t k = 0; k < a.size(); ++k) {
+      const int64_t size = Count(spec.in[k].size), count = static_cast<int64_t>(a[k].element_count());
+      if (a[k].element_type() != Type(spec.in[k].kind)) return Fail(spec, "an argument's dtype is not the expected one");
+      if (count != size * batch && count != size) return Fail(spec, "an argument's size does not match the batch");
+      in.push_back(a[k].untyped_data());
+      stride.push_back(count == size * batch ? size : 0);
     }
-    for (int k = 0; k < n_out; ++k)
-      if (static_cast<int64_t>(out[k]->element_count()) != out_sizes[k] * batch ||
-          out[k]->element_type() != out_types[k])
-        return Fail(kernel, "a result's size or dtype is not the expected one");
+    for (size_t k = 0; k < rets.size(); ++k) {
+      auto x = rets.get<ffi::AnyBuffer>(k);
+      if (x.has_error()) return Fail(spec, "a result is not a buffer");
+      if (static_cast<int64_t>(x.value()->element_count()) != Count(spec.out[k].size) * batch ||
+          x.value()->element_type() != Type(spec.out[k].kind))
+        return Fail(spec, "a result's size or dtype is not the expected one");
+      out.push_back(x.value()->untyped_data());
+    }
     return ffi::Error::Success();
   }
 
-  static ffi::Error Fail(const char* kernel, const char* what) {
-    return ffi::Error::InvalidArgument(std::string(kernel) + ": " + what);
+  int64_t Count(Size size) const {
+    switch (size) {
+      case kNM: return n * m;
+      case kM: return m;
+      case kMM: return m * m;
+      case kN: return n;
+      case kOne: return 1;
+      default: return 2;
+    }
+  }
+
+  ffi::DataType Type(Kind kind) const {
+    return kind == kFloat ? dtype : kind == kInt ? ffi::DataType::S32 : ffi::DataType::PRED;
+  }
+
+  template <typename U>
+  const U* In(int k) const {
+    return static_cast<const U*>(in[k]);
+  }
+  template <typename U>
+  U* Out(int k) const {
+    return static_cast<U*>(out[k]);
+  }
+
+  static ffi::Error Fail(const Spec& spec, const char* what) {
+    return ffi::Error::InvalidArgument(std::string(spec.name) + ": " + what);
   }
 };
 
@@ -202,201 +262,176 @@ void ParallelFor(ffi::ThreadPool& pool, int64_t batch, const Body& body) {
   while (progress->done.load(std::memory_order_acquire) < count) std::this_thread::yield();
 }
 
+// The kernels' arguments and results, in selfid_jax.math.native's order.
+const Spec kClosedForm{"closed form", 1, {{kMM, kFloat}, {kNM, kFloat}, {kNM, kFloat}, {kOne, kFloat}},
+                       {{kNM, kFloat}}};
+// update: sign_net, mag_sum, mag_count, S_vv, S_tv, s_tt, count, rejected, v_tol, forget, dtheta, V; the first 8
+#define SELFID_UPDATE_IN                                                                                     \
+  {kNM, kFloat}, {kNM, kFloat}, {kM, kFloat}, {kMM, kFloat}, {kNM, kFloat}, {kOne, kFloat}, {kOne, kInt}, \
+      {kOne, kInt}, {kOne, kFloat}, {kOne, kFloat}
+#define SELFID_UPDATE_OUT                                                                                    \
+  {kNM, kFloat}, {kNM, kFloat}, {kM, kFloat}, {kMM, kFloat}, {kNM, kFloat}, {kOne, kFloat}, {kOne, kInt}, \
+      {kOne, kInt}
+// record's results: estimate, last_deltas, last_norms, last_fresh, recorded_count, iteration, converged_at
+#define SELFID_RECORD_OUT \
+  {kNM, kFloat}, {kTwo, kFloat}, {kTwo, kFloat}, {kTwo, kBool}, {kOne, kInt}, {kOne, kInt}, {kOne, kInt}
+const Spec kUpdate{"update", 4, {SELFID_UPDATE_IN, {kN, kFloat}, {kM, kFloat}}, {SELFID_UPDATE_OUT}};
+// record: J, estimate, last_deltas, last_norms, last_fresh, count, recorded_count, iteration, converged_at, eps,
+// eps_rel, min_count
+const Spec kRecord{"record", 0,
+                   {{kNM, kFloat}, {kNM, kFloat}, {kTwo, kFloat}, {kTwo, kFloat}, {kTwo, kBool}, {kOne, kInt},
+                    {kOne, kInt}, {kOne, kInt}, {kOne, kInt}, {kOne, kFloat}, {kOne, kFloat}, {kOne, kInt}},
+                   {SELFID_RECORD_OUT}};
+// step: update's ten fields, estimate, last_deltas, last_norms, last_fresh, recorded_count, iteration,
+// converged_at, dtheta, V, rcond, eps, eps_rel, min_count; update's eight results, then record's seven
+const Spec kStep{"step", 4,
+                 {SELFID_UPDATE_IN, {kNM, kFloat}, {kTwo, kFloat}, {kTwo, kFloat}, {kTwo, kBool}, {kOne, kInt},
+                  {kOne, kInt}, {kOne, kInt}, {kN, kFloat}, {kM, kFloat}, {kOne, kFloat}, {kOne, kFloat},
+                  {kOne, kFloat}, {kOne, kInt}},
+                 {SELFID_UPDATE_OUT, SELFID_RECORD_OUT}};
+#undef SELFID_UPDATE_IN
+#undef SELFID_UPDATE_OUT
+#undef SELFID_RECORD_OUT
+
+// update's arguments from the call's fields: its 10 state fields at `first`, dtheta and V at `sample`, results at
+// `result`.
 template <typename T>
-void ClosedFormTyped(ffi::ThreadPool& pool, const Call& c, const ffi::AnyBuffer* in, T* J) {
+UpdateArgs<T> UpdateFrom(const Call& c, int first, int sample, int result) {
+  UpdateArgs<T> a;
+  a.sign_net = c.In<T>(first);
+  a.mag_sum = c.In<T>(first + 1);
+  a.mag_count = c.In<T>(first + 2);
+  a.S_vv = c.In<T>(first + 3);
+  a.S_tv = c.In<T>(first + 4);
+  a.s_tt = c.In<T>(first + 5);
+  a.count = c.In<int32_t>(first + 6);
+  a.rejected = c.In<int32_t>(first + 7);
+  a.v_tol = c.In<T>(first + 8);
+  a.forget = c.In<T>(first + 9);
+  a.dtheta = c.In<T>(sample);
+  a.V = c.In<T>(sample + 1);
+  const int at[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, sample - first, sample + 1 - first};
+  for (int k = 0; k < 12; ++k) a.in_stride[k] = c.stride[first + at[k]];
+  a.o_sign_net = c.Out<T>(result);
+  a.o_mag_sum = c.Out<T>(result + 1);
+  a.o_mag_count = c.Out<T>(result + 2);
+  a.o_S_vv = c.Out<T>(result + 3);
+  a.o_S_tv = c.Out<T>(result + 4);
+  a.o_s_tt = c.Out<T>(result + 5);
+  a.o_count = c.Out<int32_t>(result + 6);
+  a.o_rejected = c.Out<int32_t>(result + 7);
+  return a;
+}
+
+// record's arguments: index[k] is the call's argument for record's k-th (J, estimate, last_deltas, last_norms,
+// last_fresh, count, recorded_count, iteration, converged_at, eps, eps_rel, min_count; -1: none), results at
+// `result`.
+template <typename T>
+RecordArgs<T> RecordFrom(const Call& c, const int* index, int result) {
+  RecordArgs<T> a;
+  auto in = [&](int k) { return index[k] < 0 ? nullptr : c.in[index[k]]; };
+  a.J = static_cast<const T*>(in(0));
+  a.estimate = static_cast<const T*>(in(1));
+  a.last_deltas = static_cast<const T*>(in(2));
+  a.last_norms = static_cast<const T*>(in(3));
+  a.last_fresh = static_cast<const bool*>(in(4));
+  a.count = static_cast<const int32_t*>(in(5));
+  a.recorded_count = static_cast<const int32_t*>(in(6));
+  a.iteration = static_cast<const int32_t*>(in(7));
+  a.converged_at = static_cast<const int32_t*>(in(8));
+  a.eps = static_cast<const T*>(in(9));
+  a.eps_rel = static_cast<const T*>(in(10));
+  a.min_count = static_cast<const int32_t*>(in(11));
+  for (int k = 0; k < 12; ++k) a.in_stride[k] = index[k] < 0 ? 0 : c.stride[index[k]];
+  a.o_estimate = c.Out<T>(result);
+  a.o_last_deltas = c.Out<T>(result + 1);
+  a.o_last_norms = c.Out<T>(result + 2);
+  a.o_last_fresh = c.Out<bool>(result + 3);
+  a.o_recorded_count = c.Out<int32_t>(result + 4);
+  a.o_iteration = c.Out<int32_t>(result + 5);
+  a.o_converged_at = c.Out<int32_t>(result + 6);
+  return a;
+}
+
+template <typename T>
+void ClosedFormTyped(ffi::ThreadPool& pool, const Call& c) {
   const int64_t n = c.n, m = c.m;
-  const int64_t* st = c.stride;
-  const T *S = in[0].typed_data<T>(), *St = in[1].typed_data<T>(), *J0 = in[2].typed_data<T>(),
-          *rc = in[3].typed_data<T>();
+  const int64_t* st = c.stride.data();
+  const T *S = c.In<T>(0), *St = c.In<T>(1), *J0 = c.In<T>(2), *rc = c.In<T>(3);
+  T* J = c.Out<T>(0);
 #define SELFID_CALL(NS, M) NS::ClosedFormBatch<T, M>(begin, end, n, S, st[0], St, st[1], J0, st[2], rc, st[3], J)
   ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
 #undef SELFID_CALL
 }
 
-ffi::Error ClosedFormImpl(ffi::ThreadPool pool, ffi::AnyBuffer S_vv, ffi::AnyBuffer S_tv, ffi::AnyBuffer J0,
-                          ffi::AnyBuffer rcond, ffi::Result<ffi::AnyBuffer> J) {
-  const ffi::AnyBuffer in[4] = {S_vv, S_tv, J0, rcond};
-  ffi::Result<ffi::AnyBuffer> out[1] = {J};
-  Call c;
-  const auto f = S_tv.element_type();
-  const int64_t n = S_tv.dimensions().size() >= 2 ? S_tv.dimensions()[S_tv.dimensions().size() - 2] : 0;
-  const int64_t m = S_tv.dimensions().size() >= 2 ? S_tv.dimensions()[S_tv.dimensions().size() - 1] : 0;
-  const int64_t in_sizes[4] = {m * m, n * m, n * m, 1}, out_sizes[1] = {n * m};
-  const ffi::DataType in_types[4] = {f, f, f, f}, out_types[1] = {f};
-  if (auto e = c.Check("closed form", S_tv, in, 4, in_sizes, in_types, out, 1, out_sizes, out_types); e.failure())
-    return e;
-  if (c.dtype == ffi::DataType::F32)
-    ClosedFormTyped<float>(pool, c, in, J->typed_data<float>());
-  else
-    ClosedFormTyped<double>(pool, c, in, J->typed_data<double>());
-  return ffi::Error::Success();
-}
-
 template <typename T>
-void UpdateTyped(ffi::ThreadPool& pool, const Call& c, const ffi::AnyBuffer* in, ffi::Result<ffi::AnyBuffer>* out) {
+void UpdateTyped(ffi::ThreadPool& pool, const Call& c) {
   const int64_t n = c.n, m = c.m;
-  UpdateArgs<T> a;
-  a.sign_net = in[0].typed_data<T>();
-  a.mag_sum = in[1].typed_data<T>();
-  a.mag_count = in[2].typed_data<T>();
-  a.S_vv = in[3].typed_data<T>();
-  a.S_tv = in[4].typed_data<T>();
-  a.s_tt = in[5].typed_data<T>();
-  a.count = in[6].typed_data<int32_t>();
-  a.rejected = in[7].typed_data<int32_t>();
-  a.v_tol = in[8].typed_data<T>();
-  a.forget = in[9].typed_data<T>();
-  a.dtheta = in[10].typed_data<T>();
-  a.V = in[11].typed_data<T>();
-  for (int k = 0; k < 12; ++k) a.in_stride[k] = c.stride[k];
-  a.o_sign_net = out[0]->typed_data<T>();
-  a.o_mag_sum = out[1]->typed_data<T>();
-  a.o_mag_count = out[2]->typed_data<T>();
-  a.o_S_vv = out[3]->typed_data<T>();
-  a.o_S_tv = out[4]->typed_data<T>();
-  a.o_s_tt = out[5]->typed_data<T>();
-  a.o_count = out[6]->typed_data<int32_t>();
-  a.o_rejected = out[7]->typed_data<int32_t>();
+  const UpdateArgs<T> a = UpdateFrom<T>(c, 0, 10, 0);
 #define SELFID_CALL(NS, M) NS::UpdateBatch<T, M>(begin, end, n, a)
   ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
 #undef SELFID_CALL
 }
 
-ffi::Error UpdateImpl(ffi::ThreadPool pool, ffi::AnyBuffer sign_net, ffi::AnyBuffer mag_sum, ffi::AnyBuffer mag_count,
-                      ffi::AnyBuffer S_vv, ffi::AnyBuffer S_tv, ffi::AnyBuffer s_tt, ffi::AnyBuffer count,
-                      ffi::AnyBuffer rejected, ffi::AnyBuffer v_tol, ffi::AnyBuffer forget, ffi::AnyBuffer dtheta,
-                      ffi::AnyBuffer V, ffi::Result<ffi::AnyBuffer> o0, ffi::Result<ffi::AnyBuffer> o1,
-                      ffi::Result<ffi::AnyBuffer> o2, ffi::Result<ffi::AnyBuffer> o3, ffi::Result<ffi::AnyBuffer> o4,
-                      ffi::Result<ffi::AnyBuffer> o5, ffi::Result<ffi::AnyBuffer> o6, ffi::Result<ffi::AnyBuffer> o7) {
-  const ffi::AnyBuffer in[12] = {sign_net, mag_sum, mag_count, S_vv, S_tv, s_tt, count, rejected, v_tol, forget,
-                                 dtheta, V};
-  ffi::Result<ffi::AnyBuffer> out[8] = {o0, o1, o2, o3, o4, o5, o6, o7};
-  const auto f = S_tv.element_type(), i = ffi::DataType::S32;
-  const int64_t n = S_tv.dimensions().size() >= 2 ? S_tv.dimensions()[S_tv.dimensions().size() - 2] : 0;
-  const int64_t m = S_tv.dimensions().size() >= 2 ? S_tv.dimensions()[S_tv.dimensions().size() - 1] : 0;
-  const int64_t sizes[12] = {n * m, n * m, m, m * m, n * m, 1, 1, 1, 1, 1, n, m};
-  const ffi::DataType types[12] = {f, f, f, f, f, f, i, i, f, f, f, f};
-  Call c;
-  if (auto e = c.Check("update", S_tv, in, 12, sizes, types, out, 8, sizes, types); e.failure()) return e;
-  if (c.dtype == ffi::DataType::F32)
-    UpdateTyped<float>(pool, c, in, out);
-  else
-    UpdateTyped<double>(pool, c, in, out);
-  return ffi::Error::Success();
-}
-
 template <typename T>
-void RecordTyped(ffi::ThreadPool& pool, const Call& c, const ffi::AnyBuffer* in, ffi::Result<ffi::AnyBuffer>* out) {
+void RecordTyped(ffi::ThreadPool& pool, const Call& c) {
   const int64_t n = c.n, m = c.m;
-  RecordArgs<T> a;
-  a.J = in[0].typed_data<T>();
-  a.estimate = in[1].typed_data<T>();
-  a.last_deltas = in[2].typed_data<T>();
-  a.last_norms = in[3].typed_data<T>();
-  a.last_fresh = in[4].typed_data<bool>();
-  a.count = in[5].typed_data<int32_t>();
-  a.recorded_count = in[6].typed_data<int32_t>();
-  a.iteration = in[7].typed_data<int32_t>();
-  a.converged_at = in[8].typed_data<int32_t>();
-  a.eps = in[9].typed_data<T>();
-  a.eps_rel = in[10].typed_data<T>();
-  a.min_count = in[11].typed_data<int32_t>();
-  for (int k = 0; k < 12; ++k) a.in_stride[k] = c.stride[k];
-  a.o_estimate = out[0]->typed_data<T>();
-  a.o_last_deltas = out[1]->typed_data<T>();
-  a.o_last_norms = out[2]->typed_data<T>();
-  a.o_last_fresh = out[3]->typed_data<bool>();
-  a.o_recorded_count = out[4]->typed_data<int32_t>();
-  a.o_iteration = out[5]->typed_data<int32_t>();
-  a.o_converged_at = out[6]->typed_data<int32_t>();
+  const int index[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11};
+  const RecordArgs<T> a = RecordFrom<T>(c, index, 0);
 #define SELFID_CALL(NS, M) NS::RecordBatch<T, M>(begin, end, n, a)
   ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
 #undef SELFID_CALL
 }
 
-ffi::Error RecordImpl(ffi::ThreadPool pool, ffi::AnyBuffer J, ffi::AnyBuffer estimate, ffi::AnyBuffer last_deltas,
-                      ffi::AnyBuffer last_norms, ffi::AnyBuffer last_fresh, ffi::AnyBuffer count,
-                      ffi::AnyBuffer recorded_count, ffi::AnyBuffer iteration, ffi::AnyBuffer converged_at,
-                      ffi::AnyBuffer eps, ffi::AnyBuffer eps_rel, ffi::AnyBuffer min_count,
-                      ffi::Result<ffi::AnyBuffer> o0, ffi::Result<ffi::AnyBuffer> o1, ffi::Result<ffi::AnyBuffer> o2,
-                      ffi::Result<ffi::AnyBuffer> o3, ffi::Result<ffi::AnyBuffer> o4, ffi::Result<ffi::AnyBuffer> o5,
-                      ffi::Result<ffi::AnyBuffer> o6) {
-  const ffi::AnyBuffer in[12] = {J, estimate, last_deltas, last_norms, last_fresh, count, recorded_count,
-                                 iteration, converged_at, eps, eps_rel, min_count};
-  ffi::Result<ffi::AnyBuffer> out[7] = {o0, o1, o2, o3, o4, o5, o6};
-  const auto f = J.element_type(), i = ffi::DataType::S32, b = ffi::DataType::PRED;
-  const int64_t n = J.dimensions().size() >= 2 ? J.dimensions()[J.dimensions().size() - 2] : 0;
-  const int64_t m = J.dimensions().size() >= 2 ? J.dimensions()[J.dimensions().size() - 1] : 0;
-  const int64_t in_sizes[12] = {n * m, n * m, 2, 2, 2, 1, 1, 1, 1, 1, 1, 1}, out_sizes[7] = {n * m, 2, 2, 2, 1, 1, 1};
-  const ffi::DataType in_types[12] = {f, f, f, f, b, i, i, i, i, f, f, i}, out_types[7] = {f, f, f, b, i, i, i};
+template <typename T>
+void StepTyped(ffi::ThreadPool& pool, const Call& c) {
+  const int64_t n = c.n, m = c.m;
+  StepArgs<T> a;
+  a.u = UpdateFrom<T>(c, 0, 17, 0);
+  const int index[12] = {-1, 10, 11, 12, 13, -1, 14, 15, 16, 20, 21, 22};
+  a.r = RecordFrom<T>(c, index, 8);
+  a.r.count = a.u.o_count;  // the count the update wrote
+  a.r.in_stride[5] = 1;
+  a.rcond = c.In<T>(19);
+  a.s_rcond = c.stride[19];
+#define SELFID_CALL(NS, M) NS::StepBatch<T, M>(begin, end, n, a)
+  ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
+#undef SELFID_CALL
+}
+
+template <void (*F32)(ffi::ThreadPool&, const Call&), void (*F64)(ffi::ThreadPool&, const Call&)>
+ffi::Error Run(const Spec& spec, ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
   Call c;
-  if (auto e = c.Check("record", J, in, 12, in_sizes, in_types, out, 7, out_sizes, out_types); e.failure())
-    return e;
+  if (auto e = c.Decode(spec, args, rets); e.failure()) return e;
   if (c.dtype == ffi::DataType::F32)
-    RecordTyped<float>(pool, c, in, out);
+    F32(pool, c);
   else
-    RecordTyped<double>(pool, c, in, out);
+    F64(pool, c);
   return ffi::Error::Success();
+}
+
+ffi::Error ClosedFormImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
+  return Run<ClosedFormTyped<float>, ClosedFormTyped<double>>(kClosedForm, pool, args, rets);
+}
+ffi::Error UpdateImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
+  return Run<UpdateTyped<float>, UpdateTyped<double>>(kUpdate, pool, args, rets);
+}
+ffi::Error RecordImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
+  return Run<RecordTyped<float>, RecordTyped<double>>(kRecord, pool, args, rets);
+}
+ffi::Error StepImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
+  return Run<StepTyped<float>, StepTyped<double>>(kStep, pool, args, rets);
 }
 
 }  // namespace
 
 // The handlers' argument lists' version: selfid_jax.math.native refuses a library built from other sources (an
 // editable checkout pulled without a rebuild) instead of calling it with arguments it does not take.
-extern "C" int SelfidKernelsAbi() { return 1; }
+extern "C" int SelfidKernelsAbi() { return 2; }
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(SelfidClosedForm, ClosedFormImpl,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>());
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(SelfidUpdate, UpdateImpl,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>());
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(SelfidRecord, RecordImpl,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>()
-                                  .Ret<ffi::AnyBuffer>());
+#define SELFID_HANDLER(NAME, IMPL) \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, IMPL, ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().RemainingArgs().RemainingRets());
+SELFID_HANDLER(SelfidClosedForm, ClosedFormImpl)
+SELFID_HANDLER(SelfidUpdate, UpdateImpl)
+SELFID_HANDLER(SelfidRecord, RecordImpl)
+SELFID_HANDLER(SelfidStep, StepImpl)
