@@ -85,6 +85,29 @@ def pytest_unconfigure(config):
         shutil.rmtree(where, ignore_errors=True)
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """``--dist loadgroup`` (pyproject.toml's addopts) keeps the tests of one ``xdist_group`` on one worker, as one
+    unit of work: each pytest-xdist worker appends ``@GROUP`` to such a test's id and the controller groups by that
+    suffix. pytest 9.2 builds ``item.nodeid`` from a structured id that xdist 3.8 does not write (it sets the old
+    ``_nodeid``), so the suffix was lost and every grouped test went to whichever worker was free: the fixed-port
+    simulators of test_trossen.py could start side by side, and the real-time tests ran beside each other
+    (pytest-xdist issue 1386). Here, after xdist's own hook, the suffix is written where this pytest reads it."""
+    if not getattr(config.option, "loadgroup", False):  # set on workers under --dist loadgroup only
+        return
+    for item in items:
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                        for m in item.iter_markers("xdist_group")})
+        suffix = "@" + "_".join(names)
+        if not names or item.nodeid.endswith(suffix):  # none, or xdist's own suffix took
+            continue
+        if not hasattr(item, "_id"):
+            raise pytest.UsageError(f"cannot group {item.nodeid} under --dist loadgroup: this pytest keeps neither "
+                                    "the id pytest-xdist writes nor a structured _id")
+        item._id = type(item._id).parse(item.nodeid + suffix)
+        assert item.nodeid.endswith(suffix), item.nodeid
+
+
 def _use_test_cache():
     where = os.environ.get(_CACHE_ENV)
     if not where:
