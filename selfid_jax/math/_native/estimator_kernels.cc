@@ -13,6 +13,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
+#include <cstring>
 #include <limits>
 #include <memory>
 #include <string>
@@ -27,46 +28,65 @@ namespace ffi = xla::ffi;
 #include <immintrin.h>
 #endif
 
-// A kernel's arguments, each array at p + (first estimator) * stride (stride 0: one value for every estimator),
-// its results written back to back (a result may be its argument's buffer: see selfid_jax.math.native's aliases).
+// One array of a call: F elements per estimator, estimator l's element k at p[(l * ls + k) * bytes] (bytes per
+// element; ls = F, or 0: one array for every estimator).
+struct Arr {
+  char* p;
+  int64_t ls, F;
+  int bytes;
 
-// update's sums (its ring buffer is XLA's): sign_net, mag_sum, S_tv (n, m); mag_count (m,); S_vv (m, m); s_tt,
-// v_tol, forget (); count, rejected () int32; the sample dtheta (n,), V (m,); the first eight written.
-template <typename T>
-struct UpdateArgs {
-  const T *sign_net, *mag_sum, *mag_count, *S_vv, *S_tv, *s_tt;
-  const int32_t *count, *rejected;
-  const T *v_tol, *forget, *dtheta, *V;
-  int64_t in_stride[12];
-  T *o_sign_net, *o_mag_sum, *o_mag_count, *o_S_vv, *o_S_tv, *o_s_tt;
-  int32_t *o_count, *o_rejected;
+  Arr At(int64_t start) const { return Arr{p + start * ls * bytes, ls, F, bytes}; }
 };
 
-// record computing its norms: J, estimate (n, m); last_deltas, last_norms (2,); last_fresh (2,) bool; count,
-// recorded_count, iteration, converged_at () int32; eps, eps_rel (); min_count () int32; written: estimate (= J),
-// last_deltas, last_norms, last_fresh, recorded_count, iteration, converged_at.
-template <typename T>
-struct RecordArgs {
-  const T *J, *estimate, *last_deltas, *last_norms;
-  const bool* last_fresh;
-  const int32_t *count, *recorded_count, *iteration, *converged_at;
-  const T *eps, *eps_rel;
-  const int32_t* min_count;
-  int64_t in_stride[12];
-  T *o_estimate, *o_last_deltas, *o_last_norms;
-  bool* o_last_fresh;
-  int32_t *o_recorded_count, *o_iteration, *o_converged_at;
+// A call's arguments and results.
+struct Args {
+  Arr in[24];
+  Arr out[16];
+  int n_in = 0, n_out = 0;
 };
 
-// the whole closed-form step (selfid_jax.identify.step.sample_step, ring buffer aside): update's arguments and
-// results, then record's on the estimate the step refines (r.J unused; r.count is u.o_count, the new count), rcond.
-template <typename T>
-struct StepArgs {
-  UpdateArgs<T> u;
-  RecordArgs<T> r;
-  const T* rcond;
-  int64_t s_rcond;
+// W estimators' copy of `a` (its first r, the last repeated), row-major in `buf`; `a` itself where ls = 0.
+inline Arr Pad(const Arr& a, int64_t r, int W, std::vector<char>& buf) {
+  if (a.ls == 0) return a;
+  buf.resize(static_cast<size_t>(W * a.F * a.bytes));
+  for (int64_t l = 0; l < W; ++l)
+    for (int64_t k = 0; k < a.F; ++k)
+      std::memcpy(buf.data() + (l * a.F + k) * a.bytes, a.p + ((l < r ? l : r - 1) * a.ls + k) * a.bytes, a.bytes);
+  return Arr{buf.data(), a.F, a.F, a.bytes};
+}
+
+// W estimators' row-major scratch for a result like `a`.
+inline Arr Scratch(const Arr& a, int W, std::vector<char>& buf) {
+  buf.resize(static_cast<size_t>(W * a.F * a.bytes));
+  return Arr{buf.data(), a.F, a.F, a.bytes};
+}
+
+// The first r estimators of scratch `s` into `d`.
+inline void Unpad(const Arr& s, const Arr& d, int64_t r) {
+  for (int64_t l = 0; l < r; ++l)
+    for (int64_t k = 0; k < s.F; ++k)
+      std::memcpy(d.p + (l * d.ls + k) * d.bytes, s.p + (l * s.F + k) * s.bytes, s.bytes);
+}
+
+// The kernels' arguments by role: update's (its first eight are also its results, in this order) and record's
+// (J, then the state's fields it reads, the thresholds), and where each kernel has them.
+enum UpdateRole { kSignNet, kMagSum, kMagCount, kSvv, kStv, kStt, kCount, kRejected, kVtol, kForget, kDtheta, kV };
+enum RecordRole {
+  kJ, kEstimate, kLastDeltas, kLastNorms, kLastFresh, kRecordCount, kRecordedCount, kIteration, kConvergedAt,
+  kEps, kEpsRel, kMinCount
 };
+enum RecordResult {
+  kOutEstimate, kOutLastDeltas, kOutLastNorms, kOutLastFresh, kOutRecordedCount, kOutIteration, kOutConvergedAt
+};
+constexpr int kUpdateArgs[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11};
+constexpr int kRecordArgs[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11};
+// step: update's ten fields, estimate, last_deltas, last_norms, last_fresh, recorded_count, iteration,
+// converged_at, dtheta, V, rcond, eps, eps_rel, min_count (the record's count is the update's result)
+constexpr int kStepUpdateArgs[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 17, 18};
+constexpr int kStepRecordArgs[12] = {-1, 10, 11, 12, 13, -1, 14, 15, 16, 20, 21, 22};
+constexpr int kStepRcond = 19;
+
+#define SELFID_FLATTEN
 
 namespace base {
 #include "estimator_kernels.inc"
@@ -80,6 +100,10 @@ namespace base {
 #pragma GCC push_options
 #pragma GCC target("avx2,fma")
 #endif
+// the AVX2 step kernel inlines every function it calls (GCC's flatten): its loads, transposes and the closed
+// form's factorisations then share registers with the update and the record
+#undef SELFID_FLATTEN
+#define SELFID_FLATTEN __attribute__((flatten))
 namespace avx2 {
 #define SELFID_KERNELS_AVX2 1
 #include "estimator_kernels.inc"
@@ -142,20 +166,18 @@ struct Spec {
 };
 
 // One kernel's call: (n, m) from its (..., n, m) argument, the batch, every argument's and result's size and dtype
-// checked; the arguments' data and strides (stride 0: one value for every estimator), the results' data.
+// checked; its arrays.
 struct Call {
   int64_t n = 0, m = 0, batch = 0;
   ffi::DataType dtype = ffi::DataType::F32;
-  std::vector<const void*> in;
-  std::vector<int64_t> stride;
-  std::vector<void*> out;
+  Args args;
 
-  ffi::Error Decode(const Spec& spec, const ffi::RemainingArgs& args, const ffi::RemainingRets& rets) {
-    if (args.size() != spec.in.size() || rets.size() != spec.out.size())
+  ffi::Error Decode(const Spec& spec, const ffi::RemainingArgs& in, const ffi::RemainingRets& out) {
+    if (in.size() != spec.in.size() || out.size() != spec.out.size())
       return Fail(spec, "wrong number of arguments or results");
     std::vector<ffi::AnyBuffer> a;
-    for (size_t k = 0; k < args.size(); ++k) {
-      auto x = args.get<ffi::AnyBuffer>(k);
+    for (size_t k = 0; k < in.size(); ++k) {
+      auto x = in.get<ffi::AnyBuffer>(k);
       if (x.has_error()) return Fail(spec, "an argument is not a buffer");
       a.push_back(x.value());
     }
@@ -167,20 +189,23 @@ struct Call {
     batch = static_cast<int64_t>(a[spec.shaped].element_count()) / (n * m);
     dtype = a[spec.shaped].element_type();
     if (dtype != ffi::DataType::F32 && dtype != ffi::DataType::F64) return Fail(spec, "float32 or float64 only");
+    args.n_in = static_cast<int>(a.size());
     for (size_t k = 0; k < a.size(); ++k) {
       const int64_t size = Count(spec.in[k].size), count = static_cast<int64_t>(a[k].element_count());
       if (a[k].element_type() != Type(spec.in[k].kind)) return Fail(spec, "an argument's dtype is not the expected one");
       if (count != size * batch && count != size) return Fail(spec, "an argument's size does not match the batch");
-      in.push_back(a[k].untyped_data());
-      stride.push_back(count == size * batch ? size : 0);
+      args.in[k] = Arr{static_cast<char*>(a[k].untyped_data()), count == size * batch ? size : 0, size,
+                       Bytes(spec.in[k].kind)};
     }
-    for (size_t k = 0; k < rets.size(); ++k) {
-      auto x = rets.get<ffi::AnyBuffer>(k);
+    args.n_out = static_cast<int>(out.size());
+    for (size_t k = 0; k < out.size(); ++k) {
+      auto x = out.get<ffi::AnyBuffer>(k);
       if (x.has_error()) return Fail(spec, "a result is not a buffer");
-      if (static_cast<int64_t>(x.value()->element_count()) != Count(spec.out[k].size) * batch ||
+      const int64_t size = Count(spec.out[k].size);
+      if (static_cast<int64_t>(x.value()->element_count()) != size * batch ||
           x.value()->element_type() != Type(spec.out[k].kind))
         return Fail(spec, "a result's size or dtype is not the expected one");
-      out.push_back(x.value()->untyped_data());
+      args.out[k] = Arr{static_cast<char*>(x.value()->untyped_data()), size, size, Bytes(spec.out[k].kind)};
     }
     return ffi::Error::Success();
   }
@@ -200,13 +225,8 @@ struct Call {
     return kind == kFloat ? dtype : kind == kInt ? ffi::DataType::S32 : ffi::DataType::PRED;
   }
 
-  template <typename U>
-  const U* In(int k) const {
-    return static_cast<const U*>(in[k]);
-  }
-  template <typename U>
-  U* Out(int k) const {
-    return static_cast<U*>(out[k]);
+  int Bytes(Kind kind) const {
+    return kind == kFloat ? (dtype == ffi::DataType::F32 ? 4 : 8) : kind == kInt ? 4 : 1;
   }
 
   static ffi::Error Fail(const Spec& spec, const char* what) {
@@ -293,111 +313,22 @@ const Spec kStep{"step", 4,
 #undef SELFID_UPDATE_OUT
 #undef SELFID_RECORD_OUT
 
-// update's arguments from the call's fields: its 10 state fields at `first`, dtheta and V at `sample`, results at
-// `result`.
-template <typename T>
-UpdateArgs<T> UpdateFrom(const Call& c, int first, int sample, int result) {
-  UpdateArgs<T> a;
-  a.sign_net = c.In<T>(first);
-  a.mag_sum = c.In<T>(first + 1);
-  a.mag_count = c.In<T>(first + 2);
-  a.S_vv = c.In<T>(first + 3);
-  a.S_tv = c.In<T>(first + 4);
-  a.s_tt = c.In<T>(first + 5);
-  a.count = c.In<int32_t>(first + 6);
-  a.rejected = c.In<int32_t>(first + 7);
-  a.v_tol = c.In<T>(first + 8);
-  a.forget = c.In<T>(first + 9);
-  a.dtheta = c.In<T>(sample);
-  a.V = c.In<T>(sample + 1);
-  const int at[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, sample - first, sample + 1 - first};
-  for (int k = 0; k < 12; ++k) a.in_stride[k] = c.stride[first + at[k]];
-  a.o_sign_net = c.Out<T>(result);
-  a.o_mag_sum = c.Out<T>(result + 1);
-  a.o_mag_count = c.Out<T>(result + 2);
-  a.o_S_vv = c.Out<T>(result + 3);
-  a.o_S_tv = c.Out<T>(result + 4);
-  a.o_s_tt = c.Out<T>(result + 5);
-  a.o_count = c.Out<int32_t>(result + 6);
-  a.o_rejected = c.Out<int32_t>(result + 7);
-  return a;
-}
-
-// record's arguments: index[k] is the call's argument for record's k-th (J, estimate, last_deltas, last_norms,
-// last_fresh, count, recorded_count, iteration, converged_at, eps, eps_rel, min_count; -1: none), results at
-// `result`.
-template <typename T>
-RecordArgs<T> RecordFrom(const Call& c, const int* index, int result) {
-  RecordArgs<T> a;
-  auto in = [&](int k) { return index[k] < 0 ? nullptr : c.in[index[k]]; };
-  a.J = static_cast<const T*>(in(0));
-  a.estimate = static_cast<const T*>(in(1));
-  a.last_deltas = static_cast<const T*>(in(2));
-  a.last_norms = static_cast<const T*>(in(3));
-  a.last_fresh = static_cast<const bool*>(in(4));
-  a.count = static_cast<const int32_t*>(in(5));
-  a.recorded_count = static_cast<const int32_t*>(in(6));
-  a.iteration = static_cast<const int32_t*>(in(7));
-  a.converged_at = static_cast<const int32_t*>(in(8));
-  a.eps = static_cast<const T*>(in(9));
-  a.eps_rel = static_cast<const T*>(in(10));
-  a.min_count = static_cast<const int32_t*>(in(11));
-  for (int k = 0; k < 12; ++k) a.in_stride[k] = index[k] < 0 ? 0 : c.stride[index[k]];
-  a.o_estimate = c.Out<T>(result);
-  a.o_last_deltas = c.Out<T>(result + 1);
-  a.o_last_norms = c.Out<T>(result + 2);
-  a.o_last_fresh = c.Out<bool>(result + 3);
-  a.o_recorded_count = c.Out<int32_t>(result + 4);
-  a.o_iteration = c.Out<int32_t>(result + 5);
-  a.o_converged_at = c.Out<int32_t>(result + 6);
-  return a;
-}
-
-template <typename T>
-void ClosedFormTyped(ffi::ThreadPool& pool, const Call& c) {
-  const int64_t n = c.n, m = c.m;
-  const int64_t* st = c.stride.data();
-  const T *S = c.In<T>(0), *St = c.In<T>(1), *J0 = c.In<T>(2), *rc = c.In<T>(3);
-  T* J = c.Out<T>(0);
-#define SELFID_CALL(NS, M) NS::ClosedFormBatch<T, M>(begin, end, n, S, st[0], St, st[1], J0, st[2], rc, st[3], J)
-  ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
-#undef SELFID_CALL
-}
-
-template <typename T>
-void UpdateTyped(ffi::ThreadPool& pool, const Call& c) {
-  const int64_t n = c.n, m = c.m;
-  const UpdateArgs<T> a = UpdateFrom<T>(c, 0, 10, 0);
-#define SELFID_CALL(NS, M) NS::UpdateBatch<T, M>(begin, end, n, a)
-  ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
-#undef SELFID_CALL
-}
-
-template <typename T>
-void RecordTyped(ffi::ThreadPool& pool, const Call& c) {
-  const int64_t n = c.n, m = c.m;
-  const int index[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11};
-  const RecordArgs<T> a = RecordFrom<T>(c, index, 0);
-#define SELFID_CALL(NS, M) NS::RecordBatch<T, M>(begin, end, n, a)
-  ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
-#undef SELFID_CALL
-}
-
-template <typename T>
-void StepTyped(ffi::ThreadPool& pool, const Call& c) {
-  const int64_t n = c.n, m = c.m;
-  StepArgs<T> a;
-  a.u = UpdateFrom<T>(c, 0, 17, 0);
-  const int index[12] = {-1, 10, 11, 12, 13, -1, 14, 15, 16, 20, 21, 22};
-  a.r = RecordFrom<T>(c, index, 8);
-  a.r.count = a.u.o_count;  // the count the update wrote
-  a.r.in_stride[5] = 1;
-  a.rcond = c.In<T>(19);
-  a.s_rcond = c.stride[19];
-#define SELFID_CALL(NS, M) NS::StepBatch<T, M>(begin, end, n, a)
-  ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL) });
-#undef SELFID_CALL
-}
+// The kernel's blocks over the call's estimators, on the calling thread and XLA's pool.
+#define SELFID_TYPED(KERNEL)                                                                            \
+  template <typename T>                                                                                 \
+  void KERNEL##Typed(ffi::ThreadPool& pool, const Call& c) {                                            \
+    const int64_t n = c.n, m = c.m;                                                                     \
+    const Args& a = c.args;                                                                             \
+    ParallelFor(pool, c.batch, [&](int64_t begin, int64_t end) { SELFID_DISPATCH(SELFID_CALL_##KERNEL) }); \
+  }
+#define SELFID_CALL_ClosedForm(NS, M) NS::Batch<T, NS::ClosedFormBlock<T, M>>(begin, end, n, a)
+#define SELFID_CALL_Update(NS, M) NS::Batch<T, NS::UpdateBlock<T, M>>(begin, end, n, a)
+#define SELFID_CALL_Record(NS, M) NS::Batch<T, NS::RecordBlock<T, M>>(begin, end, n, a)
+#define SELFID_CALL_Step(NS, M) NS::Batch<T, NS::StepBlock<T, M>>(begin, end, n, a)
+SELFID_TYPED(ClosedForm)
+SELFID_TYPED(Update)
+SELFID_TYPED(Record)
+SELFID_TYPED(Step)
 
 template <void (*F32)(ffi::ThreadPool&, const Call&), void (*F64)(ffi::ThreadPool&, const Call&)>
 ffi::Error Run(const Spec& spec, ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
@@ -410,18 +341,14 @@ ffi::Error Run(const Spec& spec, ffi::ThreadPool pool, ffi::RemainingArgs args, 
   return ffi::Error::Success();
 }
 
-ffi::Error ClosedFormImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
-  return Run<ClosedFormTyped<float>, ClosedFormTyped<double>>(kClosedForm, pool, args, rets);
-}
-ffi::Error UpdateImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
-  return Run<UpdateTyped<float>, UpdateTyped<double>>(kUpdate, pool, args, rets);
-}
-ffi::Error RecordImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
-  return Run<RecordTyped<float>, RecordTyped<double>>(kRecord, pool, args, rets);
-}
-ffi::Error StepImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
-  return Run<StepTyped<float>, StepTyped<double>>(kStep, pool, args, rets);
-}
+#define SELFID_IMPL(KERNEL, SPEC)                                                                            \
+  ffi::Error KERNEL##Impl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) { \
+    return Run<KERNEL##Typed<float>, KERNEL##Typed<double>>(SPEC, pool, args, rets);                  \
+  }
+SELFID_IMPL(ClosedForm, kClosedForm)
+SELFID_IMPL(Update, kUpdate)
+SELFID_IMPL(Record, kRecord)
+SELFID_IMPL(Step, kStep)
 
 }  // namespace
 
@@ -430,7 +357,11 @@ ffi::Error StepImpl(ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::Remainin
 extern "C" int SelfidKernelsAbi() { return 2; }
 
 #define SELFID_HANDLER(NAME, IMPL) \
-  XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, IMPL, ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().RemainingArgs().RemainingRets());
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, IMPL,                                                                 \
+                                ffi::Ffi::Bind()                                                            \
+                                    .Ctx<ffi::ThreadPool>()                                                 \
+                                    .RemainingArgs()                                                        \
+                                    .RemainingRets());
 SELFID_HANDLER(SelfidClosedForm, ClosedFormImpl)
 SELFID_HANDLER(SelfidUpdate, UpdateImpl)
 SELFID_HANDLER(SelfidRecord, RecordImpl)
