@@ -60,6 +60,20 @@ def test_the_kernel_is_built_and_registered():
     assert native.enabled()
 
 
+def test_the_library_runs_where_the_cpu_has_avx2_and_fma():
+    """``SelfidKernelsSupported`` against the CPU's flags (``/proc/cpuinfo``): the kernels are built for AVX2 and FMA
+    only, and another CPU gets the pure-JAX functions with the reason."""
+    import ctypes
+    import pathlib
+
+    info = pathlib.Path("/proc/cpuinfo")
+    if not info.is_file():
+        pytest.skip("no /proc/cpuinfo on this system")
+    flags = next(line for line in info.read_text().splitlines() if line.startswith("flags")).split()
+    lib = ctypes.cdll.LoadLibrary(str(native._library_path()))
+    assert bool(lib.SelfidKernelsSupported()) == ("avx2" in flags and "fma" in flags)
+
+
 def test_the_cpu_program_calls_the_kernel_and_the_cuda_program_does_not():
     S_vv, S_tv, J0 = statistics(5, 6, 3, 3, jnp.float32)
     f = jax.jit(jax.vmap(RF.statistics_closed_form))

@@ -4,8 +4,12 @@ XLA's CPU backend compiles a vmapped estimator step into loops that update one
 scalar per instruction (about 0.45 ns per value on the 2-core development
 machine, whatever the layout; ``docs/benchmarks.md``). The C++ kernels in
 ``selfid_jax/math/_native/`` run the same operations, in the same order, on 8
-float32 (4 float64) estimators per instruction (AVX2 and FMA where the CPU has
-them, SSE2 otherwise), each as one XLA FFI custom call over the whole batch:
+float32 (4 float64) estimators per instruction, each as one XLA FFI custom
+call over the whole batch. They are built for x86-64 CPUs with AVX2 and FMA
+(any x86-64 server CPU since 2013-2015); on another CPU :func:`available` is
+False, with the reason, and the pure-JAX functions run (an SSE2 build of the
+same code ran slower than XLA's code on the development machine). The
+kernels:
 
 * ``"update"``: the sums of :func:`selfid_jax.identify.estimator.update`
   (the sample screen, the sums of Eq. 6-12 and 14, the counters; the ring
@@ -62,7 +66,7 @@ import jax.numpy as jnp
 __all__ = ["available", "call", "enabled", "load_error", "set_enabled", "status"]
 
 _LIB_STEM = "_native_kernels"
-_ABI = 2  # SelfidKernelsAbi() of the sources beside this module: a change to a handler's arguments bumps both
+_ABI = 3  # SelfidKernelsAbi() of the sources beside this module: a change to a handler's arguments bumps both
 _TARGETS = {"closed_form": "SelfidClosedForm", "record": "SelfidRecord", "step": "SelfidStep",
             "update": "SelfidUpdate"}
 # result k written over argument j's buffer ({j: k}): XLA then updates a loop's carried state in place instead of
@@ -93,6 +97,8 @@ def _load() -> tuple[bool, str]:
         abi = lib.SelfidKernelsAbi()
         if abi != _ABI:
             return False, f"{path} was built from other sources (ABI {abi}, expected {_ABI}): reinstall the package"
+        if not lib.SelfidKernelsSupported():
+            return False, "the kernels run on x86-64 CPUs with AVX2 and FMA only; this one runs the pure-JAX code"
         for target in _TARGETS.values():
             jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, target)), platform="cpu")
     except (OSError, AttributeError) as e:

@@ -2,8 +2,9 @@
 // statistics, each over a batch of estimators in one call (selfid_jax.math.native registers and calls them).
 //
 // XLA's CPU code generator runs a vmapped estimator one scalar at a time; these kernels run the same operations
-// on 8 float32 (4 float64) estimators per instruction. The arithmetic is estimator_kernels.inc, compiled twice:
-// for the x86-64 baseline (SSE2) and, where the CPU has them, AVX2 and FMA (chosen at run time).
+// on 8 float32 (4 float64) estimators per instruction. The arithmetic is estimator_kernels.inc, compiled for x86-64
+// with AVX2 and FMA: SelfidKernelsSupported() says whether this CPU has them (selfid_jax.math.native registers the
+// handlers only then). On another CPU or compiler the library holds no kernels and the pure-JAX functions run.
 #ifdef __linux__
 #include <sched.h>
 #endif
@@ -86,34 +87,24 @@ constexpr int kStepUpdateArgs[12] = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 17, 18};
 constexpr int kStepRecordArgs[12] = {-1, 10, 11, 12, 13, -1, 14, 15, 16, 20, 21, 22};
 constexpr int kStepRcond = 19;
 
-#define SELFID_FLATTEN
-
-namespace base {
-#include "estimator_kernels.inc"
-}  // namespace base
-
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-#define SELFID_AVX2 1
+#define SELFID_KERNELS 1
 #if defined(__clang__)
 #pragma clang attribute push(__attribute__((target("avx2,fma"))), apply_to = function)
 #else
 #pragma GCC push_options
 #pragma GCC target("avx2,fma")
 #endif
-// the AVX2 step kernel inlines every function it calls (GCC's flatten): its loads, transposes and the closed
-// form's factorisations then share registers with the update and the record
-#undef SELFID_FLATTEN
+// the step kernel inlines every function it calls (GCC's flatten): its loads, transposes and the closed form's
+// factorisations then share registers with the update and the record
 #define SELFID_FLATTEN __attribute__((flatten))
 namespace avx2 {
-#define SELFID_KERNELS_AVX2 1
 #include "estimator_kernels.inc"
-#undef SELFID_KERNELS_AVX2
 }  // namespace avx2
 #if defined(__clang__)
 #pragma clang attribute pop
 #else
 #pragma GCC pop_options
-#endif
 #endif
 
 namespace {
@@ -122,12 +113,8 @@ constexpr int64_t kMaxM = 6;
 constexpr int64_t kMaxN = 64;
 
 bool HasAvx2() {
-#ifdef SELFID_AVX2
   static const bool has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
   return has;
-#else
-  return false;
-#endif
 }
 
 // CALL(NS, M) for the static m and the instruction set of this CPU.
@@ -140,16 +127,7 @@ bool HasAvx2() {
     case 5: CALL(NS, 5); break; \
     default: CALL(NS, 6); break; \
   }
-#ifdef SELFID_AVX2
-#define SELFID_DISPATCH(CALL)     \
-  if (HasAvx2()) {                \
-    SELFID_FOR_M(avx2, CALL)      \
-  } else {                        \
-    SELFID_FOR_M(base, CALL)      \
-  }
-#else
-#define SELFID_DISPATCH(CALL) SELFID_FOR_M(base, CALL)
-#endif
+#define SELFID_DISPATCH(CALL) SELFID_FOR_M(avx2, CALL)
 
 // A kernel's fields: sizes per estimator in terms of (n, m), and element types (float: the call's dtype).
 enum Size { kNM, kM, kMM, kN, kOne, kTwo };
@@ -332,6 +310,7 @@ SELFID_TYPED(Step)
 
 template <void (*F32)(ffi::ThreadPool&, const Call&), void (*F64)(ffi::ThreadPool&, const Call&)>
 ffi::Error Run(const Spec& spec, ffi::ThreadPool pool, ffi::RemainingArgs args, ffi::RemainingRets rets) {
+  if (!HasAvx2()) return ffi::Error::InvalidArgument(std::string(spec.name) + ": this CPU lacks AVX2 or FMA");
   Call c;
   if (auto e = c.Decode(spec, args, rets); e.failure()) return e;
   if (c.dtype == ffi::DataType::F32)
@@ -352,10 +331,6 @@ SELFID_IMPL(Step, kStep)
 
 }  // namespace
 
-// The handlers' argument lists' version: selfid_jax.math.native refuses a library built from other sources (an
-// editable checkout pulled without a rebuild) instead of calling it with arguments it does not take.
-extern "C" int SelfidKernelsAbi() { return 2; }
-
 #define SELFID_HANDLER(NAME, IMPL) \
   XLA_FFI_DEFINE_HANDLER_SYMBOL(NAME, IMPL,                                                                 \
                                 ffi::Ffi::Bind()                                                            \
@@ -366,3 +341,17 @@ SELFID_HANDLER(SelfidClosedForm, ClosedFormImpl)
 SELFID_HANDLER(SelfidUpdate, UpdateImpl)
 SELFID_HANDLER(SelfidRecord, RecordImpl)
 SELFID_HANDLER(SelfidStep, StepImpl)
+#endif  // SELFID_KERNELS
+
+// The handlers' argument lists' version: selfid_jax.math.native refuses a library built from other sources (an
+// editable checkout pulled without a rebuild) instead of calling it with arguments it does not take.
+extern "C" int SelfidKernelsAbi() { return 3; }
+
+// Whether this library holds the kernels and this CPU runs them (x86-64 with AVX2 and FMA).
+extern "C" int SelfidKernelsSupported() {
+#ifdef SELFID_KERNELS
+  return HasAvx2() ? 1 : 0;
+#else
+  return 0;
+#endif
+}
