@@ -562,3 +562,28 @@ def test_the_step_handler_checks_its_argument_count():
     call = jax.ffi.ffi_call("SelfidStep", jax.ShapeDtypeStruct((4, 6, 3), f32), vmap_method="broadcast_all")
     with pytest.raises(Exception, match="step: wrong number of arguments or results"):
         jax.block_until_ready(call(jnp.ones((4, 6, 3), f32)))
+
+
+def test_the_step_under_nested_vmap_with_a_threshold_batched_on_the_outer_axis_only():
+    """``vmap(vmap(sample_step))`` over 3 x 5 estimators, ``eps`` batched over the 3 only (``broadcast_all`` gives the
+    kernel one flat batch of 15): the pure-JAX values, ring buffers bit-identical."""
+    A, B, n, m = 3, 5, 4, 2
+    rng = np.random.default_rng(4)
+    d = jnp.asarray(rng.normal(size=(2, A, B, n)), jnp.float32)
+    V = jnp.asarray(rng.normal(size=(2, A, B, m)), jnp.float32)
+    eps = jnp.asarray([1e-3, 1e-2, 1e-1], jnp.float32)
+
+    def go(d, V, eps):
+        s = jax.vmap(jax.vmap(lambda _: E.init(n, m, capacity=2, dtype=jnp.float32)))(jnp.zeros((A, B)))
+        for t in range(2):
+            s = jax.vmap(lambda s, x, v, e: jax.vmap(
+                lambda s, x, v: ST.sample_step(s, x, v, e, 0.0, method="closed_form")[0])(s, x, v))(s, d[t], V[t], eps)
+        return s
+
+    assert "SelfidStep" in jax.jit(go).lower(d, V, eps).as_text()
+    got = jax.jit(go)(d, V, eps)
+    native.set_enabled(False)
+    ref = jax.jit(go)(d, V, eps)
+    native.set_enabled(True)
+    assert_states_close(got, ref, 2e-5)
+    np.testing.assert_array_equal(got.dtheta_buf, ref.dtheta_buf)
