@@ -441,13 +441,19 @@ def record(state: EstimatorState, J: ArrayLike, eps: ArrayLike, eps_rel: ArrayLi
     if norm is not None:
         check_array("norm", norm, ())
         norm = jnp.asarray(norm, dtype)
-    same = all(jnp.result_type(x, dtype) == dtype for x in (eps, eps_rel))
-    if delta is None and norm is None and same and jnp.issubdtype(jnp.result_type(min_count), jnp.integer):
+    if delta is None and norm is None and _native_thresholds(dtype, eps, eps_rel, min_count):
         # the native CPU kernel where it is built (selfid_jax.math.native), _record_fields elsewhere
         fields = native.call("record", _record_fields, J, *(getattr(state, f) for f in _RECORD_IN),
                              jnp.asarray(eps, dtype), jnp.asarray(eps_rel, dtype), jnp.asarray(min_count, jnp.int32))
         return state._replace(**dict(zip(_RECORD_OUT, fields, strict=True)))
     return _record(state, J, eps, eps_rel, delta, norm, min_count)
+
+
+def _native_thresholds(dtype, eps, eps_rel, min_count) -> bool:
+    """Whether the native record (alone or in the fused step) takes these thresholds: ``eps``, ``eps_rel`` of the
+    state's float ``dtype`` (no promotion) and an integer ``min_count``."""
+    return (all(jnp.result_type(x, dtype) == dtype for x in (eps, eps_rel))
+            and bool(jnp.issubdtype(jnp.result_type(min_count), jnp.integer)))
 
 
 _RECORD_OUT = ("estimate", "last_deltas", "last_norms", "last_fresh", "recorded_count", "iteration", "converged_at")

@@ -63,12 +63,11 @@ def sample_step(state: estimator.EstimatorState, dtheta: ArrayLike, V: ArrayLike
     once (the ring buffer's write stays XLA code); values equal the four
     functions' to float round-off.
     """
-    fused = _fused_closed_form(state, dtheta, V, eps, eps_rel, method, options, min_count)
-    if fused is not None:
-        return fused
-    new = estimator.update(state, dtheta, V)
-    J = refine(new, estimator.initial_guess(new), method=method, **dict(options))
-    new = estimator.record(new, J, eps, eps_rel, min_count=min_count)
+    new = _fused_closed_form(state, dtheta, V, eps, eps_rel, method, options, min_count)
+    if new is None:
+        new = estimator.update(state, dtheta, V)
+        J = refine(new, estimator.initial_guess(new), method=method, **dict(options))
+        new = estimator.record(new, J, eps, eps_rel, min_count=min_count)
     return new, StepInfo(estimate=new.estimate, delta=new.last_deltas[1],
                          threshold=new.last_norms[1] * eps_rel + eps, accepted=new.count > state.count)
 
@@ -80,9 +79,9 @@ _STEP_OUT = (*estimator._UPDATE_OUT, *_STEP_RECORD)
 
 
 def _fused_closed_form(state, dtheta, V, eps, eps_rel, method, options, min_count):
-    """:func:`sample_step` as the native ``"step"`` kernel where it applies (the closed form, no ridge, thresholds of
-    the state's dtype, an integer ``min_count``, the kernels on), after the checks the four functions make; None
-    elsewhere."""
+    """The new state of :func:`sample_step` from the native ``"step"`` kernel where it applies (the closed form, no
+    ridge, thresholds of the state's dtype, an integer ``min_count``, the kernels on), after the checks the four
+    functions make; None elsewhere."""
     opts = dict(options)
     ridge = opts.get("ridge", 0.0)
     if not (method == "closed_form" and set(opts) <= {"rcond", "ridge"} and isinstance(ridge, (int, float))
@@ -90,8 +89,7 @@ def _fused_closed_form(state, dtheta, V, eps, eps_rel, method, options, min_coun
         return None
     n, m, _ = estimator.sizes(state)
     dtype = state.sign_net.dtype
-    if not (all(jnp.result_type(x, dtype) == dtype for x in (eps, eps_rel))
-            and jnp.issubdtype(jnp.result_type(min_count), jnp.integer)):
+    if not estimator._native_thresholds(dtype, eps, eps_rel, min_count):
         return None
     check_array("dtheta", dtheta, (n,))
     check_array("V", V, (m,))
@@ -104,9 +102,7 @@ def _fused_closed_form(state, dtheta, V, eps, eps_rel, method, options, min_coun
     fields = native.call("step", _closed_form_fields, *(getattr(state, f) for f in _STEP_IN), dtheta, V, rcond,
                          jnp.asarray(eps, dtype), jnp.asarray(eps_rel, dtype), jnp.asarray(min_count, jnp.int32))
     new = state._replace(**dict(zip(_STEP_OUT, fields, strict=True)))
-    new = estimator._ring_write(state, new, dtheta, V, new.count > state.count)
-    return new, StepInfo(estimate=new.estimate, delta=new.last_deltas[1],
-                         threshold=new.last_norms[1] * eps_rel + eps, accepted=new.count > state.count)
+    return estimator._ring_write(state, new, dtheta, V, new.count > state.count)
 
 
 def _closed_form_fields(*args):
