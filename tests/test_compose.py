@@ -1,6 +1,7 @@
 """A Model O mounted on the UR5e (``systems.compose``): the composed Jacobian against central differences of its
 pose map, and each part (the other held) against the composed pose and Jacobian columns. float64."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -19,35 +20,49 @@ def mounted():
     return system, np.concatenate([[0.3, -1.3, 1.8, -2.07, -1.57, 0.2], q_hand])
 
 
-def central_differences(system, q, h=1e-6):
-    cols = []
-    for i in range(len(q)):
-        e = np.zeros(len(q))
-        e[i] = h
-        (pa, Ra), (pb, Rb) = system.pose(q + e), system.pose(q - e)
-        cols.append(np.asarray(geometry.pose_difference(pa, Ra, pb, Rb)) / (2 * h))
-    return np.stack(cols, axis=1)
-
-
-def test_composed_jacobian_equals_central_differences(mounted):
-    system, q = mounted
-    J = np.asarray(system.jacobian(q))
-    assert J.shape == (6, 9)
-    np.testing.assert_allclose(J, central_differences(system, q), atol=1e-6 * np.abs(J).max())
-
-
-def test_parts_hold_the_other_and_match_the_composed_system(mounted):
-    system, q = mounted
+@jax.jit
+def _evaluate(system, q):
+    """Everything the tests read, in one compiled program (the closed-chain hand's Newton solve and implicit
+    derivatives compile once, not once per eager call): the composed pose and Jacobian and both parts' (the other
+    part held at ``q``)."""
     arm, hand = compose.arm_part(system, q[6:]), compose.hand_part(system, q[:6], task_axes=("z", "rx", "ry"))
-    for part, qp in ((arm, q[:6]), (hand, q[6:])):
-        p, R = part.pose(qp)
-        p_full, R_full = system.pose(q)
+    return {"pose": system.pose(q), "J": system.jacobian(q), "arm_pose": arm.pose(q[:6]),
+            "hand_pose": hand.pose(q[6:]), "arm_J": arm.jacobian(q[:6]), "hand_J": hand.jacobian(q[6:]),
+            "n": (arm.n_act, hand.n_act, hand.task_dim)}
+
+
+@pytest.fixture(scope="module")
+def evaluated(mounted):
+    return jax.tree.map(np.asarray, _evaluate(*mounted))
+
+
+def central_differences(system, q, poses, h=1e-6):
+    """``(6, len(q))`` central differences of ``system``'s pose at ``q`` (step ``h``): the ``2 len(q)`` perturbed
+    poses in one vmapped call (the ``poses`` fixture)."""
+    E = h * np.eye(len(q))
+    p, R = poses(system, np.concatenate([q + E, q - E]))
+    n = len(q)
+    V = jax.vmap(geometry.pose_difference)(p[:n], R[:n], p[n:], R[n:])
+    return np.asarray(V).T / (2 * h)
+
+
+def test_composed_jacobian_equals_central_differences(mounted, evaluated, poses):
+    system, q = mounted
+    J = evaluated["J"]
+    assert J.shape == (6, 9)
+    np.testing.assert_allclose(J, central_differences(system, q, poses), atol=1e-6 * np.abs(J).max())
+
+
+def test_parts_hold_the_other_and_match_the_composed_system(evaluated):
+    out = evaluated
+    p_full, R_full = out["pose"]
+    for p, R in (out["arm_pose"], out["hand_pose"]):
         np.testing.assert_allclose(p, p_full, atol=1e-12)
         np.testing.assert_allclose(R, R_full, atol=1e-12)
-    J = np.asarray(system.jacobian(q))
-    np.testing.assert_allclose(arm.jacobian(q[:6]), J[:, :6], atol=1e-9)
-    np.testing.assert_allclose(hand.jacobian(q[6:]), J[[2, 3, 4], 6:], atol=1e-9)
-    assert (arm.n_act, hand.n_act, hand.task_dim) == (6, 3, 3)
+    J = out["J"]
+    np.testing.assert_allclose(out["arm_J"], J[:, :6], atol=1e-9)
+    np.testing.assert_allclose(out["hand_J"], J[[2, 3, 4], 6:], atol=1e-9)
+    assert tuple(int(v) for v in out["n"]) == (6, 3, 3)
 
 
 def test_mount_checks_its_inputs():
