@@ -41,7 +41,7 @@ FOLDERS = {
     "selfid_jax.configs",
     "benchmarks": "scripts that print ratios against a baseline run in the same process",
     "docs": "the documentation site (Sphinx, MyST, furo: conf.py, the pages and their figures); api/ is generated at "
-    "build time by scripts/api_pages.py",
+    "build time by scripts/api_pages.py; _ext/ holds the build's own Sphinx extension (shared_navigation)",
     "tests": 'pytest (float64, strict rank promotion); -m "not slow" is the fast tier',
 }
 # Folders listed with their own modules; the others are one line each.

@@ -16,7 +16,9 @@ computation independent of the generator under test:
   a file, and a ``#fragment`` to a heading of that page; every toctree entry
   is a page and every page is in a toctree;
 * the Python blocks that the README test used to run (now on the functional
-  API page) still print what their comments say (slow tier).
+  API page) still print what their comments say (slow tier);
+* the build's own extension (``docs/_ext/shared_navigation.py``) leaves every
+  page of a small site byte-identical to a build without it (slow tier).
 """
 
 from __future__ import annotations
@@ -267,3 +269,53 @@ def test_the_example_driver_self_identifies_and_follows(tmp_path):
     """The driver page's example runs as a reader would paste it: converged, the star completed, the estimate exact."""
     assert len(DRIVER_BLOCKS) == 1 and stated_outputs(DRIVER_BLOCKS[0])
     check_block_prints_what_it_says(DRIVER_BLOCKS[0], tmp_path)
+
+
+# ------------------------------------------------------------------------ the build's shared navigation tree
+
+_SITE = {
+    "index.md": "# Home\n\n```{toctree}\n:caption: Guides\n\nguide\na/index\n```\n\n"
+                "```{toctree}\n:caption: Reference\n:titlesonly:\n\nb/ref\n```\n\n```{toctree}\n:hidden:\n\nb/hidden\n```\n",
+    "guide.md": "# Guide\n\n## A section\n\ntext\n\n### A subsection\n\ntext\n",
+    "a/index.md": "# Part A\n\n```{toctree}\n\nx\ny\n```\n",
+    "a/x.md": "# X\n\n## X's section\n\n```{py:function} f(x)\n\nA function: an object entry in the ToC.\n```\n",
+    "a/y.md": "# Y\n\ntext\n",
+    "b/ref.md": "# Ref\n\n## Ref's section\n\n```{py:class} C\n```\n",
+    "b/hidden.md": "# Hidden\n\ntext\n",
+    "b/orphan.md": "---\norphan: true\n---\n\n# Orphan\n\nin no toctree\n",
+}
+
+
+@pytest.mark.slow
+def test_shared_navigation_leaves_every_page_byte_identical(tmp_path, monkeypatch):
+    """docs/_ext/shared_navigation.py (furo's navigation tree resolved once per folder): a small site with three
+    toctrees in its index (captions, titlesonly, hidden), pages in the top folder and two subfolders, a nested
+    toctree, sections, object entries and an orphan page builds to the same bytes in every HTML page with the
+    extension as without it; the shared trees were used (one per folder) and mark each page's own branch."""
+    from sphinx.application import Sphinx
+    from sphinx.util.docutils import docutils_namespace
+
+    monkeypatch.syspath_prepend(str(ROOT / "docs" / "_ext"))
+    import shared_navigation
+
+    src = tmp_path / "src"
+    for name, text in _SITE.items():
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        (src / name).write_text(text, encoding="utf-8")
+    (src / "conf.py").write_text("", encoding="utf-8")
+    pages = {}
+    for ext in ([], ["shared_navigation"]):
+        out = tmp_path / ("shared" if ext else "own")
+        conf = {"extensions": ["myst_parser", *ext], "html_theme": "furo", "root_doc": "index"}
+        with docutils_namespace():
+            app = Sphinx(str(src), str(src), str(out / "html"), str(out / "doctrees"), "html", confoverrides=conf,
+                         status=None, warningiserror=True, freshenv=True)
+            app.build()
+        pages[bool(ext)] = {p.relative_to(out / "html").as_posix(): p.read_bytes()
+                            for p in (out / "html").rglob("*.html")}
+    assert set(pages[True]) == set(pages[False]) >= {"index.html", "a/x.html", "b/ref.html", "b/orphan.html"}
+    differ = [name for name in pages[False] if pages[True][name] != pages[False][name]]
+    assert not differ, differ
+    assert {key[0] for key in shared_navigation._NAVIGATION} == {"", "a", "b"}
+    x = pages[True]["a/x.html"].decode()
+    assert re.search(r'<li class="toctree-l2 current[^"]*"><a class="current reference internal" href="#">X</a>', x), x
