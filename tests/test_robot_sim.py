@@ -4,6 +4,7 @@ the simulator killed mid-run (the runner stops, its log is intact, resume contin
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -31,20 +32,29 @@ UR5E_XML = Path(__file__).resolve().parents[1] / "selfid_jax" / "systems" / "ass
 
 
 class Sim:
-    """``selfid-jax robot-sim CONFIG --port 0`` in a subprocess; ``port`` once it listens."""
+    """``selfid-jax robot-sim CONFIG --port 0`` in a subprocess, started at once; ``port`` waits until it listens
+    (so a test starts every simulator it needs side by side: each process's start, about 4 s of importing JAX and
+    building the system, overlaps the others' instead of adding to them)."""
 
     def __init__(self, console, tmp_path: Path, text: str, name: str = "sim"):
         self.cfg = tmp_path / f"{name}.yaml"
         self.cfg.write_text(textwrap.dedent(text))
-        port_file = tmp_path / f"{name}.port"
+        self._port_file = tmp_path / f"{name}.port"
+        self._port: int | None = None
         self.proc = subprocess.Popen([*console, "robot-sim", str(self.cfg), "--port", "0", "--port-file",
-                                      str(port_file)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        deadline = time.monotonic() + 120
-        while not port_file.exists():
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise AssertionError(f"robot-sim did not start: {self.proc.communicate(timeout=5)[0]}")
-            time.sleep(0.1)
-        self.port = int(port_file.read_text())
+                                      str(self._port_file)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True)
+
+    @property
+    def port(self) -> int:
+        if self._port is None:
+            deadline = time.monotonic() + 120
+            while not self._port_file.exists():
+                if self.proc.poll() is not None or time.monotonic() > deadline:
+                    raise AssertionError(f"robot-sim did not start: {self.proc.communicate(timeout=5)[0]}")
+                time.sleep(0.05)
+            self._port = int(self._port_file.read_text())
+        return self._port
 
     def stop(self) -> str:
         if self.proc.poll() is None:
@@ -122,16 +132,26 @@ def test_client_sees_the_model_pose_servo_lag_latency_and_refused_moves(sims):
 
 def test_online_ur5e_and_model_o_self_identify_then_follow_a_star_with_no_random_move_after(sims, tmp_path,
                                                                                              console):
-    """The shipped pair of configs, end to end through both commands (real processes, real sockets)."""
-    for name in ("ur5e", "model_o"):
-        sim = sims((CONFIGS / f"robot_sim_{name}.yaml").read_text(), name)
-        out = tmp_path / f"online_{name}"
+    """The shipped pair of configs, end to end through both commands (real processes, real sockets). Both
+    simulators start at once and each session as soon as its simulator listens, so the two run side by side (a
+    session waits on its simulator's clock most of the time). Each follows its star at gain 1 with twice the
+    shipped step cap or more (ur5e 10 mm, model_o 0.5 mm a move instead of 5 and 0.2): the same waypoints in
+    about half the moves (20 and 28 instead of 40 and 66)."""
+    names = ("ur5e", "model_o")
+    started = {name: sims((CONFIGS / f"robot_sim_{name}.yaml").read_text(), name) for name in names}
+    faster = {"ur5e": "path.max_task_step=0.01", "model_o": "path.max_task_step=0.0005"}
+    runs = {}
+    for name in names:
         # stale_s 2 s: three processes on 2 loaded cores starved the simulator's clock past the shipped 0.5 s in 2
         # of 4 full runs (a stale stop, safe); the watchdog itself is tested in test_online and below
-        done = subprocess.run([*console, "online", str(CONFIGS / f"online_{name}.yaml"), "--out", str(out),
-                               "--set", f"robot.port={sim.port}", "--set", "safety.stale_s=2.0"],
-                              capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0, done.stdout + done.stderr
+        runs[name] = subprocess.Popen([*console, "online", str(CONFIGS / f"online_{name}.yaml"), "--out",
+                                       str(tmp_path / f"online_{name}"), "--set", f"robot.port={started[name].port}",
+                                       "--set", "safety.stale_s=2.0", "--set", "path.gain=1.0", "--set",
+                                       faster[name]], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    for name in names:
+        out = tmp_path / f"online_{name}"
+        text = runs[name].communicate(timeout=300)[0]
+        assert runs[name].returncode == 0, text
         summary = json.loads((out / "summary.json").read_text())
         assert summary["status"] == "completed" and summary["converged_at"] >= 2, summary
         records = read_journal(out / live.LOG_FILE).records
@@ -140,10 +160,31 @@ def test_online_ur5e_and_model_o_self_identify_then_follow_a_star_with_no_random
         moves = [r for r in records if r["e"] == "move" and r["phase"] == "selfid"]
         rejected = sum(1 for r in records if r["e"] == "sample" and not r.get("accepted", True))
         assert len(moves) == summary["converged_at"] + rejected
-        sim.stop()
+        started[name].stop()
+
+
+@contextlib.contextmanager
+def _sim_here(tmp_path: Path, text: str, name: str):
+    """robot-sim's robot and server in this process (``online_sim.listen``, what the command serves), on a free
+    port for the block: for faults that no clock's timing decides, without a process start (about 4 s each)."""
+    from selfid_jax.sessions import online_sim
+
+    cfg = tmp_path / f"{name}.yaml"
+    cfg.write_text(textwrap.dedent(text))
+    robot, server = online_sim.listen(online_sim.load_sim_config(cfg), 0)
+    robot.start()
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield server.port
+    finally:
+        server.shutdown()  # the serving thread ends at its next poll (after a delayed reply's sleep)
 
 
 def test_dropouts_are_rejected_and_a_latency_spike_or_a_frozen_tracker_stops_safely(sims, tmp_path):
+    """A session through robot-sim (its own process: a real-time clock) that drops 30 % of the tracker's poses
+    converges with the dropouts rejected; a latency spike (3 s late replies) is a lost connection and a tracker
+    frozen from the start a stale stop before any sample, each against the simulator's robot and server in this
+    process while the first simulator starts."""
     sim = sims("""\
         system: ur5e
         max_step: 0.05
@@ -151,33 +192,36 @@ def test_dropouts_are_rejected_and_a_latency_spike_or_a_frozen_tracker_stops_saf
         seed: 1
         """, "dropouts")
     opts = options.OnlineOptions(m_a=0.03, eps_rel=0.05, max_samples=150, settle_s=0.08, stale_s=0.5)
+
+    with _sim_here(tmp_path, """\
+            system: ur5e
+            max_step: 0.05
+            realism: {period: 0.01}
+            faults: {latency_spike: {at_s: 0.0, duration_s: 600.0, extra_s: 3.0}}
+            """, "spike") as port, pytest.raises(RobotConnectionError, match="no reply"):
+        RemoteRobot("127.0.0.1", port, timeout_s=1.0).read()
+
+    with _sim_here(tmp_path, """\
+            system: ur5e
+            max_step: 0.05
+            realism: {period: 0.01}
+            faults: {freeze_tracker_at_s: 0.0}
+            """, "frozen") as port:
+        t0 = time.monotonic()
+        res = live.run_online(RemoteRobot("127.0.0.1", port, timeout_s=5), opts._replace(stale_s=0.3),
+                              tmp_path / "frozen")
+    assert res.status == live.Stop.STALE and time.monotonic() - t0 < 30
+    assert res.samples == 0
+
     res = live.run_online(RemoteRobot("127.0.0.1", sim.port, timeout_s=5), opts, tmp_path / "dropouts")
     assert res.status == live.Stop.CONVERGED and res.rejected.get("dropout", 0) >= 1
     assert res.moves == res.converged_at + sum(res.rejected.values())
 
-    spike = sims("""\
-        system: ur5e
-        max_step: 0.05
-        realism: {period: 0.01}
-        faults: {latency_spike: {at_s: 0.0, duration_s: 600.0, extra_s: 3.0}}
-        """, "spike")
-    with pytest.raises(RobotConnectionError, match="no reply"):
-        RemoteRobot("127.0.0.1", spike.port, timeout_s=1.0).read()
-
-    frozen = sims("""\
-        system: ur5e
-        max_step: 0.05
-        realism: {period: 0.01}
-        faults: {freeze_tracker_at_s: 0.0}
-        """, "frozen")
-    t0 = time.monotonic()
-    res = live.run_online(RemoteRobot("127.0.0.1", frozen.port, timeout_s=5),
-                            opts._replace(stale_s=0.3), tmp_path / "frozen")
-    assert res.status == live.Stop.STALE and time.monotonic() - t0 < 30
-    assert res.samples == 0
-
 
 def test_simulator_killed_mid_run_stops_cleanly_and_resume_continues(sims, tmp_path):
+    """robot-sim's process killed (SIGKILL) after 4 samples: the session stops as a lost connection, its log
+    intact; resume against a fresh simulator (robot-sim's robot and server in this process) replays the logged
+    samples and continues to convergence."""
     text = """\
         system: ur5e
         max_step: 0.05
@@ -203,8 +247,8 @@ def test_simulator_killed_mid_run_stops_cleanly_and_resume_continues(sims, tmp_p
     assert records[-1]["e"] == "stop" and records[-1]["reason"] == "connection"
     done = sum(1 for r in records if r["e"] == "sample")
     assert done >= 4
-    again = sims(text, "second")
-    res2 = live.run_online(RemoteRobot("127.0.0.1", again.port, timeout_s=5), opts, run_dir, resume=True)
+    with _sim_here(tmp_path, text, "second") as port:  # a fresh simulator, here: no second process start
+        res2 = live.run_online(RemoteRobot("127.0.0.1", port, timeout_s=5), opts, run_dir, resume=True)
     assert res2.replayed == res.samples and res2.status == live.Stop.CONVERGED
     assert res2.samples > res.samples
 
