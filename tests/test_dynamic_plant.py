@@ -3,9 +3,10 @@
 A plant whose actuators reach every target reproduces the kinematic loop bit
 for bit through the hook (fast); the UR5e's MJX servos in the follow loop
 agree with a closed loop written here on native ``mj_step`` (slow: one
-program, jitted and vmapped over two starts); a ``realism: {plant: dynamic}``
-section is checked before any compute and builds the file's servos with its
-gains (slow: one MJX step). x64 is on (conftest).
+program, jitted and vmapped over two starts; its plant is the one a
+``realism: {plant: dynamic}`` section builds); such a section is checked
+before any compute and builds the file's servos with its gains. x64 is on
+(conftest).
 """
 
 import chex
@@ -22,7 +23,6 @@ from selfid_jax import control
 from selfid_jax.control import loop
 from selfid_jax.control import realism as realism_lib
 from selfid_jax.identify import algorithm as selfid
-from selfid_jax.systems.dynamic import dynamic_ur5e
 from selfid_jax.systems.two_link import two_link
 from selfid_jax.systems.ur5e import UR5E_HOME, UR5E_XML, ur5e
 
@@ -130,11 +130,24 @@ def native_jacobian_pinv(q0):
     return np.linalg.pinv(jac[:, :6])
 
 
+BASE = dict(experiment="tracking", system="ur5e", path={"kind": "star", "size": 0.02}, n_configs=1)
+
+
 @pytest.mark.slow
 def test_dynamic_follow_agrees_with_native_mujoco():
+    """The plant a ``realism: {plant: dynamic}`` section builds (gains, gravity compensation, ``period / timestep``
+    physics steps per control step) in the follow loop: the positions of a loop on native ``mj_step`` with those
+    servos and SUBSTEPS physics steps, to 1e-9 m. (The section's builder is checked here, on the one MJX program
+    of this module, rather than by compiling an MJX step of its own.)"""
     system = ur5e()
-    arm = dynamic_ur5e(gravcomp=1.0).with_servo(kp=KP, kv=KV)
-    plant = realism_lib.dynamic_plant(arm, SUBSTEPS)
+    cfg = TrackingConfig(**BASE, realism={"plant": "dynamic", "period": SUBSTEPS * 0.002, "kp": KP, "kv": KV,
+                                          "gravcomp": 1.0})
+    plant = realistic.plant(cfg.realism, cfg.system, system)
+    arm = plant.q.__self__
+    assert arm.timestep == 0.002 and arm.n_act == 6
+    np.testing.assert_allclose(np.asarray(arm.model.actuator_gainprm[:, 0]), KP)
+    np.testing.assert_allclose(np.asarray(arm.model.actuator_biasprm[:, 2]), -KV)
+    np.testing.assert_allclose(np.asarray(arm.model.body_gravcomp[1:]), 1.0)
     starts = np.stack([np.asarray(UR5E_HOME), np.asarray(UR5E_HOME) + np.array([0.1, -0.1, 0.1, 0.0, 0.1, 0.0])])
     Js = np.stack([native_jacobian_pinv(q) for q in starts])
 
@@ -144,6 +157,9 @@ def test_dynamic_follow_agrees_with_native_mujoco():
                            plant=plant)
 
     res = jax.jit(jax.vmap(one))(jnp.asarray(Js), jnp.asarray(starts))
+    # the kinematic loop from the same starts with the same J: one jitted call, not an eager loop per start
+    kinematic = jax.jit(jax.vmap(lambda J, q0: loop.follow(system, control.fixed(J), jnp.asarray(PATH), q0,
+                                                           steps=STEPS)))(jnp.asarray(Js), jnp.asarray(starts))
     for i in range(len(starts)):
         seen, reached = native_follow(Js[i], starts[i], PATH, STEPS)
         assert reached == len(PATH), "the reference itself must complete the path"
@@ -151,14 +167,10 @@ def test_dynamic_follow_agrees_with_native_mujoco():
         k = len(seen)
         np.testing.assert_allclose(np.asarray(res.positions[i, :k]), seen, atol=1e-9, rtol=0)
         # the servos lag: the dynamic arm needs more control steps than the kinematic one
-        kinematic = loop.follow(system, control.fixed(jnp.asarray(Js[i])), jnp.asarray(PATH), jnp.asarray(starts[i]),
-                                steps=STEPS)
-        assert int(kinematic.steps_used) < int(res.steps_used[i])
+        assert int(kinematic.steps_used[i]) < int(res.steps_used[i])
 
 
 # ------------------------------------------------------------------ configs
-
-BASE = dict(experiment="tracking", system="ur5e", path={"kind": "star", "size": 0.02}, n_configs=1)
 
 
 @pytest.mark.slow
@@ -179,8 +191,11 @@ def test_dynamic_section_validated_before_compute():
         realistic.plant(odd.realism, odd.system, ur5e())
 
 
-@pytest.mark.slow  # one MJX step compile (5-10 s), as every MJX test
+@pytest.mark.slow
 def test_dynamic_section_builds_the_files_servos():
+    """The section's gains and gravity compensation reach the file's servos. That a control step is ``period /
+    timestep`` physics steps of them is checked by test_dynamic_follow_agrees_with_native_mujoco, whose plant this
+    builder makes (one MJX program for both)."""
     cfg = TrackingConfig(**BASE, realism={"plant": "dynamic", "period": 0.01, "kp": 2000.0, "kv": 100.0,
                                           "gravcomp": 0.5})
     plant = realistic.plant(cfg.realism, cfg.system, ur5e())
@@ -189,5 +204,3 @@ def test_dynamic_section_builds_the_files_servos():
     np.testing.assert_allclose(np.asarray(arm.model.actuator_gainprm[:, 0]), 2000.0)
     np.testing.assert_allclose(np.asarray(arm.model.actuator_biasprm[:, 2]), -100.0)
     np.testing.assert_allclose(np.asarray(arm.model.body_gravcomp[1:]), 0.5)
-    state = plant.step(plant.init(jnp.asarray(UR5E_HOME)), jnp.asarray(UR5E_HOME), realism_lib.IDEAL)
-    assert state.time == pytest.approx(0.01)  # 5 physics steps of 0.002 s
