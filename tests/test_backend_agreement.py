@@ -4,11 +4,11 @@ A GPU runs the same float32 programs as the CPU, compiled by another backend tha
 sums in another order. Without a GPU in CI, the CPU's own two code generators
 stand in for two backends: the sweeps run once with the XLA CPU flags
 ``selfid_jax`` sets (no fusion emitters, no YNNPACK) and once without them
-(``SELFID_JAX_NO_XLA_FLAGS=1``: XLA's fused emitters, other reduction orders),
-and ``scripts/compare_runs.py`` must find every discrete figure equal and at
-most 1 % of the rows differing beyond 1e-3 relative. The comparison itself is
-checked on made-up run directories first.
-"""
+(``SELFID_JAX_NO_XLA_FLAGS=1`` and those flags taken out of the ``XLA_FLAGS``
+the child inherits: XLA's fused emitters, other reduction orders), and
+``scripts/compare_runs.py`` must find every discrete figure equal and at most
+1 % of the rows differing beyond 1e-3 relative. The comparison itself is
+checked on made-up run directories first."""
 
 from __future__ import annotations
 
@@ -23,6 +23,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from selfid_jax._xla import defaults_for, jaxlib_version
+
+PACKAGE_FLAGS = set(defaults_for(jaxlib_version()))  # the flags selfid_jax sets on this jaxlib
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("compare_runs", ROOT / "scripts" / "compare_runs.py")
 compare_runs = importlib.util.module_from_spec(_spec)
@@ -69,22 +72,54 @@ def test_compare_runs_on_made_up_runs(tmp_path):
     assert compare_runs.main([str(a), str(tmp_path / "nowhere")]) == 2
 
 
-def _sweep(config, out, extra_env, *overrides):
-    env = {**os.environ, **extra_env}
-    cmd = [sys.executable, "-m", "selfid_jax.cli", "sweep", config, "--out", str(out), "--no-progress"]
-    for o in overrides:
-        cmd += ["--set", o]
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+# What ``selfid-jax sweep`` runs, without drawing the figures (compare_runs reads results.parquet and summary.json
+# only): validate the config with the overrides, run the experiment into the run directory; print the XLA flags
+# the process ran under.
+_RUN = ("import os, sys; from selfid_jax.runner import execute, registry; "
+        "cfg = registry.load(sys.argv[1], sys.argv[3:]); execute.run(registry.get(cfg.experiment), cfg, sys.argv[2]); "
+        "print(os.environ.get('XLA_FLAGS', ''))")
+
+
+def _env(ours: bool) -> dict[str, str]:
+    """The environment of one sweep. This process has imported ``selfid_jax``, so its ``XLA_FLAGS`` already holds
+    the package's flags and a child would inherit them whatever ``SELFID_JAX_NO_XLA_FLAGS`` says: the XLA run
+    takes them out (any other flag, such as the tests' optimisation level, stays)."""
+    if ours:
+        return {**os.environ, "SELFID_JAX_NO_XLA_FLAGS": "0"}
+    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if f.split("=", 1)[0] not in PACKAGE_FLAGS]
+    return {**os.environ, "SELFID_JAX_NO_XLA_FLAGS": "1", "XLA_FLAGS": " ".join(kept)}
+
+
+def _sweep(config, out, ours, *overrides):
+    path = next((ROOT / "configs").glob(f"*/{config}.yaml"))
+    proc = subprocess.run([sys.executable, "-c", _RUN, str(path), str(out), *overrides], cwd=ROOT, env=_env(ours),
+                          capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    ran_with = {f.split("=", 1)[0] for f in proc.stdout.split()}
+    assert ran_with >= PACKAGE_FLAGS if ours else not ran_with & PACKAGE_FLAGS, proc.stdout
+
+
+# The E-KM ablation at one config and trial, two checkpoints, and one row of each code path: the model-free methods,
+# E-KM fixed and online (the two programs), the nominal model alone (the fixed program with a silent GP). The
+# config's other three rows rerun these programs with other nominal models.
+EKM_METHODS = ("methods=["
+               '{name: "true", method: "true"}, {name: ours, method: ours}, '
+               "{name: ours (Eq. 13 only), method: ours, options: {refine: false}}, {name: direct, method: direct}, "
+               "{name: E-KM fixed (easy), method: ekm, options: {mode: fixed}, "
+               "nominal: {scale: [1.2, 0.8], offset: [0.1, -0.1]}}, "
+               "{name: E-KM online (hard), method: ekm, options: {mode: online}, "
+               "nominal: {scale: [1.5, 0.6], offset: [0.6, -0.6]}}, "
+               "{name: nominal only (hard), method: ekm, options: {signal: 1.0e-6}, "
+               "nominal: {scale: [1.5, 0.6], offset: [0.6, -0.6]}}]")
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("config, overrides", [
     ("valid_region_two_link", ("n_configs=4",)),
-    ("ablation_ekm_two_link", ("n_configs=1",)),
+    ("ablation_ekm_two_link", ("n_configs=1", "n_trials=1", "iterations=[2, 10]", EKM_METHODS)),
 ])
 def test_sweep_figures_agree_across_code_generators(tmp_path, config, overrides):
-    _sweep(config, tmp_path / "ours", {"SELFID_JAX_NO_XLA_FLAGS": "0"}, *overrides)
-    _sweep(config, tmp_path / "xla", {"SELFID_JAX_NO_XLA_FLAGS": "1"}, *overrides)
+    _sweep(config, tmp_path / "ours", True, *overrides)
+    _sweep(config, tmp_path / "xla", False, *overrides)
     res = compare_runs.compare(tmp_path / "ours", tmp_path / "xla")
     assert res["ok"], compare_runs.report(res)
