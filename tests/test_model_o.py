@@ -114,12 +114,38 @@ def test_jacobians_forward_mode_through_solve_and_rotation(hand):
 
 
 @pytest.mark.slow
-def test_mjx_matches_kinematic(hand, poses, mjx_batch):
+def test_mjx_matches_kinematic_and_its_settle_options_keep_the_pose(hand, poses, mjx_batch):
+    """MJX settling matches the kinematic equilibrium to POSE_TOL about the grasp. And settle.mjx_model's settling
+    options (one Newton iteration and 4 line-search steps a step, sparse mass matrix on CPU; the loop carrying the
+    state only), which the hand's MJX backend uses, settle 16 random commands to the pose MJX gives with the MJCF's
+    own options (up to 100 iterations, 50 line-search steps, dense) and to native MuJoCo's. One test: both parts run
+    the same compiled MJX settle (16 commands, the poses fixture), traced once (test_stewart_hand.py checks the
+    Stewart Hand's settling options the same way)."""
+    import dataclasses
+
     hm = mo.model_o(backend="mjx")
     extra = np.random.default_rng(12).uniform(-0.001, 0.001, (mjx_batch - 2, 3))
     Q = jnp.asarray(mo.model_o_home() + np.concatenate([OFFSETS[1:3], extra]))
     pm, pk = poses(hm, Q)[0], poses(hand, Q)[0]
     assert np.all(np.isfinite(pm)) and np.abs(pm - pk).max() < POSE_TOL
+
+    # the settling options, on 16 random commands within 1 mm of the grasp
+    mj, steps, tol = mo.model_o_mjmodel(), mo.MODEL_O_SETTLE_STEPS, mo.MODEL_O_SETTLE_TOL
+    qpos0, home = mo.model_o_keyframe()
+    q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (mjx_batch, 3))
+    inner, max_tilt = hm.params
+    mjcf = settle.mjx_model(mj, iterations=None, ls_iterations=None, sparse=False)
+    assert (int(inner.model.opt.iterations), int(inner.model.opt.ls_iterations)) == (1, 4)
+    assert (int(mjcf.opt.iterations), int(mjcf.opt.ls_iterations)) == (mj.opt.iterations, mj.opt.ls_iterations)
+    assert (hm.pose_fn.inner.max_steps, hm.pose_fn.inner.tol) == (steps, tol)
+    p_f, R_f = poses(hm, jnp.asarray(q))
+    p_m, R_m = poses(hm.replace(params=(dataclasses.replace(inner, model=mjcf), max_tilt)), jnp.asarray(q))
+    p_n, R_n, ok_n = settle.native_settle(mj, int(mj.site("pom").id), q, qpos0=qpos0, max_steps=steps, tol=tol)
+    assert ok_n.all() and np.all(np.isfinite(p_f)) and np.all(np.isfinite(p_m))
+    e_fm = np.abs(np.asarray(p_f) - np.asarray(p_m)).max(), np.abs(np.asarray(R_f) - np.asarray(R_m)).max()
+    e_fn = np.abs(np.asarray(p_f) - p_n).max(), np.abs(np.asarray(R_f) - R_n).max()
+    assert e_fm[0] < 1e-12 and e_fm[1] < 1e-10, e_fm
+    assert e_fn[0] < 1e-8 and e_fn[1] < 1e-6, e_fn
 
 
 @pytest.mark.slow

@@ -124,8 +124,15 @@ def test_native_system_by_callback(hand):
 
 
 @pytest.mark.slow
-def test_mjx_matches_kinematic_pose_and_jacobian(hand, poses, mjx_batch):
-    """MJX settling (float64): poses within 1e-6 m of Newton's; central-difference Jacobian within 1e-3."""
+def test_mjx_matches_kinematic_pose_and_jacobian_and_its_settle_options_keep_the_pose(hand, poses, mjx_batch):
+    """MJX settling (float64): poses within 1e-6 m of Newton's; central-difference Jacobian within 1e-3; NaN out of
+    range. And settle.mjx_model's settling options (one Newton iteration and 4 line-search steps a step, sparse mass
+    matrix on CPU; the loop carrying the state only), which the hand's MJX backend uses, settle 16 random commands
+    to the pose MJX gives with the MJCF's own options (up to 100 iterations, 50 line-search steps, dense) and to
+    native MuJoCo's. One test: both parts run the same compiled MJX settle (16 commands, the poses fixture), traced
+    once (the Model O's settling options are checked in test_model_o.py, beside its MJX pose)."""
+    from selfid_jax.systems.hands.stewart import STEWART_SETTLE_TOL
+
     mjx_hand = stewart_hand(backend="mjx")
     q = _box(4, 3)
     h = 1e-4  # settled to ~1e-9 m: a larger step keeps the settle error small against h
@@ -144,6 +151,23 @@ def test_mjx_matches_kinematic_pose_and_jacobian(hand, poses, mjx_batch):
     J_k = np.asarray(hand.jacobian(jnp.asarray(q[0])))
     assert np.max(np.abs(J_fd - J_k)) / np.max(np.abs(J_k)) < 1e-3
     assert np.all(np.isnan(p[-1])) and np.all(np.isnan(R[-1]))
+
+    # the settling options, on 16 random commands over the sampling box
+    mj, steps, tol = mujoco.MjModel.from_xml_path(STEWART_XML), STEWART_SETTLE_STEPS, STEWART_SETTLE_TOL
+    q = _box(11, mjx_batch)
+    inner = mjx_hand.params
+    mjcf = settle.mjx_model(mj, iterations=None, ls_iterations=None, sparse=False)
+    assert (int(inner.model.opt.iterations), int(inner.model.opt.ls_iterations)) == (1, 4)
+    assert (int(mjcf.opt.iterations), int(mjcf.opt.ls_iterations)) == (mj.opt.iterations, mj.opt.ls_iterations)
+    assert (mjx_hand.pose_fn.max_steps, mjx_hand.pose_fn.tol) == (steps, tol)
+    p_f, R_f = poses(mjx_hand, jnp.asarray(q))
+    p_m, R_m = poses(mjx_hand.replace(params=dataclasses.replace(inner, model=mjcf)), jnp.asarray(q))
+    p_n, R_n, ok_n = settle.native_settle(mj, int(mj.site("pom").id), q, max_steps=steps, tol=tol)
+    assert ok_n.all() and np.all(np.isfinite(p_f)) and np.all(np.isfinite(p_m))
+    e_fm, eR_fm = _pose_err(p_f, R_f, p_m, R_m)
+    e_fn, eR_fn = _pose_err(p_f, R_f, p_n, R_n)
+    assert e_fm < 1e-12 and eR_fm < 1e-10, (e_fm, eR_fm)
+    assert e_fn < 1e-8 and eR_fn < 1e-6, (e_fn, eR_fn)
 
 
 @pytest.mark.slow
@@ -164,8 +188,7 @@ def test_mjx_settle_loops_on_a_toy_model():
     @jax.jit
     def everything(c):
         (x_s, ok_s), g_s = jax.value_and_grad(lambda c_: pos(c_, "scan"), has_aux=True)(c)  # reverse mode
-        x_w, dx_w = jax.jvp(lambda c_: pos(c_, "while")[0], (c,), (jnp.ones_like(c),))  # forward mode
-        ok_w = pos(c, "while")[1]
+        x_w, dx_w, ok_w = jax.jvp(lambda c_: pos(c_, "while"), (c,), (jnp.ones_like(c),), has_aux=True)  # forward
         ok_short = settle.mjx_settle(model, d0, c, max_steps=3, tol=1e-10)[1]
         return x_s, ok_s, g_s, x_w, dx_w, ok_w, ok_short
 
@@ -214,42 +237,3 @@ def test_three_backends_agree_on_a_short_rollout(hand):
     for backend in ("mjx", "native"):
         np.testing.assert_allclose(runs[backend], runs["kinematic"], atol=1e-6, err_msg=backend)
     assert np.ptp(runs["kinematic"][:, 0]) > 5e-4  # the hand really moved
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["stewart", "model_o"])
-def test_settle_options_keep_the_settled_pose(name, poses, mjx_batch):
-    """settle.mjx_model's settling options (one Newton iteration and 4 line-search steps a step, sparse mass matrix
-    on CPU; the loop carrying the state only), which the hands' MJX backend uses, settle 16 random commands to the
-    pose MJX gives with the MJCF's own options (up to 100 iterations, 50 line-search steps, dense) and to native
-    MuJoCo's."""
-    from selfid_jax.systems.hands import model_o_hand as mo
-    from selfid_jax.systems.hands.stewart import STEWART_SETTLE_TOL
-
-    if name == "stewart":
-        mj, qpos0 = mujoco.MjModel.from_xml_path(STEWART_XML), None
-        steps, tol = STEWART_SETTLE_STEPS, STEWART_SETTLE_TOL
-        q = _box(11, mjx_batch)
-        fast = stewart_hand(backend="mjx")
-        inner = fast.params
-        with_model = lambda model: fast.replace(params=dataclasses.replace(inner, model=model))
-    else:
-        mj, steps, tol = mo.model_o_mjmodel(), mo.MODEL_O_SETTLE_STEPS, mo.MODEL_O_SETTLE_TOL
-        qpos0, home = mo.model_o_keyframe()
-        q = home + np.random.default_rng(11).uniform(-0.001, 0.001, (mjx_batch, 3))
-        fast = mo.model_o(backend="mjx")
-        inner, max_tilt = fast.params
-        with_model = lambda model: fast.replace(params=(dataclasses.replace(inner, model=model), max_tilt))
-    mjcf = settle.mjx_model(mj, iterations=None, ls_iterations=None, sparse=False)
-    assert (int(inner.model.opt.iterations), int(inner.model.opt.ls_iterations)) == (1, 4)
-    assert (int(mjcf.opt.iterations), int(mjcf.opt.ls_iterations)) == (mj.opt.iterations, mj.opt.ls_iterations)
-    settle_pose = fast.pose_fn if name == "stewart" else fast.pose_fn.inner
-    assert (settle_pose.max_steps, settle_pose.tol) == (steps, tol)
-    p_f, R_f = poses(fast, jnp.asarray(q))
-    p_m, R_m = poses(with_model(mjcf), jnp.asarray(q))
-    p_n, R_n, ok_n = settle.native_settle(mj, int(mj.site("pom").id), q, qpos0=qpos0, max_steps=steps, tol=tol)
-    assert ok_n.all() and np.all(np.isfinite(p_f)) and np.all(np.isfinite(p_m))
-    e_fm, eR_fm = _pose_err(p_f, R_f, p_m, R_m)
-    e_fn, eR_fn = _pose_err(p_f, R_f, p_n, R_n)
-    assert e_fm < 1e-12 and eR_fm < 1e-10, (e_fm, eR_fm)
-    assert e_fn < 1e-8 and eR_fn < 1e-6, (e_fn, eR_fn)
