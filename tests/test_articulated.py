@@ -179,12 +179,13 @@ def _objects(kind, n_rows, frictionloss=1.0):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind,steps", [("prismatic", 700), ("revolute", 900)])
+@pytest.mark.parametrize("kind,steps", [("prismatic", 600), ("revolute", 650)])
 def test_drawer_and_door_opened_by_both_controllers(kind, steps):
     """Tac-Man re-aiming (1 mm / 0.2 mm thresholds), TacMan-Turbo keeping u0 and with the integral lead open a drawer
     (> 250 mm) and a door (> 60 deg) under the weld grasp (about 7.3 kN/m) and 1 N friction, 5 N s/m damping.
 
-    Literal Turbo stalls; the lead keeps |v0| where keep_speed's proportional shear slows down."""
+    Literal Turbo stalls; the lead keeps |v0| where keep_speed's proportional shear slows down. The step budgets
+    (600, 650) are above the successful rows' needs (at most 544 and 560 steps) and the stalled row runs them all."""
     with jax.numpy_rank_promotion("allow"):
         arm, q0, p1, R1 = ur5e_arm()
         m, lay = scenes.compile_scene(kind, p1, R1)

@@ -17,6 +17,8 @@ STAR = paths.star(size=0.05, dim=3)
 CTRL = control.ControllerParams(max_step=0.004, tol=0.001)
 STEPS = 300
 OLD_DEFAULTS = control.ControllerParams(max_step=0.005, tol=0.002)  # what these tests were written with
+# one worker runs the module: the module-level jitted UR5e rollouts compile once, not once per worker
+pytestmark = pytest.mark.xdist_group("control")
 
 
 @pytest.fixture(scope="module")

@@ -138,8 +138,11 @@ def test_joint_limits_hold_and_bind():
 # ------------------------------------------------------------------ success rates
 @pytest.mark.slow
 def test_success_rate_on_random_reachable_targets_with_and_without_restarts(arm):
-    """Pose targets of random configurations: 73.5% from home, 98.5% with 8 restarts (probe: 78.6% / 96.9%)."""
-    n = 200
+    """Pose targets of 100 random configurations: 69% from home, 97% with 8 restarts (probe: 78.6% / 96.9%).
+
+    100 targets, not 200 (whose rates were 73.5% / 98.5%): a failing lane runs the batched solve to ``max_iters``,
+    so the test's time is mostly this runtime. The keys are fixed, so the rates are the measured ones."""
+    n = 100
     qs = jax.random.uniform(jax.random.key(1), (n, 5), minval=arm.q_low, maxval=arm.q_high)
     P, R = jax.vmap(arm.pose)(qs)
     home = jnp.asarray(ARM5_HOME)

@@ -27,6 +27,9 @@ PARITY_P = 1e-10  # m: site position vs native
 Q0 = np.asarray(UR5E_HOME)
 
 # arms: (kp, kv, gravcomp) -- the shipped servos sagging under gravity, with gravity compensation, underdamped
+# one worker runs the module: its compiled rollout (the `batched` fixture) is built once, not once per worker
+pytestmark = pytest.mark.xdist_group("dynamic_arm")
+
 ARMS = np.array([(500.0, 50.0, 0.0), (500.0, 50.0, 1.0), (500.0, 10.0, 1.0)])
 STEP_A = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.05])  # rad, per joint
 STEP_B = np.array([0.1, -0.1, 0.1, 0.1, -0.1, 0.1])

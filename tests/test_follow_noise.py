@@ -23,6 +23,8 @@ ARM = REGISTRY["two_link"].factory()
 PATH = paths.star(size=0.1, dim=2)
 CTRL = control.ControllerParams(max_step=0.01, tol=0.002)
 STEPS = 150
+# one worker runs the module: `follow_batch`, the start configurations and the tracking programs are built once
+pytestmark = pytest.mark.xdist_group("follow_noise")
 
 
 def follow_sensed(q0, pose_noise, rot_noise, key, latency=0):
@@ -88,6 +90,12 @@ def tracking_outputs(**overrides):
     return part, jax.jit(exp.batched(part.static))(part.params)
 
 
+@functools.cache
+def noisy_tracking():
+    """:func:`tracking_outputs` with a noise-free and a 0.5 mm level, computed once for the tests that read it."""
+    return tracking_outputs(pose_noise=[0.0, 5e-4], rot_noise=[0.0, 0.0])
+
+
 @pytest.mark.slow  # compiles the tracking program twice (with and without the tracker in the follow loop)
 def test_noise_free_rows_of_a_noisy_sweep_equal_the_noise_free_sweep():
     """The follow loop reads the tracker only where a level has noise; its noise-free rows (the real loop at zero
@@ -95,7 +103,7 @@ def test_noise_free_rows_of_a_noisy_sweep_equal_the_noise_free_sweep():
     this holds here (two-link, float64); XLA may fuse another system's program differently (the shipped UR5e cube's
     noise-free rows agree to float32 rounding). A config without noise levels compiles the program it always did."""
     plain_part, plain = tracking_outputs()
-    noisy_part, noisy = tracking_outputs(pose_noise=[0.0, 5e-4], rot_noise=[0.0, 0.0])
+    noisy_part, noisy = noisy_tracking()
     assert plain_part.static.max_latency is None and noisy_part.static.max_latency == 0
     clean = np.flatnonzero(noisy_part.meta["pose_noise"].to_numpy() == 0)
     np.testing.assert_array_equal(clean, np.arange(len(plain_part.meta)))
@@ -125,11 +133,11 @@ def test_readings_differ_from_the_pose_by_the_configured_sd(starts):
     np.testing.assert_allclose(np.asarray(geometry.so3_log(Rm)).std(axis=0), 0.01, rtol=0.06)
 
 
-@pytest.mark.slow  # compiles the tracking program
+@pytest.mark.slow  # the noisy tracking program (compiled once for this test and the noise-free rows' test)
 def test_tracking_error_grows_with_the_tracker_noise():
     """Two-link star: the analytical inverse's path error with 0.5 mm of noise on every reading is more than twice
     the noise-free one (which reads exact poses; its 0.09 mm is the corners cut by 10 mm steps)."""
-    part, out = tracking_outputs(pose_noise=[0.0, 5e-4], rot_noise=[0.0, 0.0])
+    part, out = noisy_tracking()
     noise = part.meta["pose_noise"].to_numpy()
     err = np.asarray(out.error_mm)[:, 1, :2].mean(axis=1)  # analytical inverse, x and y [mm]
     clean, noisy = err[noise == 0].mean(), err[noise > 0].mean()

@@ -28,6 +28,8 @@ ARM = REGISTRY["two_link"].factory()
 PATH = paths.star(size=0.2, dim=2)
 CTRL = control.ControllerParams(max_step=0.01, tol=0.002)
 STEPS = 200
+# one worker runs the module: `follow_batch` (module-level jit) and `starts` are built once, not once per worker
+pytestmark = pytest.mark.xdist_group("realism")
 
 
 def batch(fields: dict, n: int) -> R.Realism:

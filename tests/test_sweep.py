@@ -91,13 +91,18 @@ def test_hang_reproducer_refuses_bad_arguments_with_exit_2():
 
 
 @pytest.mark.slow
-def test_hang_reproducer_runs_two_parts_without_the_lock_and_each_switch():
-    """Tiny trials of the reproducer finish in every mode (two ``run_chunked`` parts, float32 and float64, in two
-    threads): exit 0 and one ``finished`` line each."""
+def test_hang_reproducer_runs_two_parts_without_the_lock_and_each_switch(tmp_path):
+    """Tiny trials of the reproducer finish in every mode (two float64 ``run_chunked`` parts in two threads, two
+    chunks each): exit 0 and one ``finished`` line each. The trials' children share a persistent
+    XLA cache (the run's, else a fresh one), so a mode with the same XLA flags as one before it loads the
+    compiled chunk program instead of compiling it again: the hang is in running programs, not compiling them."""
+    cache = os.environ.get("SELFID_JAX_TEST_CACHE_DIR") or str(tmp_path)
+    env = subprocess_env(JAX_ENABLE_X64="0", JAX_COMPILATION_CACHE_DIR=cache,
+                         JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
     for mode in ("none", "no-async", "no-eigen"):
         out = subprocess.run([sys.executable, str(HANG_REPRO), "--mode", mode, "--trials", "1", "--timeout", "120",
-                              "--rows", "48", "--chunk", "16", "--steps", "4", "--width", "8"],
-                             capture_output=True, text=True, timeout=600, env=subprocess_env(JAX_ENABLE_X64="0"))
+                              "--rows", "32", "--chunk", "16", "--steps", "4", "--width", "8"],
+                             capture_output=True, text=True, timeout=600, env=env)
         assert out.returncode == 0 and f"mode {mode}: 0 of 1 hung" in out.stdout, (mode, out.stdout, out.stderr)
 
 
