@@ -19,6 +19,7 @@ from helpers_sweep import RUNS, TESTS, make_inputs, reference, subprocess_env, s
 import selfid_jax.runner.sweep as sweep
 from selfid_jax import cli
 from selfid_jax import runner as experiment
+from selfid_jax._xla import QUICK_COMPILE_FLAGS
 from selfid_jax.runner.rundir import load_results, read_summary
 from selfid_jax.runner.sweep import SweepResumeError, row_keys, run_chunked
 
@@ -199,12 +200,17 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
 )
 
 
+# The subprocesses below compile at the tests' quick level (tests/conftest.py): what they check (device counts,
+# resuming, whole chunk files) does not depend on it, and their compile time is most of their run time.
+QUICK = " ".join(f"{k}={v}" for k, v in QUICK_COMPILE_FLAGS.items())
+
+
 @pytest.mark.slow
 def test_two_devices_match_one_device(tmp_path):
     script = TWO_DEVICE_SCRIPT.format(tests=str(TESTS), out=str(tmp_path))
     res = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
-        env=subprocess_env(XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"),
+        env=subprocess_env(XLA_FLAGS=f"--xla_force_host_platform_device_count=2 {QUICK}", JAX_PLATFORMS="cpu"),
     )
     assert res.returncode == 0 and "OK" in res.stdout, res.stderr[-3000:]
     _, params = make_inputs()
@@ -234,7 +240,7 @@ def test_resume_after_kill(tmp_path):
     """SIGKILL mid-sweep leaves only whole chunk files; the re-run finishes the rest."""
     proc = subprocess.Popen(
         [sys.executable, "-c", KILL_SCRIPT.format(tests=str(TESTS), out=str(tmp_path))],
-        env=subprocess_env(JAX_PLATFORMS="cpu"), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        env=subprocess_env(JAX_PLATFORMS="cpu", XLA_FLAGS=QUICK), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )
     chunk_dir = tmp_path / "chunks"
     deadline = time.monotonic() + 90
