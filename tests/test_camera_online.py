@@ -288,7 +288,9 @@ def test_online_session_self_identifies_and_follows_a_star_through_robot_sims_ca
         assert read_intrinsics(tmp_path / "camera.yaml").K.tolist() == scene.intrinsics.K.tolist()
         cfg = load_online_config(CONFIGS / "online_camera_sim.yaml", [
             f"robot.port={int(port_file.read_text())}", f"tracker.camera={url}",
-            f"tracker.camera_info={tmp_path / 'camera.yaml'}", "path.gain=0.8",  # fewer moves per waypoint
+            f"tracker.camera_info={tmp_path / 'camera.yaml'}",
+            # gain 1 and up to 3 cm a move (shipped 0.5 and 5 mm): about one move per waypoint, 11 instead of 44
+            "path.gain=1.0", "path.max_task_step=0.03",
             "safety.stale_s=2.0"])  # 2 loaded cores can starve a clock past the shipped 1 s (a safe stop)
         session = time.monotonic()
         result, _ = run_session(cfg, tmp_path / "run", config_path=CONFIGS / "online_camera_sim.yaml")

@@ -319,26 +319,38 @@ def franka_sim_available():
 
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "robot" / "online_franka_sim.yaml"
-# A 1 cm star: about half the following moves of the shipped 2 cm. Moves at half the FR3's dynamics limits, not the
-# shipped tenth: each move's trajectory takes 0.19 s instead of 0.41 s (franky-sim, 0.03 rad a joint) and its settling
-# (about 0.45 s, joint 7's stick-slip) is the same, so the three sessions' 120-odd moves take about 25 s less; the
-# settled poses, the estimate and every stop are as at 0.1 (landing error 2.7 mrad either way).
-SMALL = ["--set", "path.size=0.01", "--set", "robot.args.dynamics=0.5"]
+# Faster than the shipped config, the same checks: a 1 cm star (half the shipped 2 cm) followed at gain 1 with up
+# to 1 cm a move (shipped 0.5 and 5 mm): one move per waypoint, 10 to 14 moves instead of 27 to 29. Moves at the
+# FR3's full dynamics limits (shipped a tenth): franky-sim's trajectory for 0.03 rad a joint takes about 0.2 s
+# instead of 0.4 s, and its joints trail the trajectory's end by up to 0.03 rad, which they close with a time
+# constant of about 0.2 s. Settling: joint within settle_band 5 mrad of its target (shipped 2)
+# that moves less than band_tol 2 mrad per 0.1 s (shipped 0.5) is settled, about 0.3 s after the trajectory instead
+# of 0.6 s. A sample is unaffected by when it is read: the pose is libfranka's model at the joints of the same
+# reading. Self-ID samples take about 0.55 s instead of 0.75 s, following moves 0.5 s.
+SMALL = ["--set", "path.size=0.01", "--set", "path.gain=1.0", "--set", "path.max_task_step=0.01",
+         "--set", "robot.args.dynamics=1.0", "--set", "robot.args.settle_band=0.005",
+         "--set", "robot.args.band_tol=0.002"]
 
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("realtime")  # one real-time simulator at a time (tests/test_robot_sim.py too)
-def test_online_through_libfranka_on_franky_sim(franka_sim_available, tmp_path, capsys):
+def test_online_through_libfranka_on_franky_sim(franka_sim_available, tmp_path, capsys, monkeypatch):
     """3-D: converges, stops random motion, completes the star; ||J Ĵ - I||_F <= 0.08 against MuJoCo's Jacobian
-    at the start pose (0.026 measured; the estimate averages the Jacobian over the poses self-ID visits, within
-    0.03 rad a joint of the start, so it cannot be exact: up to 0.04 over twelve seeds of MuJoCo's own kinematics).
-    6-D: the simulator killed during self-ID stops the session cleanly (exit 3, a connection stop, a stop line in
-    the journal); --resume against a fresh simulator continues the logged samples, converges with the default
-    rule, completes the star; ||J Ĵ - I||_F <= 0.2 (0.062 measured; up to 0.12 over twelve seeds offline)."""
+    at the start pose (0.012-0.017 measured over three runs; the estimate averages the Jacobian over the poses
+    self-ID visits, within 0.03 rad a joint of the start, so it cannot be exact: up to 0.04 over twelve seeds of
+    MuJoCo's own kinematics). 6-D: the simulator killed during self-ID stops the session cleanly (exit 3, a
+    connection stop, a stop line in the journal); --resume against a fresh simulator continues the logged samples,
+    converges with the default rule, completes the star and draws the run's figures; ||J Ĵ - I||_F <= 0.2
+    (0.049-0.092 measured over three runs; up to 0.12 over twelve seeds offline). The first two sessions draw no
+    figures (about 4 s of plotting each, from a log like the third's; the figures are tested in
+    test_online_session and test_online_lab)."""
     from selfid_jax.cli import main
+    from selfid_jax.sessions import online_figures
 
     fr = franka_sim_available
     out3, out6 = tmp_path / "xyz", tmp_path / "6d"
+    draw = online_figures.write_figures
+    monkeypatch.setattr(online_figures, "write_figures", lambda run_dir: [])
     with fr.franky_sim(tmp_path / "sim.log"):
         assert main(["online", str(CONFIG), "--out", str(out3), *SMALL, "--quiet"]) == 0
     vendor_sim.converged_then_followed(out3, fr.session_error, 0.08)  # libfranka's model agrees with fr3.xml's
@@ -348,9 +360,11 @@ def test_online_through_libfranka_on_franky_sim(franka_sim_available, tmp_path, 
         vendor_sim.killed_during_selfid(lambda: main(["online", str(CONFIG), "--out", str(out6), *six]), sim,
                                         fr.PORT, out6, "libfranka")
     capsys.readouterr()
+    monkeypatch.setattr(online_figures, "write_figures", draw)
     with fr.franky_sim(tmp_path / "sim.log"):
         assert main(["online", str(CONFIG), "--out", str(out6), "--resume", *six]) == 0
     vendor_sim.converged_then_followed(out6, fr.session_error, 0.2, resumed=True)
+    assert {f.name for f in (out6 / "figures").iterdir()} >= {"convergence.png", "path.png", "estimate.png"}
 
 
 def test_settling_judges_a_whole_window_even_when_reads_are_slower_than_it(monkeypatch):

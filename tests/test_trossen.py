@@ -419,21 +419,34 @@ def test_the_vendor_driver_against_the_simulated_controller(trossen_sim_availabl
 
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "robot" / "online_trossen_sim.yaml"
-SMALL = ["--set", "path.size=0.01"]  # a 1 cm star: about half the following moves of the shipped 2 cm
+# Faster than the shipped config, the same checks: a 1 cm star (half the shipped 2 cm) followed at gain 1 with up to
+# 1 cm a move (shipped 0.5 and 5 mm): about one move per waypoint. Each move's trajectory takes 0.1 s (shipped 0.2)
+# and a joint within settle_band 5 mrad of its target (shipped 2) that moves less than band_tol 2 mrad per 0.1 s
+# (shipped 0.5) is settled: a move takes about 0.5 s instead of 0.7 s (trossen-arm-sim, 0.03 rad a joint, the
+# loaded 2-core machine). A sample is unaffected by when it is read: the controller reports the joints and the pose
+# of one cycle.
+SMALL = ["--set", "path.size=0.01", "--set", "path.gain=1.0", "--set", "path.max_task_step=0.01",
+         "--set", "robot.args.move_time_s=0.1", "--set", "robot.args.settle_band=0.005",
+         "--set", "robot.args.band_tol=0.002"]
 
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("realtime")  # one real-time simulator at a time (test_franka, test_robot_sim too)
-def test_online_through_trossen_arm_on_trossen_arm_sim(trossen_sim_available, tmp_path, capsys):
+def test_online_through_trossen_arm_on_trossen_arm_sim(trossen_sim_available, tmp_path, capsys, monkeypatch):
     """3-D: converges, stops random motion, completes the star; ||J Ĵ - I||_F <= 0.10 against MuJoCo's Jacobian at
     the start pose. 6-D: the simulator killed during self-ID stops the session cleanly (exit 3, a connection
     stop, a stop line in the journal); --resume against a fresh simulator continues the logged samples, converges,
-    completes the star; ||J Ĵ - I||_F <= 0.30. The driver's reference_error (its model from the controller's
-    kinematic parameters) agrees with MuJoCo's."""
+    completes the star and draws the run's figures; ||J Ĵ - I||_F <= 0.30. The driver's reference_error (its model
+    from the controller's kinematic parameters) agrees with MuJoCo's. The first two sessions draw no figures (about
+    4 s of plotting each, from a log like the third's; the figures are tested in test_online_session and
+    test_online_lab)."""
     from selfid_jax.cli import main
+    from selfid_jax.sessions import online_figures
 
     tr = trossen_sim_available
     out3, out6 = tmp_path / "xyz", tmp_path / "6d"
+    draw = online_figures.write_figures
+    monkeypatch.setattr(online_figures, "write_figures", lambda run_dir: [])
     with tr.trossen_sim(tmp_path / "sim.log"):
         assert main(["online", str(CONFIG), "--out", str(out3), *SMALL, "--quiet"]) == 0
     _, q0 = vendor_sim.converged_then_followed(out3, tr.session_error, 0.10)
@@ -444,8 +457,8 @@ def test_online_through_trossen_arm_on_trossen_arm_sim(trossen_sim_available, tm
         vendor_sim.killed_during_selfid(lambda: main(["online", str(CONFIG), "--out", str(out6), *six]), sim,
                                         tr.PORT, out6, "UDP")
     capsys.readouterr()
+    monkeypatch.setattr(online_figures, "write_figures", draw)
     with tr.trossen_sim(tmp_path / "sim.log"):
         assert main(["online", str(CONFIG), "--out", str(out6), "--resume", *six]) == 0
     vendor_sim.converged_then_followed(out6, tr.session_error, 0.30, reference_tol=0.02, resumed=True)
-
-
+    assert {f.name for f in (out6 / "figures").iterdir()} >= {"convergence.png", "path.png", "estimate.png"}
