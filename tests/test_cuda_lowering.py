@@ -8,10 +8,10 @@ StableHLO text then shows what would run per matrix or on the host there:
 * a host callback (``xla_ffi_python_gpu_callback`` and kin): the device waits on Python every call.
 
 Each program is lowered at a batch of 1,000 (the shapes that matter are the matrices', not the batch's), as the
-library runs it at scale: the self-ID step and Algorithm 1, the follow loop, a chunk of the valid-region map (ideal,
-servo and dynamic plants), the ablation's estimators (E-KM included), the Model O's settle and the articulated
-rollout, with short horizons (lowering does not unroll a scan or a while loop, so the horizon does not change the
-program's calls).
+library runs it at scale (the Model O's MJX settle at the hands' tests' batch of 16, to share their trace): the
+self-ID step and Algorithm 1, the follow loop, a chunk of the valid-region map (ideal, servo and dynamic plants),
+the ablation's estimators (E-KM included), the Model O's settle and the articulated rollout, with short horizons
+(lowering does not unroll a scan or a while loop, so the horizon does not change the program's calls).
 
 The host-bound backends are known and asserted as such: the Model O's ``native`` backend and the articulated
 rollout's ``native`` backend (the shipped ``configs/articulated/articulated.yaml``: its spring grasp runs on native
@@ -56,8 +56,9 @@ def offenders(f, *args) -> list[str]:
 
     Host callbacks are read off the jaxpr too: without a GPU, lowering one for CUDA raises (``the platform for
     the specified backend cpu is different from the lowering platform cuda``); a program that has one is then
-    reported by its callbacks alone."""
-    traced = jax.jit(f).trace(*args)
+    reported by its callbacks alone. An already jitted ``f`` is traced as it is (its trace cache: a test that
+    called it with the same shapes in this process has traced it already)."""
+    traced = (f if hasattr(f, "trace") else jax.jit(f)).trace(*args)
     host = _host_primitives(traced.jaxpr.jaxpr)
     try:
         text = traced.lower(lowering_platforms=("cuda",)).as_text()
@@ -258,12 +259,17 @@ def test_the_model_o_kinematic_settle_runs_on_the_device(model_o_commands):
 
 
 @slow_mjx
-def test_the_model_o_mjx_settle_runs_on_the_device(model_o_commands):
-    """The Model O settled in MJX, vmapped over 1,000 commands: its pose (cusolver_potrf_ffi on 1000 x 12 x 12,
-    MJX's Newton solver). Its forward-mode Jacobian is left out: the same calls, 13 s to trace."""
+@pytest.mark.xdist_group("model_o_mjx")  # on the worker that runs test_model_o.py's MJX test: one trace for both
+def test_the_model_o_mjx_settle_runs_on_the_device(poses, mjx_batch):
+    """The Model O settled in MJX: its pose (cusolver_potrf_ffi on 16 x 12 x 12, MJX's Newton solver), vmapped
+    over the hands' tests' MJX batch of 16 commands through the poses fixture, the very program test_model_o.py
+    runs, so this process traces it once (MJX tracing is most of the cost; the calls are per matrix whatever the
+    batch, and the batch of 1,000 lowers to the same calls). Its forward-mode Jacobian is left out: the same
+    calls, 13 s to trace."""
     from selfid_jax.systems.hands import model_o_hand as mo
 
-    assert offenders(jax.vmap(mo.model_o(backend="mjx").pose), model_o_commands) == []
+    commands = jnp.asarray(np.broadcast_to(mo.model_o_home(), (mjx_batch, 3)))
+    assert offenders(poses, mo.model_o(backend="mjx"), commands) == []
 
 
 def test_the_model_o_native_settle_is_the_known_host_bound_backend(model_o_commands):

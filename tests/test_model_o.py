@@ -114,6 +114,7 @@ def test_jacobians_forward_mode_through_solve_and_rotation(hand):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("model_o_mjx")  # with test_cuda_lowering.py's lowering of the same MJX program: one trace
 def test_mjx_matches_kinematic_and_its_settle_options_keep_the_pose(hand, poses, mjx_batch):
     """MJX settling matches the kinematic equilibrium to POSE_TOL about the grasp. And settle.mjx_model's settling
     options (one Newton iteration and 4 line-search steps a step, sparse mass matrix on CPU; the loop carrying the
