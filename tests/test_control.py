@@ -88,15 +88,18 @@ def test_steps_and_errors_match_closed_form_on_identity_system():
     sys2 = from_pose_fn(lambda params, q: jnp.stack([q[0], q[1], 0.0]), 2, task_dim=2, q_low=[-9, -9],
                         q_high=[9, 9], dq_max=[1, 1], m_a=0.01)
     path = jnp.array([[0.3, 0.0], [0.3, 0.23], [0.0, 0.0]])
-    res = control.follow(sys2, control.true_inverse(sys2), path, jnp.zeros(2),
-                         control.ControllerParams(max_step=0.007, tol=1e-9), steps=200)
+    skew = jnp.array([[1.0, 0.0], [0.8, 1.0]])
+    # both rollouts in one jitted program (op by op each was a few dozen small compilations)
+    res, skewed = jax.jit(lambda: (
+        control.follow(sys2, control.true_inverse(sys2), path, jnp.zeros(2),
+                       control.ControllerParams(max_step=0.007, tol=1e-9), steps=200),
+        control.follow(sys2, control.fixed(skew), path, jnp.zeros(2),
+                       control.ControllerParams(max_step=0.007, tol=1e-3), steps=200)))()
     lengths = np.linalg.norm(np.diff(np.vstack([np.zeros(2), path]), axis=0), axis=1)
     assert int(res.steps_used) == int(np.sum(np.ceil(lengths / 0.007)))
     assert float(res.completion) == 1.0 and float(res.max_error) < 1e-12
     # a skewed inverse Jacobian leaves the path; the numpy loop gives the same errors
-    skew = jnp.array([[1.0, 0.0], [0.8, 1.0]])
-    res = control.follow(sys2, control.fixed(skew), path, jnp.zeros(2),
-                         control.ControllerParams(max_step=0.007, tol=1e-3), steps=200)
+    res = skewed
     comp, mean_err, max_err, used, _, _ = ref.follow(
         lambda q: np.array([q[0], q[1], 0.0]), lambda q: np.asarray(skew), np.asarray(path), np.zeros(2),
         steps=200, max_step=0.007, tol=1e-3, dq_max=1.0, q_low=-9.0, q_high=9.0,
@@ -121,8 +124,10 @@ def test_estimate_or_true_lanes_are_fixed_and_true_inverse_and_the_result_holds_
                                                  steps=120))(jnp.array([False, True]))
 
     lanes = jax.jit(both)(est, q0)
-    for lane, src in ((0, control.fixed(est)), (1, control.true_inverse(arm))):
-        alone = control.follow(arm, src, path, q0, CTRL, steps=120)
+    # each source's own rollout: one jitted program for the two (op by op they were dozens of small compilations)
+    sources = (control.fixed(est), control.true_inverse(arm))
+    alones = jax.jit(lambda: [control.follow(arm, src, path, q0, CTRL, steps=120) for src in sources])()
+    for lane, alone in enumerate(alones):
         for a, b in zip(jax.tree.leaves(alone), jax.tree.leaves(jax.tree.map(lambda x, i=lane: x[i], lanes)),
                         strict=True):
             np.testing.assert_allclose(np.asarray(a, float), np.asarray(b, float), rtol=1e-12, atol=1e-12)
@@ -138,10 +143,11 @@ def test_divergent_and_singular_cases_fail_with_finite_metrics():
     arm = two_link()
     q0 = jnp.array([0.4, 1.2])
     path = paths.star(size=0.2, dim=2)
-    flipped = control.follow(arm, control.scaled_true_inverse(arm, -jnp.ones((2, 2))), path, q0, OLD_DEFAULTS,
-                             steps=300)
-    nan_jinv = control.follow(arm, lambda q: jnp.full((2, 2), jnp.nan), path, q0, OLD_DEFAULTS, steps=50)
-    singular = control.follow(arm, control.true_inverse(arm), path, jnp.array([0.4, 0.0]), OLD_DEFAULTS, steps=50)
+    # one jitted program for the three rollouts (op by op each was a few dozen small compilations)
+    flipped, nan_jinv, singular = jax.jit(lambda: (
+        control.follow(arm, control.scaled_true_inverse(arm, -jnp.ones((2, 2))), path, q0, OLD_DEFAULTS, steps=300),
+        control.follow(arm, lambda q: jnp.full((2, 2), jnp.nan), path, q0, OLD_DEFAULTS, steps=50),
+        control.follow(arm, control.true_inverse(arm), path, jnp.array([0.4, 0.0]), OLD_DEFAULTS, steps=50)))()
     for res in (flipped, nan_jinv, singular):
         assert bool(res.failed)
         for x in (res.completion, res.mean_error, res.max_error, res.waypoint_error, res.final_q):
@@ -159,9 +165,14 @@ def test_user_defined_three_link_arm_runs_through_selfid_and_control():
                         q_high=[3, 3, 3], dq_max=[0.1, 0.1, 0.1], m_a=0.02, sample_low=[-1, 0.3, 0.3],
                         sample_high=[1, 1.5, 1.5])
     q0 = arm3.sample_configs(jax.random.key(2), 1)[0]
-    r = selfid.run(arm3, jax.random.key(3), q0, iters=20, eps=0.05)
-    res = control.follow(arm3, control.fixed(r.estimate), paths.star(size=0.05, dim=2), r.env, OLD_DEFAULTS,
-                         steps=300)
+
+    @jax.jit  # one program (op by op, self-ID and the rollout were dozens of small compilations)
+    def selfid_then_follow(key, q0):
+        r = selfid.run(arm3, key, q0, iters=20, eps=0.05)
+        return control.follow(arm3, control.fixed(r.estimate), paths.star(size=0.05, dim=2), r.env, OLD_DEFAULTS,
+                              steps=300)
+
+    res = selfid_then_follow(jax.random.key(3), q0)
     assert float(res.completion) == 1.0 and not bool(res.failed)
 
 
@@ -182,10 +193,10 @@ def test_selfid_run_noise_jit_vmap_and_no_retrace():
     noisy = batch(keys, q0s, m_a, np.full(3, 1e-3))
     assert np.all(np.isfinite(noisy.estimates))
     assert not np.allclose(clean.V, noisy.V)
-    one = selfid.run(arm, keys[1], q0s[1], iters=10, eps=1e-3, m_a=0.02)
+    one = jax.jit(lambda k, q: selfid.run(arm, k, q, iters=10, eps=1e-3, m_a=0.02))(keys[1], q0s[1])  # unbatched
     np.testing.assert_allclose(clean.estimate[1], one.estimate, rtol=1e-9)
     # noise-free 2-link self-ID lands near the true inverse Jacobian where self-ID ended
-    truth = jax.vmap(arm.true_inverse_jacobian)(clean.env)
+    truth = jax.jit(jax.vmap(arm.true_inverse_jacobian))(clean.env)
     assert np.max(np.abs(clean.estimate - truth) / np.abs(truth).max(axis=(1, 2), keepdims=True)) < 0.1
 
 
@@ -203,9 +214,10 @@ def test_rollout_metrics_are_differentiable_in_the_inverse_jacobian_scale():
 
     g = jax.jit(jax.grad(err))(jnp.full((2, 2), 1.3))
     assert g.shape == (2, 2) and np.all(np.isfinite(g)) and np.abs(g).max() > 0
-    # first-order check against a central difference of the (piecewise smooth) error
+    # first-order check against a central difference of the (piecewise smooth) error (one jitted program, twice)
     d = jnp.zeros((2, 2)).at[0, 0].set(1e-4)
-    fd = (err(jnp.full((2, 2), 1.3) + d) - err(jnp.full((2, 2), 1.3) - d)) / 2e-4
+    err_jit = jax.jit(err)
+    fd = (err_jit(jnp.full((2, 2), 1.3) + d) - err_jit(jnp.full((2, 2), 1.3) - d)) / 2e-4
     np.testing.assert_allclose(g[0, 0], fd, rtol=0.2, atol=1e-6)
 
 
@@ -277,8 +289,8 @@ def test_a_pose_map_that_returns_nan_fails_the_rollout():
 
     arm = from_pose_fn(fk, 2, task_dim=2, q_low=-1, q_high=1, dq_max=0.1, m_a=0.01)
     line = jnp.array([[0.1, 0.0]])
-    res = control.follow(arm, control.fixed(jnp.eye(2)), line, jnp.zeros(2), control.ControllerParams(max_step=0.01,
-                         tol=1e-3), steps=40)
+    res = jax.jit(lambda: control.follow(arm, control.fixed(jnp.eye(2)), line, jnp.zeros(2),
+                                         control.ControllerParams(max_step=0.01, tol=1e-3), steps=40))()
     assert bool(res.failed) and float(res.completion) == 0.0
     assert 0.05 < float(res.final_q[0]) < 0.065  # frozen at the first configuration whose pose was lost
     for x in (res.mean_error, res.max_error, res.waypoint_error):

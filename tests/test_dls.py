@@ -164,21 +164,23 @@ def test_success_rate_on_random_reachable_targets_with_and_without_restarts(arm)
 def test_both_controllers_with_a_self_identified_inverse_jacobian():
     """Self-ID of the position task (Algorithm 1), then DLS / base-yaw IK with J = Jinv_hat^+ held fixed."""
     s = arm5(task_dim=3)
-    sid = selfid.run(s, jax.random.key(0), jnp.asarray(ARM5_HOME), iters=30, eps=0.5)
+    # one compiled program for self-ID and the pose after it (op by op it was dozens of small compilations)
+    sid, (p1, _) = jax.jit(lambda k, q: (r := selfid.run(s, k, q, iters=30, eps=0.5), s.pose(r.env)))(
+        jax.random.key(0), jnp.asarray(ARM5_HOME))
     q1 = sid.env
-    p1, _ = s.pose(q1)
     n = 64
     d = jax.random.normal(jax.random.key(3), (n, 3))
     d = d / jnp.linalg.norm(d, axis=1, keepdims=True) * jax.random.uniform(jax.random.key(4), (n, 1), minval=0.01,
                                                                             maxval=0.05)
     targets = p1[None, :] + d
+    positions = jax.jit(jax.vmap(lambda q: s.pose(q)[0]))
     for solver in (dls.ik, dls.base_yaw_ik):
         for method in dls.METHODS:
             res = jax.jit(jax.vmap(lambda t, solver=solver, method=method: solver(
                 s, q1, t, None, dls.DLSParams(), method=method, jinv=sid.estimate)))(targets)
             assert float(res.success.mean()) >= 0.95, (solver.__name__, method, float(res.success.mean()))
             # the reported error is measured on the arm, not on the estimate
-            p = jax.vmap(lambda q: s.pose(q)[0])(res.q)
+            p = positions(res.q)
             np.testing.assert_allclose(res.position_error, np.linalg.norm(np.asarray(targets) - np.asarray(p), axis=1),
                                        atol=1e-12)
 
