@@ -207,8 +207,10 @@ def test_demo_law_is_the_inverse_jacobian_law_and_keeps_the_start_jacobian():
         return control.follow_law(arm, demo.start_jacobian_law(arm, est, use_true), path, q0, ctrl, steps=120)
 
     lanes, (J0, seen) = jax.jit(jax.vmap(run))(jnp.array([False, True]))
-    for lane, use_true in enumerate((False, True)):
-        ref = control.follow(arm, control.estimate_or_true(est, use_true), path, q0, ctrl, steps=120)
+    # the references: one jitted program for both (op by op they were dozens of small compilations)
+    refs = jax.jit(lambda: [control.follow(arm, control.estimate_or_true(est, use_true), path, q0, ctrl, steps=120)
+                            for use_true in (False, True)])()
+    for lane, ref in enumerate(refs):
         got = jax.tree.map(lambda x, i=lane: x[i], lanes)
         for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got), strict=True):
             np.testing.assert_allclose(np.asarray(a, float), np.asarray(b, float), rtol=1e-12, atol=1e-12)
