@@ -1,6 +1,9 @@
 """The virtual robot over TCP on localhost (`selfid-jax robot-sim` in a process of its own) driven by the online
 runner end to end: self-ID, convergence, a star; and faults: tracker dropouts, a latency spike, a frozen tracker,
-the simulator killed mid-run (the runner stops, its log is intact, resume continues)."""
+the simulator killed mid-run (the runner stops, its log is intact, resume continues). Where no process of its own
+is needed (a check of what the client sees, a fault that no clock's timing decides, the fresh simulator a resumed
+session finds), robot-sim's robot and server run in the test's process (:func:`_sim_here`): a process start takes
+about 4 s."""
 
 from __future__ import annotations
 
@@ -94,9 +97,31 @@ def _mujoco_site(q) -> np.ndarray:
     return data.site("ee").xpos.copy()
 
 
-def test_client_sees_the_model_pose_servo_lag_latency_and_refused_moves(sims):
-    sim = sims(UR5E)
-    robot = RemoteRobot("127.0.0.1", sim.port, timeout_s=10)
+@contextlib.contextmanager
+def _sim_here(tmp_path: Path, text: str, name: str):
+    """robot-sim's robot and server in this process (``online_sim.listen``, what the command serves), on a free
+    port for the block: for faults that no clock's timing decides, without a process start (about 4 s each)."""
+    from selfid_jax.sessions import online_sim
+
+    cfg = tmp_path / f"{name}.yaml"
+    cfg.write_text(textwrap.dedent(text))
+    robot, server = online_sim.listen(online_sim.load_sim_config(cfg), 0)
+    robot.start()
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield server.port
+    finally:
+        server.shutdown()  # the serving thread ends at its next poll (after a delayed reply's sleep)
+
+
+def test_client_sees_the_model_pose_servo_lag_latency_and_refused_moves(tmp_path):
+    """Over TCP from robot-sim's robot and server (in this process; the end-to-end test below runs the command):
+    MuJoCo's pose of the joints read, the tracker's latency, the servo's first-order lag, refused moves."""
+    with _sim_here(tmp_path, UR5E, "client") as port:
+        _client_sees(RemoteRobot("127.0.0.1", port, timeout_s=10))
+
+
+def _client_sees(robot: RemoteRobot) -> None:
     lim = robot.limits()
     o = robot.read()
     np.testing.assert_allclose(o.position, _mujoco_site(o.q), atol=1e-12)  # at rest: the pose of q itself
@@ -127,7 +152,6 @@ def test_client_sees_the_model_pose_servo_lag_latency_and_refused_moves(sims):
     np.testing.assert_allclose(robot.read().q, seen[-1].q, atol=1e-12)  # refused moves moved nothing
     robot.close()
     robot.close()  # idempotent
-    assert "robot-sim: serving ur5e" in sim.stop()
 
 
 def test_online_ur5e_and_model_o_self_identify_then_follow_a_star_with_no_random_move_after(sims, tmp_path,
@@ -160,24 +184,7 @@ def test_online_ur5e_and_model_o_self_identify_then_follow_a_star_with_no_random
         moves = [r for r in records if r["e"] == "move" and r["phase"] == "selfid"]
         rejected = sum(1 for r in records if r["e"] == "sample" and not r.get("accepted", True))
         assert len(moves) == summary["converged_at"] + rejected
-        started[name].stop()
-
-
-@contextlib.contextmanager
-def _sim_here(tmp_path: Path, text: str, name: str):
-    """robot-sim's robot and server in this process (``online_sim.listen``, what the command serves), on a free
-    port for the block: for faults that no clock's timing decides, without a process start (about 4 s each)."""
-    from selfid_jax.sessions import online_sim
-
-    cfg = tmp_path / f"{name}.yaml"
-    cfg.write_text(textwrap.dedent(text))
-    robot, server = online_sim.listen(online_sim.load_sim_config(cfg), 0)
-    robot.start()
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        yield server.port
-    finally:
-        server.shutdown()  # the serving thread ends at its next poll (after a delayed reply's sleep)
+        assert f"robot-sim: serving {name}" in started[name].stop()
 
 
 def test_dropouts_are_rejected_and_a_latency_spike_or_a_frozen_tracker_stops_safely(sims, tmp_path):
