@@ -79,13 +79,13 @@ def test_jacrev_matches_jacfwd(hand):
 
 
 @pytest.mark.slow
-def test_unsafe_commands_give_nan(hand):
+def test_unsafe_commands_give_nan(hand, poses):
     """A leg outside [0.05, 0.07] m, or a pose off the home branch, gives NaN (never a wrong pose)."""
     bad = np.tile(HOME, (3, 1))
     bad[0, 0] = 0.0499
     bad[1, 3] = 0.0701
     bad[2] = [0.05, 0.07, 0.05, 0.07, 0.05, 0.07]  # in range, far off home: must be finite or NaN, never garbage
-    p, R = jax.vmap(hand.pose)(jnp.asarray(bad))
+    p, R = poses(hand, jnp.asarray(bad))
     assert np.all(np.isnan(p[:2])) and np.all(np.isnan(R[:2]))
     if np.all(np.isfinite(p[2])):  # if Newton converged there, the legs must have the commanded lengths
         leg = p[2][None, :] + np.asarray(R[2] @ hand.params.b.T).T - np.asarray(hand.params.a)
@@ -99,23 +99,23 @@ def test_unsafe_commands_give_nan(hand):
 
 
 @pytest.mark.slow
-def test_native_matches_kinematic_and_settles_within_half_budget(hand):
+def test_native_matches_kinematic_and_settles_within_half_budget(hand, poses):
     """64 asymmetric commands over the sampling box settle natively within half the budget, to <= 1e-6 m."""
     q = _box(2, 64)
     p_n, R_n, ok = stewart_native_batch(q, max_steps=STEWART_SETTLE_STEPS // 2)
     assert ok.all()
-    p_k, R_k = jax.vmap(hand.pose)(jnp.asarray(q))
+    p_k, R_k = poses(hand, jnp.asarray(q))
     ep, eR = _pose_err(p_n, R_n, p_k, R_k)
     assert ep < 1e-6 and eR < 1e-5, (ep, eR)
 
 
 @pytest.mark.slow
-def test_native_system_by_callback(hand):
+def test_native_system_by_callback(hand, poses):
     """backend="native": the pose map through jax.pure_callback, under jit and vmap."""
     native = stewart_hand(backend="native")
     q = jnp.asarray(_box(3, 2))
     p, R = jax.jit(jax.vmap(native.pose))(q)
-    p_k, R_k = jax.vmap(hand.pose)(q)
+    p_k, R_k = poses(hand, q)
     assert _pose_err(p, R, p_k, R_k)[0] < 1e-6
     p1, _ = jax.jit(native.pose)(q[0])
     np.testing.assert_allclose(p1, p[0], atol=1e-12)
@@ -142,13 +142,13 @@ def test_mjx_matches_kinematic_pose_and_jacobian_and_its_settle_options_keep_the
     batch = jnp.asarray(np.concatenate([q, q_fd, bad[None]]))
     assert batch.shape[0] == mjx_batch
     p, R = poses(mjx_hand, batch)
-    p_k, R_k = jax.vmap(hand.pose)(batch[:3])
+    p_k, R_k = poses(hand, batch[:3])  # the program test_unsafe_commands_give_nan runs
     ep, eR = _pose_err(p[:3], R[:3], p_k, R_k)
     assert ep < 1e-6 and eR < 1e-5, (ep, eR)
     ref = (p[0], R[0])
     V = jax.vmap(lambda pp, RR: mjx_hand.task_difference((pp, RR), ref))(p[3:15], R[3:15])
     J_fd = np.asarray((V[:6] - V[6:]) / (2 * h)).T
-    J_k = np.asarray(hand.jacobian(jnp.asarray(q[0])))
+    J_k = np.asarray(jax.jit(lambda s, q_: s.jacobian(q_))(hand, jnp.asarray(q[0])))
     assert np.max(np.abs(J_fd - J_k)) / np.max(np.abs(J_k)) < 1e-3
     assert np.all(np.isnan(p[-1])) and np.all(np.isnan(R[-1]))
 
@@ -224,7 +224,7 @@ def test_selfid_and_follow_rotation(hand):
 def test_three_backends_agree_on_a_short_rollout(hand):
     """The same controller rollout (a fixed inverse Jacobian from the kinematic hand) on all three backends."""
     q0 = jnp.asarray(HOME)
-    J = hand.true_inverse_jacobian(q0)
+    J = jax.jit(lambda s, q_: s.true_inverse_jacobian(q_))(hand, q0)
     path = sj.control.paths.star(size=0.002, dim=6)[:2]
     ctrl = sj.ControllerParams(max_step=0.0005, tol=0.0002, max_rot_step=0.01, rot_tol=0.005)
     runs = {}
