@@ -142,7 +142,7 @@ def test_observe_is_the_kinematic_site_pose(batched):
     """The site pose equals the kinematic UR5e's pose at the dynamic q (same site 'ee')."""
     _, tr, _ = batched
     i = _row(1, 1)
-    p, R = jax.vmap(ur5e(task_dim=6).pose)(jnp.asarray(tr.q[i, ::20]))
+    p, R = jax.jit(jax.vmap(ur5e(task_dim=6).pose))(jnp.asarray(tr.q[i, ::20]))  # one program, not op by op
     np.testing.assert_allclose(tr.p[i, ::20], np.asarray(p), atol=1e-12)
     np.testing.assert_allclose(tr.R[i, ::20], np.asarray(R), atol=1e-12)
 
