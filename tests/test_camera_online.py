@@ -255,6 +255,13 @@ def test_a_camera_that_cannot_be_used_is_an_error_naming_it_before_the_robot_is_
 
 
 # ------------------------------------------------------------------------------------------- end to end
+# The simulated camera at 20 frames a second with 0.05 s of latency (shipped 10 and 0.1 s), the session told so:
+# it waits 0.25 s after each move instead of 0.35 s (the servo's 0.1 s, a frame interval, the latency, 0.05 s to
+# spare), about 0.1 s less for each of some 45 moves. Rendering 320x240 frames at 20 a second is about a third of
+# the shipped 640x480 at 10.
+FAST_CAMERA = ["camera.fps=20", "camera.latency_s=0.05"]
+
+
 @pytest.mark.slow
 @pytest.mark.xdist_group("realtime")  # a real-time clock: beside test_robot_sim's, not against it
 def test_online_session_self_identifies_and_follows_a_star_through_robot_sims_camera(tmp_path, console):
@@ -274,7 +281,7 @@ def test_online_session_self_identifies_and_follows_a_star_through_robot_sims_ca
         pytest.skip(f"no OpenGL backend for headless rendering: {err}")
     port_file = tmp_path / "sim.port"
     args = [*console, "robot-sim", str(CONFIGS / "robot_sim_camera.yaml"), "--port", "0", "--port-file",
-            str(port_file), "--set", "camera.port=0", *sum((["--set", s] for s in view + files), [])]
+            str(port_file), "--set", "camera.port=0", *sum((["--set", s] for s in view + files + FAST_CAMERA), [])]
     started = time.monotonic()
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -291,7 +298,8 @@ def test_online_session_self_identifies_and_follows_a_star_through_robot_sims_ca
             f"tracker.camera_info={tmp_path / 'camera.yaml'}",
             # gain 1 and up to 3 cm a move (shipped 0.5 and 5 mm): about one move per waypoint, 11 instead of 44
             "path.gain=1.0", "path.max_task_step=0.03",
-            "safety.stale_s=2.0"])  # 2 loaded cores can starve a clock past the shipped 1 s (a safe stop)
+            "safety.stale_s=2.0",  # 2 loaded cores can starve a clock past the shipped 1 s (a safe stop)
+            "tracker.latency_s=0.05", "selfid.settle_s=0.25"])  # FAST_CAMERA's latency; its settle time
         session = time.monotonic()
         result, _ = run_session(cfg, tmp_path / "run", config_path=CONFIGS / "online_camera_sim.yaml")
         timing = f"robot-sim start {session - started:.0f} s, session {time.monotonic() - session:.0f} s"
