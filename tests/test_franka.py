@@ -320,13 +320,12 @@ def franka_sim_available():
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "robot" / "online_franka_sim.yaml"
 # Faster than the shipped config, the same checks: a 1 cm star (half the shipped 2 cm) followed at gain 1 with up
-# to 1 cm a move (shipped 0.5 and 5 mm): one move per waypoint, 10 to 14 moves instead of 27 to 29. Moves at the
-# FR3's full dynamics limits (shipped a tenth): franky-sim's trajectory for 0.03 rad a joint takes about 0.2 s
-# instead of 0.4 s, and its joints trail the trajectory's end by up to 0.03 rad, which they close with a time
-# constant of about 0.2 s. Settling: joint within settle_band 5 mrad of its target (shipped 2)
-# that moves less than band_tol 2 mrad per 0.1 s (shipped 0.5) is settled, about 0.3 s after the trajectory instead
-# of 0.6 s. A sample is unaffected by when it is read: the pose is libfranka's model at the joints of the same
-# reading. Self-ID samples take about 0.55 s instead of 0.75 s, following moves 0.5 s.
+# to 1 cm a move (shipped 0.5 and 5 mm): about one move per waypoint, 10 to 14 instead of 27 to 29. Moves at the
+# FR3's full dynamics limits (shipped a tenth, 0.5 before): franky-sim's joints trail the trajectory's end by up to
+# 0.03 rad and close that with a time constant of about 0.2 s, and a joint within settle_band 5 mrad of its target
+# (shipped 2) that moves less than band_tol 2 mrad per 0.1 s (shipped 0.5) is settled: 0.03 rad a joint takes about
+# 0.55 s (trajectory and settling) instead of 0.8 s at 0.5 (the loaded 2-core machine). A sample is unaffected by
+# when it is read: the pose is libfranka's model at the joints of the same reading.
 SMALL = ["--set", "path.size=0.01", "--set", "path.gain=1.0", "--set", "path.max_task_step=0.01",
          "--set", "robot.args.dynamics=1.0", "--set", "robot.args.settle_band=0.005",
          "--set", "robot.args.band_tol=0.002"]
