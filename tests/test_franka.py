@@ -335,12 +335,12 @@ SMALL = ["--set", "path.size=0.01", "--set", "path.gain=1.0", "--set", "path.max
 @pytest.mark.xdist_group("realtime")  # one real-time simulator at a time (tests/test_robot_sim.py too)
 def test_online_through_libfranka_on_franky_sim(franka_sim_available, tmp_path, capsys, monkeypatch):
     """3-D: converges, stops random motion, completes the star; ||J Ĵ - I||_F <= 0.08 against MuJoCo's Jacobian
-    at the start pose (0.012-0.017 measured over three runs; the estimate averages the Jacobian over the poses
+    at the start pose (0.012-0.018 measured over four runs; the estimate averages the Jacobian over the poses
     self-ID visits, within 0.03 rad a joint of the start, so it cannot be exact: up to 0.04 over twelve seeds of
     MuJoCo's own kinematics). 6-D: the simulator killed during self-ID stops the session cleanly (exit 3, a
     connection stop, a stop line in the journal); --resume against a fresh simulator continues the logged samples,
     converges with the default rule, completes the star and draws the run's figures; ||J Ĵ - I||_F <= 0.2
-    (0.049-0.092 measured over three runs; up to 0.12 over twelve seeds offline). The first two sessions draw no
+    (0.049-0.092 measured over four runs; up to 0.12 over twelve seeds offline). The first two sessions draw no
     figures (about 4 s of plotting each, from a log like the third's; the figures are tested in
     test_online_session and test_online_lab)."""
     from selfid_jax.cli import main
