@@ -314,8 +314,8 @@ def test_two_link_grid_plus_gradient_finds_the_fine_grid_optimum_and_it_grows_wi
     kw = dict(iters=12, n_trials=1, steps=435)
     coarse = np.geomspace(0.003, 0.3, 7)
     step = np.log(coarse[1] / coarse[0])
-    fine = np.geomspace(0.003, 0.3, 61)
-    opt = jax.jit(lambda p: design.optimize(system, p, coarse, key, q0s, ARM_PATH, opt_steps=30, learning_rate=0.1,
+    fine = np.geomspace(0.003, 0.3, 31)
+    opt = jax.jit(lambda p: design.optimize(system, p, coarse, key, q0s, ARM_PATH, opt_steps=15, learning_rate=0.1,
                                             **kw))
     brute = jax.jit(jax.vmap(lambda m, p: design.design_loss(system, p._replace(log_m_a=jnp.log(m)), key, q0s,
                                                              ARM_PATH, **kw), in_axes=(0, None)))
