@@ -28,8 +28,10 @@ ARM = REGISTRY["two_link"].factory()
 PATH = paths.star(size=0.2, dim=2)
 CTRL = control.ControllerParams(max_step=0.01, tol=0.002)
 STEPS = 200
-# one worker runs the module: `follow_batch` (module-level jit) and `starts` are built once, not once per worker
-pytestmark = pytest.mark.xdist_group("realism")
+# the tests of `follow_batch` (a module-level jit) and `starts` run on one worker, so those are built once, not once
+# per worker (not the module: a shipped_xla test must not be grouped, conftest re-runs it by its id, which
+# pytest-xdist suffixes with the group)
+follow_batch_group = pytest.mark.xdist_group("realism_follow_batch")
 
 
 def batch(fields: dict, n: int) -> R.Realism:
@@ -79,6 +81,7 @@ def test_deadband_commands_below_it_never_move():
 
 
 @pytest.mark.slow
+@follow_batch_group
 def test_deadband_in_the_loop_every_step_below_it_never_moves(starts):
     """Each step is clipped to dq_max = 0.1 rad, below a deadband of 0.2 rad: the arm never moves (the controller
     commands from the measured q, so the small steps do not add up)."""
@@ -90,6 +93,7 @@ def test_deadband_in_the_loop_every_step_below_it_never_moves(starts):
 
 
 @pytest.mark.slow
+@follow_batch_group
 def test_latency_the_reading_at_step_k_is_the_true_pose_at_k_minus_L(starts):
     lat = np.array([0, 1, 2, 3])
     res = follow_batch(starts, batch({"latency": lat}, 4), keys(4))
@@ -102,6 +106,7 @@ def test_latency_the_reading_at_step_k_is_the_true_pose_at_k_minus_L(starts):
 
 
 @pytest.mark.slow
+@follow_batch_group
 def test_noise_the_empirical_sd_of_the_readings_matches(starts):
     sd = np.array([1e-4, 1e-4, 3e-4, 3e-4])
     res = follow_batch(starts, batch({"noise_pos": sd}, 4), keys(4))
@@ -119,6 +124,7 @@ def test_noise_the_empirical_sd_of_the_readings_matches(starts):
 
 
 @pytest.mark.slow
+@follow_batch_group
 def test_dropout_rate_within_binomial_bounds_and_every_metric_finite(starts):
     p = np.array([0.0, 0.1, 0.3, 0.6])
     res = follow_batch(starts, batch({"dropout": p, "noise_pos": 1e-4}, 4), keys(4))
@@ -131,6 +137,7 @@ def test_dropout_rate_within_binomial_bounds_and_every_metric_finite(starts):
 
 
 @pytest.mark.slow
+@follow_batch_group
 def test_a_dropped_reading_makes_no_command_that_step(starts):
     """The live runner's rule in the simulation: a step whose reading dropped out does not move the arm (no latency,
     no noise: a reading that differs from the pose is a held, dropped one)."""
@@ -148,6 +155,7 @@ def test_a_dropped_reading_makes_no_command_that_step(starts):
 # ------------------------------------------------------------------ IDEAL is the ideal loop
 
 @pytest.mark.slow
+@follow_batch_group
 def test_ideal_follow_equals_the_loop_without_realism_bit_for_bit(starts):
     plain = jax.jit(jax.vmap(lambda q: control.follow(ARM, control.true_inverse(ARM), PATH, q, CTRL, steps=STEPS,
                                                       return_trajectory=True)))(starts)
