@@ -71,7 +71,10 @@ def pytest_pyfunc_call(pyfuncitem):
     if not (_LEVEL_0 and pyfuncitem.get_closest_marker("shipped_xla")):
         return None
     flags = os.environ["XLA_FLAGS"].replace(f"{_OPT_FLAG}=0", f"{_OPT_FLAG}=3")
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", pyfuncitem.nodeid],
+    nodeid, suffix = pyfuncitem.nodeid, _group_suffix(pyfuncitem)
+    if suffix and nodeid.endswith(suffix):  # the id without pytest-xdist's group suffix, as a command line names it
+        nodeid = nodeid[:-len(suffix)]
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", nodeid],
                           cwd=pyfuncitem.config.rootpath, env={**os.environ, "XLA_FLAGS": flags},
                           capture_output=True, text=True)
     if proc.returncode != 0 or not re.search(r"^1 passed", proc.stdout, re.M):
@@ -96,16 +99,22 @@ def pytest_collection_modifyitems(config, items):
     if not getattr(config.option, "loadgroup", False):  # set on workers under --dist loadgroup only
         return
     for item in items:
-        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
-                        for m in item.iter_markers("xdist_group")})
-        suffix = "@" + "_".join(names)
-        if not names or item.nodeid.endswith(suffix):  # none, or xdist's own suffix took
+        suffix = _group_suffix(item)
+        if not suffix or item.nodeid.endswith(suffix):  # none, or xdist's own suffix took
             continue
         if not hasattr(item, "_id"):
             raise pytest.UsageError(f"cannot group {item.nodeid} under --dist loadgroup: this pytest keeps neither "
                                     "the id pytest-xdist writes nor a structured _id")
         item._id = type(item._id).parse(item.nodeid + suffix)
         assert item.nodeid.endswith(suffix), item.nodeid
+
+
+def _group_suffix(item) -> str:
+    """``"@NAME"`` that pytest-xdist's loadgroup appends to the id of a test marked ``xdist_group(NAME)`` (names
+    sorted and joined by ``_`` for several marks); ``""`` for a test with none."""
+    names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                    for m in item.iter_markers("xdist_group")})
+    return "@" + "_".join(names) if names else ""
 
 
 def _use_test_cache():
