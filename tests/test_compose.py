@@ -9,7 +9,9 @@ from selfid_jax.math import geometry
 from selfid_jax.systems import compose, from_pose_fn, hands
 from selfid_jax.systems.ur5e import ur5e
 
-pytestmark = pytest.mark.slow  # compiles the closed-chain hand's implicit derivatives
+# compiles the closed-chain hand's implicit derivatives; one xdist worker for the module, so the program of the
+# module fixture `evaluated` (both tests read it) is compiled once, not on each worker
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("compose")]
 
 
 @pytest.fixture(scope="module")
