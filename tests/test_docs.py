@@ -275,7 +275,8 @@ def test_the_example_driver_self_identifies_and_follows(tmp_path):
 
 _SITE = {
     "index.md": "# Home\n\n```{toctree}\n:caption: Guides\n\nguide\na/index\n```\n\n"
-                "```{toctree}\n:caption: Reference\n:titlesonly:\n\nb/ref\n```\n\n```{toctree}\n:hidden:\n\nb/hidden\n```\n",
+                "```{toctree}\n:caption: Reference\n:titlesonly:\n\nb/ref\n```\n\n"
+                "```{toctree}\n:hidden:\n\nb/hidden\n```\n",
     "guide.md": "# Guide\n\n## A section\n\ntext\n\n### A subsection\n\ntext\n",
     "a/index.md": "# Part A\n\n```{toctree}\n\nx\ny\n```\n",
     "a/x.md": "# X\n\n## X's section\n\n```{py:function} f(x)\n\nA function: an object entry in the ToC.\n```\n",
