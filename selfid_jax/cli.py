@@ -38,13 +38,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     (:mod:`selfid_jax.commands.fit`); the exit code.
 
     As the console script (``argv`` None) it first takes over SIGINT and SIGTERM
-    (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported; for ``demo`` it also asks XLA for quick
-    compiles (:func:`selfid_jax._xla.request_quick_compile`: LLVM level 0, unless ``XLA_FLAGS`` sets a level).
+    (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported, and collects garbage less often while it
+    traces (:func:`selfid_jax._gc.collect_less_often`); for ``demo`` it also asks XLA for quick compiles
+    (:func:`selfid_jax._xla.request_quick_compile`: LLVM level 0, unless ``XLA_FLAGS`` sets a level).
     """
     from selfid_jax.runner import signals
 
     if argv is None:
         signals.install()
+        from selfid_jax._gc import collect_less_often
+
+        collect_less_often()
         if sys.argv[1:2] == ["demo"]:  # compile-bound: each of its programs runs once, on small batches
             from selfid_jax._xla import request_quick_compile
 

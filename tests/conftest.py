@@ -12,6 +12,7 @@ import jax
 import pytest
 
 import selfid_jax  # sets the CPU XLA flags before JAX initialises
+from selfid_jax._gc import collect_less_often
 
 try:  # the top-level experiments/ is selfid_jax.experiments only in an install (editable, for the tests)
     import selfid_jax.experiments  # noqa: F401
@@ -32,6 +33,7 @@ _OPT_FLAG = "--xla_backend_optimization_level"
 _LEVEL_0 = f"{_OPT_FLAG}=0" in os.environ["XLA_FLAGS"].split()
 
 jax.config.update("jax_enable_x64", True)
+collect_less_often()  # as the console script does: the tests are compile-bound (the tracing's share of the collector)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 # One persistent XLA compilation cache for the whole test run, empty at its start: a program that several tests,

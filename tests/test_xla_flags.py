@@ -1,12 +1,14 @@
 """The CPU XLA flags set at import: merged with the user's, opt-out honoured, gated by jaxlib release, active in a fresh
-process."""
+process; the console script's garbage-collector thresholds."""
 
+import gc
 import os
 import subprocess
 import sys
 
 import pytest
 
+from selfid_jax._gc import TRACING_THRESHOLD, collect_less_often
 from selfid_jax._xla import (
     DEFAULT_XLA_FLAGS,
     MIN_JAXLIB,
@@ -77,12 +79,28 @@ def test_quick_compile_adds_level_0_unless_a_level_is_set(monkeypatch):
     assert os.environ["XLA_FLAGS"] == "--foo=1"
 
 
+def test_collect_less_often_raises_each_threshold_to_the_tracing_one_and_never_lowers_one():
+    before = gc.get_threshold()
+    try:
+        gc.set_threshold(700, 10, 10)  # Python's default
+        collect_less_often()
+        assert gc.get_threshold() == TRACING_THRESHOLD == (10_000, 10, 10)
+        gc.set_threshold(50_000, 5, 100)
+        collect_less_often()
+        assert gc.get_threshold() == (50_000, 10, 100)
+    finally:
+        gc.set_threshold(*before)
+
+
 @pytest.mark.slow
-def test_console_script_asks_for_quick_compiles_for_the_demo_only():
-    code = ("import os, sys\nfrom selfid_jax.cli import main\nsys.argv = ['selfid-jax', *sys.argv[1:], '--help']\n"
-            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('FLAGS', os.environ.get('XLA_FLAGS', ''))")
+def test_console_script_asks_for_quick_compiles_for_the_demo_only_and_collects_less_often():
+    code = ("import gc, os, sys\nfrom selfid_jax.cli import main\nsys.argv = ['selfid-jax', *sys.argv[1:], '--help']\n"
+            "print('GC0', gc.get_threshold())\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('GC', gc.get_threshold())\n"
+            "print('FLAGS', os.environ.get('XLA_FLAGS', ''))")
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "SELFID_JAX_NO_XLA_FLAGS")}
     for command, quick in (("demo", True), ("sweep", False)):
         out = subprocess.run([sys.executable, "-c", code, command], env=env, capture_output=True, text=True,
                              check=True).stdout
         assert ("--xla_backend_optimization_level=0" in out.split("FLAGS", 1)[1]) == quick, out
+        assert "GC0 (700, 10, 10)" in out and f"GC {TRACING_THRESHOLD}" in out, out
