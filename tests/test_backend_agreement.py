@@ -73,9 +73,10 @@ def test_compare_runs_on_made_up_runs(tmp_path):
 
 
 # What ``selfid-jax sweep`` runs, without drawing the figures (compare_runs reads results.parquet and summary.json
-# only): validate the config with the overrides, run the experiment into the run directory; print the XLA flags
-# the process ran under.
-_RUN = ("import os, sys; from selfid_jax.runner import execute, registry; "
+# only): the console script's collector thresholds, validate the config with the overrides, run the experiment into
+# the run directory; print the XLA flags the process ran under.
+_RUN = ("import os, sys; from selfid_jax._gc import collect_less_often; collect_less_often(); "
+        "from selfid_jax.runner import execute, registry; "
         "cfg = registry.load(sys.argv[1], sys.argv[3:]); execute.run(registry.get(cfg.experiment), cfg, sys.argv[2]); "
         "print(os.environ.get('XLA_FLAGS', ''))")
 
