@@ -251,6 +251,48 @@ def test_the_vendor_driver_is_released_when_connecting_fails(clock):
     assert made[0].cleaned == 1
 
 
+def test_a_controller_that_sends_no_joint_outputs_yet_is_configured_again_until_connect_timeout_s(clock):
+    """libtrossen_arm's configure gives up within a second on a controller that took the TCP connection but sent no
+    joint outputs (a loaded machine's trossen-arm-sim did, 3 of 16 connects): the driver configures again with a
+    fresh vendor driver, the failed one cleaned up, until connect_timeout_s; any other failure is raised at once."""
+    no_outputs = ("Failed to receive initial joint outputs Please refer to our troubleshooting guide at "
+                  "https://docs.trossenrobotics.com/trossen_arm/main/troubleshooting.html")
+
+    def vendor(failures: int, message: str = no_outputs):
+        fake = fake_trossen_arm(clock)
+        made, original = [], fake.TrossenArmDriver
+
+        def make():
+            driver = original()
+            if len(made) < failures:
+                def configure(*args, **kwargs):
+                    raise fake.RuntimeError(message)
+                driver.configure = configure
+            made.append(driver)
+            return driver
+        fake.TrossenArmDriver = make
+        return fake, made
+
+    fake, made = vendor(2)
+    t0 = clock.t
+    arm = Trossen("10.0.0.3", trossen_arm=fake, connect_timeout_s=2.0)
+    assert len(made) == 3 and arm.arm is made[2] and [d.cleaned for d in made] == [1, 1, 0]
+    assert clock.t - t0 == pytest.approx(0.2)  # a 0.1 s pause before each new try
+    assert made[2].configured[-1] == pytest.approx(1.8)  # the TCP timeout is what is left of connect_timeout_s
+    assert arm.arm.commands == []  # nothing moved
+
+    fake, made = vendor(10**6)
+    t0 = clock.t
+    with pytest.raises(RobotConnectionError, match="Trossen connect at 10.0.0.3: Failed to receive initial joint"):
+        Trossen("10.0.0.3", trossen_arm=fake, connect_timeout_s=1.0)
+    assert 1.0 - 0.1 <= clock.t - t0 <= 1.0 + 1e-9 and 9 <= len(made) <= 11 and all(d.cleaned == 1 for d in made)
+
+    fake, made = vendor(1, "Failed to connect to the arm controller's TCP server at 10.0.0.3:50001 within 2 seconds")
+    with pytest.raises(RobotConnectionError, match="Failed to connect"):
+        Trossen("10.0.0.3", trossen_arm=fake, connect_timeout_s=5.0)
+    assert len(made) == 1 and made[0].cleaned == 1
+
+
 class ExternalTracker:
     """A position-only external tracker for the driver's ``tracker: "module:Class"``."""
 

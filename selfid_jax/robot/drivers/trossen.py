@@ -60,6 +60,7 @@ own; the ``trossen`` extra pins ``trossen-arm`` to the 1.11 series, which
 
 from __future__ import annotations
 
+import contextlib
 import re
 import time
 from typing import Any
@@ -88,6 +89,8 @@ __all__ = ["HINTS", "Trossen", "kinematic_model", "rotvec_quaternion"]
 
 N_JOINTS = 6  # the arm's joints; the gripper is the controller's seventh
 MODEL_TOL_M = 1e-3  # m: the kinematic model's pose must agree with the controller's this well
+_NO_OUTPUTS = re.compile(r"Failed to receive initial joint outputs")  # configure: TCP up, no UDP answer in time
+_RECONNECT_S = 0.1  # [s] the pause before configuring again after _NO_OUTPUTS
 _LINK = re.compile(r"\b(UDP|TCP)\b|initial joint outputs")  # libtrossen_arm's messages about the network link
 HINTS = (  # what libtrossen_arm's messages mean for the user, first match wins ({host}: robot.args.host)
     Hint(r"Failed to read TCP message.*(temporarily unavailable|timed out)",
@@ -225,25 +228,50 @@ class Trossen:
         self._model: Any = None  # the kinematic model (kinematic_model), built at the first jacobian()
         self._vendor = VendorErrors("Trossen", host, (ta.RuntimeError, ta.LogicError),
                                     lambda err: bool(_LINK.search(str(err))), HINTS)
-        self.arm: Any = ta.TrossenArmDriver()
+        self.arm: Any = None
         try:
             with self._vendor("connect"):
-                self.arm.configure(getattr(ta.Model, model), getattr(ta.StandardEndEffector, end_effector), host,
-                                   bool(clear_error), connect_timeout_s)
-                joints = int(self.arm.get_num_joints())
+                arm = self._configure(getattr(ta.Model, model), getattr(ta.StandardEndEffector, end_effector),
+                                      bool(clear_error), connect_timeout_s)
+                joints = int(arm.get_num_joints())
                 if joints != N_JOINTS + 1:
                     raise RobotError(f"Trossen at {host}: the controller reports {joints} joints, expected "
                                      f"{N_JOINTS} arm joints and a gripper")
-                self.arm.set_arm_modes(ta.Mode.position)
+                arm.set_arm_modes(ta.Mode.position)
             if start_q is not None:
                 with self._vendor("start"):
-                    self.arm.set_arm_positions(start_q.tolist(), start_time_s, False)
+                    arm.set_arm_positions(start_q.tolist(), start_time_s, False)
                 time.sleep(start_time_s)
                 wait_settled(lambda: self._state()[:2], start_q, self.settling, driver="Trossen",
                              monotonic=time.monotonic, sleep=time.sleep)
         except BaseException:
             self._release()
             raise
+
+    def _configure(self, model: Any, end_effector: Any, clear_error: bool, timeout_s: float) -> Any:
+        """``self.arm``, returned: a vendor driver configured against the controller at ``self.host`` within
+        ``timeout_s`` [s].
+
+        libtrossen_arm's ``configure`` bounds only the TCP connection by its timeout: a controller that takes the
+        connection but sends no joint outputs within the library's own retransmissions (under a second) fails it
+        (:data:`_NO_OUTPUTS`), as a controller that is starting, or a simulator on a busy machine, can. Such a
+        failure is tried again with a fresh vendor driver, the failed one cleaned up, until ``timeout_s`` has passed
+        since the first try; any other failure, or this one after the deadline, is raised with ``self.arm`` the
+        failed driver (the caller releases it). No motion is commanded here."""
+        ta = self.ta
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self.arm = ta.TrossenArmDriver()
+            try:
+                self.arm.configure(model, end_effector, self.host, clear_error, max(deadline - time.monotonic(), 0.1))
+                return self.arm
+            except ta.RuntimeError as err:
+                if not _NO_OUTPUTS.search(str(err)) or time.monotonic() + _RECONNECT_S >= deadline:
+                    raise
+            failed, self.arm = self.arm, None
+            with contextlib.suppress(ta.RuntimeError, ta.LogicError):
+                failed.cleanup()
+            time.sleep(_RECONNECT_S)
 
     @staticmethod
     def _target(target: Any, what: str = "target") -> np.ndarray:
