@@ -33,8 +33,8 @@ _OPT_FLAG = "--xla_backend_optimization_level"
 _LEVEL_0 = f"{_OPT_FLAG}=0" in os.environ["XLA_FLAGS"].split()
 
 jax.config.update("jax_enable_x64", True)
-collect_less_often()  # as the console script does: the tests are compile-bound (the tracing's share of the collector)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+collect_less_often()  # as the console script does: the tests are compile-bound (the tracing's share of the collector)
 
 # One persistent XLA compilation cache for the whole test run, empty at its start: a program that several tests,
 # pytest-xdist workers or the console-script subprocesses compile is compiled once (the tests build the same

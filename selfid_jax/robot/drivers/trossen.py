@@ -261,16 +261,16 @@ class Trossen:
         ta = self.ta
         deadline = time.monotonic() + timeout_s
         while True:
-            self.arm = ta.TrossenArmDriver()
+            arm = self.arm = ta.TrossenArmDriver()
             try:
-                self.arm.configure(model, end_effector, self.host, clear_error, max(deadline - time.monotonic(), 0.1))
-                return self.arm
+                arm.configure(model, end_effector, self.host, clear_error, max(deadline - time.monotonic(), 0.1))
+                return arm
             except ta.RuntimeError as err:
                 if not _NO_OUTPUTS.search(str(err)) or time.monotonic() + _RECONNECT_S >= deadline:
                     raise
-            failed, self.arm = self.arm, None
+            self.arm = None
             with contextlib.suppress(ta.RuntimeError, ta.LogicError):
-                failed.cleanup()
+                arm.cleanup()
             time.sleep(_RECONNECT_S)
 
     @staticmethod
