@@ -28,11 +28,12 @@ NATIVE = Extension(
     include_dirs=["selfid_jax/math/_native"],
     language="c++",
     # the vendored headers warn under GCC's defaults (-Wattributes, -Wreturn-type); -Wno-psabi: 32-byte vectors
-    # passed by value between the kernel's inline functions
-    extra_compile_args=["-std=c++17", "-O3", "-fno-math-errno", "-Wno-psabi", "-Wno-attributes", "-Wno-return-type"],
+    # passed by value between the kernel's inline functions; -g0 drops the debug information Python's own flags ask
+    # for (-g): the same machine code, the step's unit compiles in 11.3 instead of 15.2 s (6.3 MB object -> 0.45 MB)
+    extra_compile_args=["-std=c++17", "-O3", "-g0", "-fno-math-errno", "-Wno-psabi", "-Wno-attributes",
+                        "-Wno-return-type"],
     optional=True,
 )
-
 
 
 class ParallelBuildExt(build_ext):
