@@ -1,7 +1,7 @@
 """The test suite's two tiers as the README runs them: pytest seconds, wall seconds and the test count.
 
 Each run is a fresh ``python -m pytest -q -n 2 [-m "not slow"] tests`` from the
-project's root (its own empty compilation cache, as in CI). The suite compiles
+project's root (no compilation cache, as in CI). The suite compiles
 at LLVM optimisation level 0 (``tests/conftest.py``); ``--shipped`` also times
 the fast tier at level 3 (``XLA_FLAGS=--xla_backend_optimization_level=3``) in
 the same run, the baseline of the ratio. Goals: the fast tier under a minute
@@ -31,7 +31,7 @@ def one_tier(tier: str, level: int | None, timeout: int) -> dict:
     if tier == "fast":
         cmd[4:4] = ["-m", "not slow"]
     env = dict(os.environ)
-    env.pop("SELFID_JAX_TEST_CACHE_DIR", None)  # each run makes (and removes) its own empty cache
+    env.pop("SELFID_JAX_TEST_CACHE_DIR", None)  # each run without a compilation cache, as in CI
     if level is not None:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_backend_optimization_level={level}".strip()
     load = os.getloadavg()[0]

@@ -33,6 +33,7 @@ DEFAULT_XLA_FLAGS: dict[str, str] = {
 MIN_JAXLIB: dict[str, tuple[int, ...]] = {
     "--xla_cpu_use_fusion_emitters": (0, 6, 0),
     "--xla_cpu_experimental_ynn_fusion_type": (0, 8, 1),
+    "--xla_cpu_parallel_codegen_split_count": (0, 4, 32),
 }
 
 
@@ -67,12 +68,13 @@ def release_tuple(text: str) -> tuple[int, ...] | None:
     return tuple(parts) or None
 
 
-def defaults_for(version: tuple[int, ...] | None) -> dict[str, str]:
-    """The default flags this jaxlib release knows: those of :data:`DEFAULT_XLA_FLAGS` whose minimum it meets.
+def defaults_for(version: tuple[int, ...] | None, flags: dict[str, str] | None = None) -> dict[str, str]:
+    """The flags of ``flags`` (default :data:`DEFAULT_XLA_FLAGS`) that this jaxlib release knows: those whose
+    minimum (:data:`MIN_JAXLIB`) it meets.
 
     ``version`` None (unknown) keeps only the flags without a minimum.
     """
-    return {flag: value for flag, value in DEFAULT_XLA_FLAGS.items()
+    return {flag: value for flag, value in (DEFAULT_XLA_FLAGS if flags is None else flags).items()
             if flag not in MIN_JAXLIB or (version is not None and version >= MIN_JAXLIB[flag])}
 
 
@@ -102,17 +104,28 @@ def apply_default_xla_flags(defaults: dict[str, str] | None = None) -> None:
     os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS"), defaults)
 
 
-QUICK_COMPILE_FLAGS: dict[str, str] = {"--xla_backend_optimization_level": "0"}
-"""LLVM's optimisation level 0 for XLA's CPU code: XLA's graph passes (fusion, simplification) are unchanged, only
-the machine code is less optimised. XLA compiles the hands' pose programs in about half the time; the code runs slower
-(up to 4.4x for the hands' pose solve), and the results differ from level 3's by round-off."""
+QUICK_COMPILE_FLAGS: dict[str, str] = {"--xla_backend_optimization_level": "0",
+                                       "--xla_cpu_parallel_codegen_split_count": "1"}
+"""Quick compiles for a process whose programs each run once on small data. LLVM's optimisation level 0 for XLA's
+CPU code: XLA's graph passes (fusion, simplification) are unchanged, only the machine code is less optimised. XLA
+compiles the hands' pose programs in about half the time; the code runs slower (up to 4.4x for the hands' pose
+solve), and the results differ from level 3's by round-off. And each program's LLVM module compiled whole instead of
+split into parts for a thread pool (from jaxlib 0.4.32), which a compile does not win back on 2 cores (XLA's compile
+seconds over four test files 33.0 -> 30.6 s; ``selfid-jax demo`` 14.0-14.6 against 15.0-15.3 s wall). The split
+changes the code by round-off too: the demo's UR5e rows are bit-identical, its Model O estimates move by up to 8e-13
+(relative errors by 2e-13), and what it prints is the same."""
+
+
+def quick_compile_flags() -> dict[str, str]:
+    """:data:`QUICK_COMPILE_FLAGS` that the installed jaxlib knows (:func:`defaults_for`)."""
+    return defaults_for(jaxlib_version(), QUICK_COMPILE_FLAGS)
 
 
 def request_quick_compile() -> None:
-    """Merge :data:`QUICK_COMPILE_FLAGS` into ``os.environ['XLA_FLAGS']`` (a level the user set there wins).
+    """Merge :func:`quick_compile_flags` into ``os.environ['XLA_FLAGS']`` (a flag the user set there wins).
 
     For a process whose programs each run once on small data, where compile time is most of the wall time
     (``selfid-jax demo``: 20.3-20.6 against 25.8-26.1 s wall, CPU 24 against 38 s, two interleaved pairs on 2
-    cores). Takes effect only before JAX's first computation, as the default flags; the same opt-out.
+    cores, for level 0). Takes effect only before JAX's first computation, as the default flags; the same opt-out.
     """
-    apply_default_xla_flags(QUICK_COMPILE_FLAGS)
+    apply_default_xla_flags(quick_compile_flags())

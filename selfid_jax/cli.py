@@ -40,7 +40,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     As the console script (``argv`` None) it first takes over SIGINT and SIGTERM
     (:mod:`selfid_jax.runner.signals`), before JAX or pandas are imported, and collects garbage less often while it
     traces (:func:`selfid_jax._gc.collect_less_often`); for ``demo`` it also asks XLA for quick compiles
-    (:func:`selfid_jax._xla.request_quick_compile`: LLVM level 0, unless ``XLA_FLAGS`` sets a level).
+    (:func:`selfid_jax._xla.request_quick_compile`: LLVM level 0 and whole-module compiles, unless ``XLA_FLAGS`` sets
+    them).
     """
     from selfid_jax.runner import signals
 

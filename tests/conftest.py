@@ -19,7 +19,7 @@ try:  # the top-level experiments/ is selfid_jax.experiments only in an install 
 except ModuleNotFoundError as err:
     raise pytest.UsageError(f"{err}: the tests import the installed package; install this checkout editable first: "
                             "pip install -e '.[test,docs]' (the README's second command)") from None
-from selfid_jax._xla import QUICK_COMPILE_FLAGS, merged_xla_flags
+from selfid_jax._xla import merged_xla_flags, quick_compile_flags
 
 # The tests compile with LLVM's optimisation level 0: XLA's graph passes (fusion, simplification) are those of
 # the shipped build, only the machine code is less optimised. Most test programs run once on small shapes, so
@@ -28,7 +28,7 @@ from selfid_jax._xla import QUICK_COMPILE_FLAGS, merged_xla_flags
 # multiply-adds); tests marked `shipped_xla` re-run in a subprocess at the shipped level. A level set in
 # XLA_FLAGS by the user wins (XLA_FLAGS=--xla_backend_optimization_level=3 runs every test as shipped).
 # Set here, before JAX's first computation; pytest-xdist workers and subprocesses inherit it.
-os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS"), QUICK_COMPILE_FLAGS)
+os.environ["XLA_FLAGS"] = merged_xla_flags(os.environ.get("XLA_FLAGS"), quick_compile_flags())
 _OPT_FLAG = "--xla_backend_optimization_level"
 _LEVEL_0 = f"{_OPT_FLAG}=0" in os.environ["XLA_FLAGS"].split()
 
@@ -36,23 +36,24 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 collect_less_often()  # as the console script does: the tests are compile-bound (the tracing's share of the collector)
 
-# One persistent XLA compilation cache for the whole test run, empty at its start: a program that several tests,
-# pytest-xdist workers or the console-script subprocesses compile is compiled once (the tests build the same
-# systems and rollouts many times, each under a new jit). The controller makes the folder; workers and
-# subprocesses inherit it through the environment. Tests that need a cold process set SELFID_JAX_CACHE_DIR=off.
+# No persistent XLA compilation cache by default: the tests' programs are nearly all distinct, so a shared cache
+# for the run hit about a dozen times in the whole suite while writing every program over 0.2 s to disk (the whole
+# suite 446 -> 424 s and XLA's compile seconds 247 -> 213 without it and with QUICK_COMPILE_FLAGS' whole-module
+# compiles, 2026-12-07). The console script's own cache (runner.command_line) is off too, in the workers and in the
+# subprocesses that inherit their environment, so no test reads or writes ~/.cache. SELFID_JAX_TEST_CACHE_DIR names
+# a folder to keep the programs in across runs (a developer re-running the suite); tests that need a cold process
+# set SELFID_JAX_CACHE_DIR=off themselves.
 _CACHE_ENV = "SELFID_JAX_TEST_CACHE_DIR"
 
 
-_CREATED: list[str] = []
-
-
 def pytest_configure(config):
-    if not hasattr(config, "workerinput") and _CACHE_ENV not in os.environ:
-        import tempfile
-
-        _CREATED.append(tempfile.mkdtemp(prefix="selfid_jax_test_xla_"))
-        os.environ[_CACHE_ENV] = _CREATED[0]
-    _use_test_cache()
+    where = os.environ.get(_CACHE_ENV)
+    if not where:
+        os.environ["SELFID_JAX_CACHE_DIR"] = "off"
+        return
+    os.environ.setdefault("SELFID_JAX_CACHE_DIR", where)  # the console script's cache (runner.command_line)
+    jax.config.update("jax_compilation_cache_dir", where)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
 _SLOW_MODULE = re.compile(r"^pytestmark = \[?pytest\.mark\.slow\b", re.M)
@@ -85,11 +86,6 @@ def pytest_pyfunc_call(pyfuncitem):
     return True
 
 
-def pytest_unconfigure(config):
-    for where in _CREATED:  # only the folder this run made; one given in the environment is the user's
-        shutil.rmtree(where, ignore_errors=True)
-
-
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
     """``--dist loadgroup`` (pyproject.toml's addopts) keeps the tests of one ``xdist_group`` on one worker, as one
@@ -117,15 +113,6 @@ def _group_suffix(item) -> str:
     names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
                     for m in item.iter_markers("xdist_group")})
     return "@" + "_".join(names) if names else ""
-
-
-def _use_test_cache():
-    where = os.environ.get(_CACHE_ENV)
-    if not where:
-        return
-    os.environ.setdefault("SELFID_JAX_CACHE_DIR", where)  # the console script's cache (runner.command_line)
-    jax.config.update("jax_compilation_cache_dir", where)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 
 
 @pytest.fixture(scope="session")

@@ -19,7 +19,7 @@ from helpers_sweep import RUNS, TESTS, make_inputs, reference, subprocess_env, s
 import selfid_jax.runner.sweep as sweep
 from selfid_jax import cli
 from selfid_jax import runner as experiment
-from selfid_jax._xla import QUICK_COMPILE_FLAGS
+from selfid_jax._xla import quick_compile_flags
 from selfid_jax.runner.rundir import load_results, read_summary
 from selfid_jax.runner.sweep import SweepResumeError, row_keys, run_chunked
 
@@ -202,7 +202,7 @@ TWO_DEVICE_SCRIPT = textwrap.dedent(
 
 # The subprocesses below compile at the tests' quick level (tests/conftest.py): what they check (device counts,
 # resuming, whole chunk files) does not depend on it, and their compile time is most of their run time.
-QUICK = " ".join(f"{k}={v}" for k, v in QUICK_COMPILE_FLAGS.items())
+QUICK = " ".join(f"{k}={v}" for k, v in quick_compile_flags().items())
 
 
 @pytest.mark.slow

@@ -12,9 +12,11 @@ from selfid_jax._gc import TRACING_THRESHOLD, collect_less_often
 from selfid_jax._xla import (
     DEFAULT_XLA_FLAGS,
     MIN_JAXLIB,
+    QUICK_COMPILE_FLAGS,
     defaults_for,
     jaxlib_version,
     merged_xla_flags,
+    quick_compile_flags,
     release_tuple,
     request_quick_compile,
 )
@@ -47,6 +49,10 @@ def test_flags_only_for_jaxlib_releases_that_know_them():
     assert release_tuple("0.10.2+cuda12") == (0, 10, 2) and release_tuple("dev") is None
     assert jaxlib_version() is not None and jaxlib_version() >= (0, 4, 30)
     assert merged_xla_flags(None).split() == merged_xla_flags(None, defaults_for(jaxlib_version())).split()
+    # the quick-compile flags are gated the same way: the whole-module compile from jaxlib 0.4.32 (the released wheels)
+    level = "--xla_backend_optimization_level"
+    assert set(defaults_for((0, 4, 31), QUICK_COMPILE_FLAGS)) == {level} == set(defaults_for(None, QUICK_COMPILE_FLAGS))
+    assert defaults_for((0, 4, 32), QUICK_COMPILE_FLAGS) == QUICK_COMPILE_FLAGS == quick_compile_flags()
 
 
 def _flags_after_import(env_extra: dict[str, str]) -> str:
@@ -66,10 +72,12 @@ def test_import_sets_flags_and_opt_out_leaves_them():
     assert _flags_after_import({"XLA_FLAGS": "--foo=1", "SELFID_JAX_NO_XLA_FLAGS": "1"}) == "--foo=1"
 
 
-def test_quick_compile_adds_level_0_unless_a_level_is_set(monkeypatch):
+def test_quick_compile_adds_level_0_and_the_whole_module_compile_unless_set(monkeypatch):
     monkeypatch.delenv("SELFID_JAX_NO_XLA_FLAGS", raising=False)
-    for given, want in [("--foo=1", "--foo=1 --xla_backend_optimization_level=0"),
-                        ("--xla_backend_optimization_level=2", "--xla_backend_optimization_level=2")]:
+    split = "--xla_cpu_parallel_codegen_split_count"
+    for given, want in [("--foo=1", f"--foo=1 --xla_backend_optimization_level=0 {split}=1"),
+                        ("--xla_backend_optimization_level=2", f"--xla_backend_optimization_level=2 {split}=1"),
+                        (f"{split}=8", f"{split}=8 --xla_backend_optimization_level=0")]:
         monkeypatch.setenv("XLA_FLAGS", given)
         request_quick_compile()
         assert os.environ["XLA_FLAGS"] == want
