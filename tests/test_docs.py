@@ -292,13 +292,19 @@ def test_shared_navigation_leaves_every_page_byte_identical(tmp_path, monkeypatc
     """docs/_ext/shared_navigation.py (furo's navigation tree resolved once per folder): a small site with three
     toctrees in its index (captions, titlesonly, hidden), pages in the top folder and two subfolders, a nested
     toctree, sections, object entries and an orphan page builds to the same bytes in every HTML page with the
-    extension as without it; the shared trees were used (one per folder) and mark each page's own branch."""
+    extension as without it; the shared trees were used (one per folder) and mark each page's own branch, and furo's
+    navigation of every page came from the folder's rewritten tree (marked for the pages in a toctree, as it is for
+    the others), never from the fallback."""
     from sphinx.application import Sphinx
     from sphinx.util.docutils import docutils_namespace
 
     monkeypatch.syspath_prepend(str(ROOT / "docs" / "_ext"))
     import shared_navigation
 
+    drawn = []
+    for_page = shared_navigation._Marked.for_page
+    monkeypatch.setattr(shared_navigation._Marked, "for_page",
+                        lambda self, link: drawn.append((link, result := for_page(self, link), self.html)) or result)
     src = tmp_path / "src"
     for name, text in _SITE.items():
         (src / name).parent.mkdir(parents=True, exist_ok=True)
@@ -318,5 +324,10 @@ def test_shared_navigation_leaves_every_page_byte_identical(tmp_path, monkeypatc
     differ = [name for name in pages[False] if pages[True][name] != pages[False][name]]
     assert not differ, differ
     assert {key[0] for key in shared_navigation._NAVIGATION} == {"", "a", "b"}
+    assert {key[0] for key in shared_navigation._FURO} == {"", "a", "b"}
+    assert all(result is not None for _, result, _ in drawn), drawn
+    marked = {link for link, result, unmarked in drawn if result != unmarked}
+    assert len(drawn) == len(pages[True]), drawn
+    assert {"guide.html", "x.html", "y.html", "ref.html", "hidden.html"} <= marked, marked
     x = pages[True]["a/x.html"].decode()
     assert re.search(r'<li class="toctree-l2 current[^"]*"><a class="current reference internal" href="#">X</a>', x), x
