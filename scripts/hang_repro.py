@@ -12,7 +12,8 @@ has no result after ``--timeout`` seconds and then uses under 0.05 s of CPU in 1
 timeout); it is then killed with SIGKILL (SIGTERM did not stop the hung sweep). With ``--stacks DIR`` a hung
 trial's stacks are saved first: ``DIR/trial<k>.native.txt`` (``py-spy dump --native`` for the Python threads,
 ``gdb -batch -ex "thread apply all bt"`` for every thread, XLA's pools included, each if on ``PATH``) and
-``DIR/trial<k>.python.txt`` (``faulthandler`` on SIGUSR1).
+``DIR/trial<k>.python.txt`` (``faulthandler`` on SIGUSR1). A trial that fails (a non-zero exit) stops the run with
+exit status 3 and its stderr: for a crash or an abort, ``faulthandler``'s Python stack of every thread.
 
 Configurations (one switch at a time, as upstream reports name them for CPU hangs):
 
@@ -54,6 +55,7 @@ def child(mode: str, rows: int, chunk: int, steps: int, width: int, out: Path, c
     import faulthandler
 
     faulthandler.register(signal.SIGUSR1, all_threads=True)
+    faulthandler.enable(all_threads=True)  # a trial that aborts or crashes prints every thread's Python stack
     if mode == "no-eigen":
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_multi_thread_eigen=false").strip()
     import threading
