@@ -196,9 +196,7 @@ def _share_navigation(app, pagename, templatename, context, doctree):
 
         key, tree = resolved(options({k: v for k, v in _FURO_CALL.items() if k != "collapse"}))
         if key not in _FURO:
-            unmarked = builder.render_partial(tree)["fragment"] if tree is not None else \
-                builder.render_partial(None)["fragment"]
-            _FURO[key] = _Marked.parse(get_navigation_tree(unmarked))
+            _FURO[key] = _Marked.parse(get_navigation_tree(builder.render_partial(tree)["fragment"]))
         marked = _FURO[key]
         return None if marked is None else marked.for_page(builder.get_relative_uri(neutral, pagename))
 
@@ -221,9 +219,11 @@ def _furo_navigation(original):
 
 def setup(app):
     import furo
+    import furo.navigation
 
     compute = getattr(furo, "_compute_navigation_tree", None)
-    if callable(compute) and not hasattr(compute, "original"):
+    rewrite = getattr(furo.navigation, "get_navigation_tree", None)
+    if callable(compute) and callable(rewrite) and not hasattr(compute, "original"):  # else furo's own path, shared
         furo._compute_navigation_tree = _furo_navigation(compute)
     app.connect("html-page-context", _share_navigation, priority=400)  # before furo's handler (500)
     app.connect("builder-inited", lambda app: (_NAVIGATION.clear(), _FURO.clear()))
