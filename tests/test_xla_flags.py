@@ -110,5 +110,7 @@ def test_console_script_asks_for_quick_compiles_for_the_demo_only_and_collects_l
     for command, quick in (("demo", True), ("sweep", False)):
         out = subprocess.run([sys.executable, "-c", code, command], env=env, capture_output=True, text=True,
                              check=True).stdout
-        assert ("--xla_backend_optimization_level=0" in out.split("FLAGS", 1)[1]) == quick, out
+        flags = out.split("FLAGS", 1)[1].split()
+        assert ("--xla_backend_optimization_level=0" in flags) == quick, out
+        assert ("--xla_cpu_parallel_codegen_split_count=1" in flags) == quick, out
         assert "GC0 (700, 10, 10)" in out and f"GC {TRACING_THRESHOLD}" in out, out

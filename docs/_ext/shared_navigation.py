@@ -26,7 +26,7 @@ from sphinx.environment.adapters.toctree import global_toctree_for_doc
 
 _NAVIGATION: dict[tuple, nodes.Element | None] = {}
 _FURO: dict[tuple, _Marked | None] = {}
-_FURO_CALL = {"collapse": False, "titles_only": True, "maxdepth": -1, "includehidden": True}  # furo's own call
+_FURO_OPTIONS = {"titles_only": True, "maxdepth": -1, "includehidden": True}  # furo's own call, with collapse=False
 _TAG = re.compile(r"<(/?)([A-Za-z][A-Za-z0-9]*)((?:[^>\"']|\"[^\"]*\"|'[^']*')*)>")
 _VOID = frozenset({"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "wbr"})
 
@@ -78,7 +78,7 @@ class _Marked:
         found = self.links.get(html.escape(link, quote=True), [])
         if not found:
             return self.html
-        edits: dict[int, str] = {}  # tag index -> its new opening tag
+        edits: dict[int, str | None] = {}  # tag index -> its new opening tag (None: a tag this marking does not know)
         current_li: list[int] = []
         for a in found:
             edits[a] = _own_link(self._open(a))
@@ -91,10 +91,7 @@ class _Marked:
                         current_li.append(index)
                         box = [c for c in tag.children if self.tags[c].name == "input"]
                         if box:
-                            checked = _checked(self._open(box[0]))
-                            if checked is None:
-                                return None
-                            edits[box[0]] = checked
+                            edits[box[0]] = _checked(self._open(box[0]))
                     elif tag.name == "ul":
                         edits[index] = _with_class(self._open(index), "current")
                     else:
@@ -117,12 +114,10 @@ class _Marked:
         return self.html[self.tags[index].start:self.tags[index].end]
 
 
-def _with_class(tag: str | None, name: str, before: str | None = None) -> str | None:
+def _with_class(tag: str, name: str, before: str | None = None) -> str | None:
     """``tag`` (an opening tag) with ``name`` added to its class list: at the end, or before ``before`` where that is
     the list's last class (furo appends ``has-children`` after Sphinx's classes); a tag without attributes gets the
     attribute. None for a tag with other attributes but no class."""
-    if tag is None:
-        return None
     m = re.search(r'\sclass="([^"]*)"', tag)
     if m is None:
         bare = re.fullmatch(r"<([a-z]+)>", tag)
@@ -194,7 +189,7 @@ def _share_navigation(app, pagename, templatename, context, doctree):
         """furo's navigation tree of this page from the folder's rewritten tree; None where it cannot be marked."""
         from furo.navigation import get_navigation_tree
 
-        key, tree = resolved(options({k: v for k, v in _FURO_CALL.items() if k != "collapse"}))
+        key, tree = resolved(options(dict(_FURO_OPTIONS)))
         if key not in _FURO:
             _FURO[key] = _Marked.parse(get_navigation_tree(builder.render_partial(tree)["fragment"]))
         marked = _FURO[key]
